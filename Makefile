@@ -1,0 +1,14 @@
+PYTHON ?= python3
+.PHONY: install demo test test-fast bench
+
+install:
+	PYTHON=$(PYTHON) bash scripts/install.sh
+
+demo: install
+	slamreloc demo --workdir slamreloc-demo
+
+test: install
+	$(PYTHON) -m pytest -q
+
+bench: install
+	$(PYTHON) benchmarks/run_benchmark.py ../shared/data/7scenes_redkitchen --out BENCHMARKS-latest.md

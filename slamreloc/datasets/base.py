@@ -1,0 +1,42 @@
+"""The Dataset record shared by all layouts: frames grouped in sequences and splits."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from slamreloc.errors import InputError
+from slamreloc.types import Frame
+
+
+@dataclass
+class Dataset:
+    """Posed (or unposed) RGB-D frames. `depth_registered`: depth pixels align with RGB pixels."""
+
+    root: Path
+    kind: str  # "7scenes" | "tum" | "synthetic"
+    sequences: dict[str, list[Frame]]
+    splits: dict[str, list[str]] = field(default_factory=dict)  # "train"/"test" -> sequences
+    depth_registered: bool = False
+    depth_units_per_metre: float = 1000.0
+    roles: dict[str, str] = field(default_factory=dict)  # synthetic: sequence -> role
+
+    def frames(self, split: str = "all") -> list[Frame]:
+        """Frames of a split: "train", "test", "all", a role, or comma-separated sequences."""
+        return [f for seq in self.resolve_split(split) for f in self.sequences[seq]]
+
+    def resolve_split(self, split: str) -> list[str]:
+        if split == "all":
+            return list(self.sequences)
+        if split in self.splits:
+            return self.splits[split]
+        by_role = [s for s, r in self.roles.items() if r == split]
+        if by_role:
+            return by_role
+        names = [s.strip() for s in split.split(",")]
+        missing = [s for s in names if s not in self.sequences]
+        if missing:
+            known = ", ".join(["train", "test", "all", *self.roles.values(), *self.sequences])
+            raise InputError(f"{self.root}: unknown split or sequence '{missing[0]}' "
+                             f"(known: {known})")
+        return names

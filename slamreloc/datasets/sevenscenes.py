@@ -1,0 +1,92 @@
+"""7-Scenes layout (also written by the synthetic generator, which adds scene.json).
+
+    ROOT/seq-XX/frame-XXXXXX.{color.png|color.jpg, depth.png, pose.txt}
+    ROOT/TrainSplit.txt, ROOT/TestSplit.txt   lines "sequence1", ...   (optional)
+    ROOT/intrinsics.txt                       3x3 K (optional; default fx=fy=525, cx=320, cy=240)
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+from slamreloc.datasets.base import Dataset
+from slamreloc.datasets.io import image_size, read_intrinsics, read_pose
+from slamreloc.errors import InputError
+from slamreloc.types import Camera, Frame
+
+DEFAULT_K = (525.0, 525.0, 320.0, 240.0)
+_SEQ = re.compile(r"^seq-?(\d+)$")
+
+
+def is_sevenscenes(root: Path) -> bool:
+    return any(_SEQ.match(p.name) and p.is_dir() for p in root.iterdir())
+
+
+def load_sevenscenes(root: Path) -> Dataset:
+    root = Path(root)
+    scene = _read_scene_json(root)
+    camera = _camera(root)
+    sequences = {}
+    for seq_dir in sorted(p for p in root.iterdir() if p.is_dir() and _SEQ.match(p.name)):
+        frames = _sequence(seq_dir, camera)
+        if frames:
+            sequences[seq_dir.name] = frames
+    if not sequences:
+        raise InputError(f"{root}: 7-Scenes layout but no frame-XXXXXX.color.* files found")
+    splits = {}
+    for split, fname in (("train", "TrainSplit.txt"), ("test", "TestSplit.txt")):
+        if (root / fname).is_file():
+            splits[split] = _read_split(root / fname, sequences)
+    return Dataset(root, "synthetic" if scene else "7scenes", sequences, splits,
+                   depth_registered=bool(scene.get("depth_registered", False)),
+                   roles=scene.get("sequences", {}))
+
+
+def _read_scene_json(root: Path) -> dict:
+    path = root / "scene.json"
+    if not path.is_file():
+        return {}
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise InputError(f"{path}: not valid JSON ({err})") from None
+
+
+def _camera(root: Path) -> Camera:
+    first = next(iter(sorted(root.glob("seq*/frame-*.color.*"))), None)
+    if first is None:
+        raise InputError(f"{root}: no seq-XX/frame-XXXXXX.color.* images found")
+    width, height = image_size(first)
+    if (root / "intrinsics.txt").is_file():
+        k = read_intrinsics(root / "intrinsics.txt")
+        return Camera(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+    fx, fy, cx, cy = DEFAULT_K
+    return Camera(640, 480, fx, fy, cx, cy).scaled_to(width, height)
+
+
+def _sequence(seq_dir: Path, camera: Camera) -> list[Frame]:
+    frames = []
+    for color in sorted(seq_dir.glob("frame-*.color.*")):
+        stem = color.name.split(".")[0]
+        depth = seq_dir / f"{stem}.depth.png"
+        pose_path = seq_dir / f"{stem}.pose.txt"
+        frames.append(Frame(
+            name=f"{seq_dir.name}/{stem}", image_path=color, camera=camera,
+            depth_path=depth if depth.is_file() else None,
+            world_from_cam=read_pose(pose_path) if pose_path.is_file() else None,
+            sequence=seq_dir.name, timestamp=float(len(frames)) / 30.0))
+    return frames
+
+
+def _read_split(path: Path, sequences: dict) -> list[str]:
+    names = []
+    for line in path.read_text().split():
+        m = re.match(r"^sequence(\d+)$", line.strip())
+        if not m:
+            raise InputError(f"{path}: expected lines like 'sequence1', got '{line}'")
+        name = f"seq-{int(m.group(1)):02d}"
+        if name in sequences:
+            names.append(name)
+    return names

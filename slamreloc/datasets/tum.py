@@ -1,0 +1,76 @@
+"""TUM RGB-D layout: rgb.txt, depth.txt, groundtruth.txt (timestamps, camera-to-world poses).
+
+Depth is registered to the RGB images (TUM ships it so), 5000 units per metre. Default RGB
+intrinsics are the ROS defaults fx = fy = 525, cx = 319.5, cy = 239.5; `intrinsics.txt`
+(3x3) at the root overrides them. Each RGB image takes the ground-truth pose and the depth
+image nearest in time (within 20 ms); without a pose it is kept, unposed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from slamreloc.datasets.base import Dataset
+from slamreloc.datasets.io import image_size, read_intrinsics
+from slamreloc.errors import InputError
+from slamreloc.geometry import Rigid3
+from slamreloc.types import Camera, Frame
+
+MAX_DT = 0.02  # seconds
+
+
+def is_tum(root: Path) -> bool:
+    return (root / "rgb.txt").is_file()
+
+
+def _read_list(path: Path, n_fields: int) -> list[list[str]]:
+    rows = []
+    for i, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip() or line.startswith("#"):
+            continue
+        parts = line.split()
+        if len(parts) != n_fields:
+            raise InputError(f"{path}:{i}: expected {n_fields} fields, got {len(parts)}")
+        rows.append(parts)
+    return rows
+
+
+def _nearest(times: np.ndarray, t: float) -> int | None:
+    if len(times) == 0:
+        return None
+    i = int(np.argmin(np.abs(times - t)))
+    return i if abs(times[i] - t) <= MAX_DT else None
+
+
+def load_tum(root: Path) -> Dataset:
+    root = Path(root)
+    rgb = _read_list(root / "rgb.txt", 2)
+    if not rgb:
+        raise InputError(f"{root / 'rgb.txt'}: no images listed")
+    depth = _read_list(root / "depth.txt", 2) if (root / "depth.txt").is_file() else []
+    gt = _read_list(root / "groundtruth.txt", 8) if (root / "groundtruth.txt").is_file() else []
+    try:
+        depth_t = np.array([float(r[0]) for r in depth])
+        gt_vals = np.array([[float(v) for v in r] for r in gt]).reshape(-1, 8)
+    except ValueError as err:
+        raise InputError(f"{root}: non-numeric value in depth.txt/groundtruth.txt ({err})") from None
+    width, height = image_size(root / rgb[0][1])
+    if (root / "intrinsics.txt").is_file():
+        k = read_intrinsics(root / "intrinsics.txt")
+        camera = Camera(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+    else:
+        camera = Camera(width, height, 525.0, 525.0, 319.5, 239.5)
+    frames = []
+    for stamp, rel in rgb:
+        t = float(stamp)
+        di, gi = _nearest(depth_t, t), _nearest(gt_vals[:, 0], t)
+        world_from_cam = None
+        if gi is not None:
+            world_from_cam = Rigid3.from_qt(gt_vals[gi, 4:8], gt_vals[gi, 1:4])
+        frames.append(Frame(name=Path(rel).stem, image_path=root / rel, camera=camera,
+                            depth_path=root / depth[di][1] if di is not None else None,
+                            world_from_cam=world_from_cam, sequence=root.name, timestamp=t))
+    return Dataset(root, "tum", {root.name: frames}, depth_registered=True,
+                   depth_units_per_metre=5000.0)

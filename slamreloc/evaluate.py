@@ -1,0 +1,81 @@
+"""Localize every frame of a split and score it against ground truth (the REPORT.json contract)."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from slamreloc.datasets import read_image
+from slamreloc.errors import InputError
+from slamreloc.geometry import Rigid3, pose_error, tum_line
+from slamreloc.localizer import Localizer
+from slamreloc.progress import track
+from slamreloc.types import Frame
+
+THRESHOLDS = {"1cm1deg": (0.01, 1.0), "2cm2deg": (0.02, 2.0), "5cm5deg": (0.05, 5.0),
+              "10cm5deg": (0.10, 5.0)}
+
+
+@dataclass
+class QueryResult:
+    name: str
+    world_from_cam: Rigid3 | None  # None: not localized
+    num_inliers: int
+    translation_error_m: float  # inf when not localized
+    rotation_error_deg: float
+    timings_ms: dict
+
+
+def evaluate_frames(localizer: Localizer, frames: list[Frame],
+                    progress: bool = True) -> list[QueryResult]:
+    results = []
+    for frame in track(frames, f"localizing ({localizer.method})", enabled=progress):
+        if frame.world_from_cam is None:
+            raise InputError(f"{frame.image_path}: query frame has no ground-truth pose")
+        loc = localizer.localize(read_image(frame.image_path), frame.camera)
+        est = loc.estimate.world_from_cam
+        dt, dr = pose_error(est, frame.world_from_cam) if est else (np.inf, np.inf)
+        results.append(QueryResult(frame.name, est, loc.estimate.num_inliers, dt, dr,
+                                   loc.timings_ms))
+    return results
+
+
+def summarize(results: list[QueryResult], method: str) -> dict:
+    """Median errors, recalls, median stage timings (failures count as infinite error)."""
+    t = np.array([r.translation_error_m for r in results])
+    r = np.array([r.rotation_error_deg for r in results])
+    finite = lambda v: float(v) if np.isfinite(v) else None  # noqa: E731 - JSON has no inf
+    timing = {k: float(np.median([q.timings_ms[k] for q in results]))
+              for k in ("features", "regressor", "pnp", "total")} if results else {}
+    return {
+        "method": method, "n_queries": len(results),
+        "n_localized": int(np.sum([q.world_from_cam is not None for q in results])),
+        "median_translation_m": finite(np.median(t)) if len(t) else None,
+        "median_rotation_deg": finite(np.median(r)) if len(r) else None,
+        "recall": {k: float(np.mean((t <= tt) & (r <= rr))) if len(t) else 0.0
+                   for k, (tt, rr) in THRESHOLDS.items()},
+        "timing_ms": timing,
+    }
+
+
+def write_json(path: Path, data: dict) -> None:
+    """Atomic write: temporary file in the same folder, then rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(data, indent=2))
+    os.replace(tmp, path)
+
+
+def write_tum(path: Path, results: list[QueryResult]) -> None:
+    """Localized frames as TUM lines (camera-to-world); failures are left out."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text("".join(tum_line(q.name, q.world_from_cam) + "\n"
+                           for q in results if q.world_from_cam is not None))
+    os.replace(tmp, path)

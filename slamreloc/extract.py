@@ -1,0 +1,17 @@
+"""Feature extraction over many frames (two worker threads; OpenCV and torch release the GIL)."""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+from slamreloc.datasets import read_image
+from slamreloc.features import Extractor
+from slamreloc.progress import track
+from slamreloc.types import Features, Frame
+
+
+def extract_frames(frames: list[Frame], extractor: Extractor, progress: bool = True,
+                   workers: int = 2) -> list[Features]:
+    with ThreadPoolExecutor(workers) as pool:
+        results = pool.map(lambda f: extractor(read_image(f.image_path)), frames)
+        return list(track(results, "extracting features", total=len(frames), enabled=progress))

@@ -1,0 +1,49 @@
+"""OpenCV SIFT with RootSIFT descriptors (128-d, no weights needed)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from slamreloc.features.base import Extractor, ExtractorConfig
+from slamreloc.types import Features
+
+
+@dataclass(frozen=True)
+class SiftConfig(ExtractorConfig):
+    contrast_threshold: float = 0.02  # lower than OpenCV's 0.04: more keypoints on low texture
+    edge_threshold: float = 10.0
+    n_octave_layers: int = 3
+    root: bool = True  # RootSIFT: L1-normalise, square root (Hellinger kernel)
+
+
+class Sift(Extractor):
+    name = "sift"
+    dim = 128
+    Config = SiftConfig
+
+    def __init__(self, config: SiftConfig | None = None, **overrides) -> None:
+        super().__init__(config, **overrides)
+        c = self.config
+        self._sift = cv2.SIFT_create(nfeatures=c.max_keypoints, nOctaveLayers=c.n_octave_layers,
+                                     contrastThreshold=c.contrast_threshold,
+                                     edgeThreshold=c.edge_threshold)
+
+    def extract_grey(self, grey: np.ndarray) -> Features:
+        kps, desc = self._sift.detectAndCompute(grey, None)
+        if desc is None or len(kps) == 0:
+            return Features(np.zeros((0, 2), np.float32), np.zeros((0, self.dim), np.float32),
+                            np.zeros(0, np.float32))
+        # OpenCV can return slightly more than nfeatures (ties); keep the strongest.
+        order = np.argsort([-k.response for k in kps])[: self.config.max_keypoints]
+        xy = np.array([kps[i].pt for i in order], np.float32)
+        scores = np.array([kps[i].response for i in order], np.float32)
+        desc = desc[order].astype(np.float32)
+        if self.config.root:
+            desc /= np.maximum(desc.sum(axis=1, keepdims=True), 1e-8)
+            desc = np.sqrt(desc)
+        else:
+            desc /= np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-8)
+        return Features(xy, desc, scores)

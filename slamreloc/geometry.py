@@ -1,0 +1,177 @@
+"""Rigid transforms and rotation helpers: the one place where pose conventions live.
+
+A `Rigid3` maps points from frame *a* to frame *b*; its variable name says which:
+`world_from_cam` maps camera coordinates to world coordinates (the camera-to-world pose of
+7-Scenes `pose.txt` and TUM files), `cam_from_world` is its inverse (what PnP returns).
+Units are metres; quaternions are Hamilton, scalar-last (x, y, z, w) as in TUM files.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slamreloc.errors import InputError
+
+RIGID_TOL = 1e-3  # max |R^T R - I| and |det R - 1| accepted for a pose read from a file
+
+
+@dataclass(frozen=True)
+class Rigid3:
+    """x_b = rotation @ x_a + translation, for a transform named `b_from_a`."""
+
+    rotation: np.ndarray  # (3, 3) float64
+    translation: np.ndarray  # (3,) float64, metres
+
+    @staticmethod
+    def identity() -> Rigid3:
+        return Rigid3(np.eye(3), np.zeros(3))
+
+    @staticmethod
+    def from_matrix(matrix: np.ndarray, tol: float = RIGID_TOL, source: str = "pose") -> Rigid3:
+        """From a 4x4 (or 3x4) matrix; raises InputError if it is not a rigid transform."""
+        m = np.asarray(matrix, dtype=np.float64)
+        if m.shape not in ((4, 4), (3, 4)):
+            raise InputError(f"{source}: expected a 4x4 matrix, got shape {m.shape}")
+        if not np.all(np.isfinite(m)):
+            raise InputError(f"{source}: matrix has non-finite values")
+        if m.shape == (4, 4) and not np.allclose(m[3], [0, 0, 0, 1], atol=tol):
+            raise InputError(f"{source}: last row is {m[3].tolist()}, not [0 0 0 1]")
+        rot = m[:3, :3]
+        if np.abs(rot.T @ rot - np.eye(3)).max() > tol or abs(np.linalg.det(rot) - 1) > tol:
+            raise InputError(f"{source}: rotation block is not orthonormal (not a rigid pose)")
+        return Rigid3(project_to_so3(rot), m[:3, 3].copy())
+
+    @staticmethod
+    def from_qt(quat_xyzw: np.ndarray, translation: np.ndarray) -> Rigid3:
+        return Rigid3(quat_to_matrix(quat_xyzw), np.asarray(translation, dtype=np.float64))
+
+    def matrix(self) -> np.ndarray:
+        """4x4 homogeneous matrix."""
+        m = np.eye(4)
+        m[:3, :3] = self.rotation
+        m[:3, 3] = self.translation
+        return m
+
+    def matrix3x4(self) -> np.ndarray:
+        return self.matrix()[:3]
+
+    def inverse(self) -> Rigid3:
+        rt = self.rotation.T
+        return Rigid3(rt, -rt @ self.translation)
+
+    def __matmul__(self, other: Rigid3) -> Rigid3:
+        """Composition: (c_from_b @ b_from_a) is c_from_a."""
+        return Rigid3(self.rotation @ other.rotation,
+                      self.rotation @ other.translation + self.translation)
+
+    def transform(self, points: np.ndarray) -> np.ndarray:
+        """Apply to (N, 3) points."""
+        return np.asarray(points) @ self.rotation.T + self.translation
+
+    def quat_xyzw(self) -> np.ndarray:
+        return matrix_to_quat(self.rotation)
+
+    @property
+    def center(self) -> np.ndarray:
+        """Origin of frame a expressed in frame b (for world_from_cam: the camera centre)."""
+        return self.translation
+
+
+def project_to_so3(rot: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrix (SVD), to clean up rounding in poses read from text."""
+    u, _, vt = np.linalg.svd(rot)
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        u[:, -1] *= -1
+        r = u @ vt
+    return r
+
+
+def quat_to_matrix(quat_xyzw: np.ndarray) -> np.ndarray:
+    x, y, z, w = np.asarray(quat_xyzw, dtype=np.float64) / np.linalg.norm(quat_xyzw)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quat(rot: np.ndarray) -> np.ndarray:
+    """Rotation matrix to unit quaternion (x, y, z, w) with w >= 0."""
+    m = np.asarray(rot, dtype=np.float64)
+    tr = np.trace(m)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
+        q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
+        q[i] = s / 4
+        q[j] = (m[j, i] + m[i, j]) / s
+        q[k] = (m[k, i] + m[i, k]) / s
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def axis_angle_to_matrix(rotvec: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation vector (radians) to matrix."""
+    rotvec = np.asarray(rotvec, dtype=np.float64)
+    angle = np.linalg.norm(rotvec)
+    if angle < 1e-12:
+        return np.eye(3)
+    k = rotvec / angle
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0, 0, 1)) -> Rigid3:
+    """world_from_cam of a camera at `eye` looking at `target` (OpenCV: x right, y down, z fwd)."""
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return Rigid3(np.stack([x, y, z], axis=1), eye)
+
+
+def rotation_angle_deg(rot: np.ndarray) -> float:
+    cos = (np.trace(rot) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def pose_error(world_from_cam_est: Rigid3, world_from_cam_gt: Rigid3) -> tuple[float, float]:
+    """(translation error of the camera centre in metres, rotation error in degrees)."""
+    dt = float(np.linalg.norm(world_from_cam_est.translation - world_from_cam_gt.translation))
+    dr = rotation_angle_deg(world_from_cam_est.rotation.T @ world_from_cam_gt.rotation)
+    return dt, dr
+
+
+def tum_line(name: str, world_from_cam: Rigid3) -> str:
+    """`name tx ty tz qx qy qz qw`, camera-to-world."""
+    vals = [*world_from_cam.translation, *world_from_cam.quat_xyzw()]
+    return name + " " + " ".join(f"{v:.6f}" for v in vals)
+
+
+def parse_tum_line(line: str, source: str = "trajectory") -> tuple[str, Rigid3]:
+    parts = line.split()
+    if len(parts) != 8:
+        raise InputError(f"{source}: expected 8 fields 'name tx ty tz qx qy qz qw', got {len(parts)}")
+    try:
+        vals = np.array([float(p) for p in parts[1:]])
+    except ValueError as err:
+        raise InputError(f"{source}: non-numeric pose value ({err})") from None
+    if not np.all(np.isfinite(vals)) or np.linalg.norm(vals[3:]) < 1e-9:
+        raise InputError(f"{source}: invalid pose values in line '{line.strip()}'")
+    return parts[0], Rigid3.from_qt(vals[3:], vals[:3])
+
+
+def project(points_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """Pinhole projection of (N, 3) camera-frame points to (N, 2) pixels (OpenCV convention)."""
+    z = points_cam[:, 2:3]
+    return points_cam[:, :2] / z * np.array([fx, fy]) + np.array([cx, cy])

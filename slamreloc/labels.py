@@ -1,0 +1,207 @@
+"""Scene-coordinate labels: world points (metres) for the keypoints of posed training frames.
+
+Frames are paired by pose (similar viewing direction, overlapping look-at points, a spread of
+baselines); their features are matched (mutual NN + ratio), kept if they fit the epipolar
+geometry of the known poses, joined into multi-view tracks, and each track is triangulated
+with pycolmap (LO-RANSAC on reprojection error) and filtered by reprojection error and
+triangulation angle. Where depth is registered to the image, a keypoint's back-projected depth
+is its label and disagreeing tracks are dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pycolmap
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from slamreloc.features.matcher import match_mutual
+from slamreloc.geometry import Rigid3, project
+from slamreloc.progress import track
+from slamreloc.types import Features, Frame
+
+
+@dataclass(frozen=True)
+class LabelConfig:
+    pairs_per_frame: int = 8
+    max_axis_angle_deg: float = 35.0  # between optical axes of a pair
+    look_at_depth_m: float = 1.5  # typical scene depth, for the overlap test
+    min_baseline_m: float = 0.03
+    ratio: float = 0.85
+    max_epipolar_px: float = 3.0  # Sampson distance for match verification
+    max_reproj_px: float = 3.0  # per observation, after triangulation
+    min_tri_angle_deg: float = 2.0
+    depth_agreement_m: float = 0.05  # track vs depth, plus 2 % of depth
+    use_depth: bool = True  # only where the dataset's depth is registered to RGB
+
+
+@dataclass
+class LabelSet:
+    """points[i]: (N_i, 3) float32 world points for frame i's keypoints, NaN where unlabelled."""
+
+    points: list[np.ndarray]
+    track_ids: list[np.ndarray]  # (N_i,) int64, -1 where not in a triangulated track
+    stats: dict = field(default_factory=dict)
+
+
+def select_pairs(poses: list[Rigid3], config: LabelConfig) -> np.ndarray:
+    """(P, 2) frame index pairs i < j likely to see the same surfaces."""
+    centres = np.stack([p.translation for p in poses])
+    axes = np.stack([p.rotation[:, 2] for p in poses])
+    look = centres + config.look_at_depth_m * axes
+    cos = axes @ axes.T
+    base = np.linalg.norm(centres[:, None] - centres[None], axis=2)
+    look_d = np.linalg.norm(look[:, None] - look[None], axis=2)
+    ok = (cos > np.cos(np.radians(config.max_axis_angle_deg))) & (base > config.min_baseline_m)
+    ok &= look_d < 0.6 * config.look_at_depth_m
+    pairs = set()
+    for i in range(len(poses)):
+        cand = np.flatnonzero(ok[i])
+        if len(cand) == 0:
+            continue
+        cand = cand[np.argsort(base[i, cand])]  # spread of baselines: evenly spaced ranks
+        pick = np.unique(np.linspace(0, len(cand) - 1, config.pairs_per_frame).round().astype(int))
+        pairs.update((min(i, j), max(i, j)) for j in cand[pick])
+    return np.array(sorted(pairs), dtype=np.int64).reshape(-1, 2)
+
+
+def _sampson_px(x1: np.ndarray, x2: np.ndarray, fundamental: np.ndarray) -> np.ndarray:
+    h1 = np.hstack([x1, np.ones((len(x1), 1))])
+    h2 = np.hstack([x2, np.ones((len(x2), 1))])
+    fx1, ftx2 = h1 @ fundamental.T, h2 @ fundamental
+    num = np.sum(h2 * fx1, axis=1) ** 2
+    den = fx1[:, 0] ** 2 + fx1[:, 1] ** 2 + ftx2[:, 0] ** 2 + ftx2[:, 1] ** 2
+    return np.sqrt(num / np.maximum(den, 1e-12))
+
+
+def _fundamental(frame_a: Frame, frame_b: Frame) -> np.ndarray:
+    b_from_a = frame_b.world_from_cam.inverse() @ frame_a.world_from_cam
+    t = b_from_a.translation
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    ka_inv, kb_inv = np.linalg.inv(frame_a.camera.K), np.linalg.inv(frame_b.camera.K)
+    return kb_inv.T @ tx @ b_from_a.rotation @ ka_inv
+
+
+def verified_matches(frames, feats, pairs, config, progress=True) -> np.ndarray:
+    """(M, 4) rows (frame_a, kp_a, frame_b, kp_b) of epipolar-consistent matches."""
+    rows = []
+    for i, j in track(pairs, "matching pairs", enabled=progress):
+        m = match_mutual(feats[i].descriptors, feats[j].descriptors, config.ratio)
+        if len(m) == 0:
+            continue
+        err = _sampson_px(feats[i].keypoints[m[:, 0]], feats[j].keypoints[m[:, 1]],
+                          _fundamental(frames[i], frames[j]))
+        m = m[err < config.max_epipolar_px]
+        rows.append(np.column_stack([np.full(len(m), i), m[:, 0], np.full(len(m), j), m[:, 1]]))
+    return np.concatenate(rows) if rows else np.zeros((0, 4), np.int64)
+
+
+def build_tracks(feats: list[Features], matches: np.ndarray) -> np.ndarray:
+    """Track id per keypoint (flattened over frames), -1 for keypoints in no track.
+
+    Tracks holding two keypoints of one frame are ambiguous and dropped."""
+    offsets = np.concatenate([[0], np.cumsum([len(f) for f in feats])])
+    n = int(offsets[-1])
+    a = offsets[matches[:, 0]] + matches[:, 1]
+    b = offsets[matches[:, 2]] + matches[:, 3]
+    graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    size = np.bincount(comp)
+    frame_of = np.repeat(np.arange(len(feats)), np.diff(offsets))
+    # a component is ambiguous if (component, frame) occurs more than once
+    key = comp.astype(np.int64) * len(feats) + frame_of
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    bad = np.zeros(len(size), bool)
+    bad[comp[counts[inverse] > 1]] = True
+    return np.where((size[comp] >= 2) & ~bad[comp], comp, -1)
+
+
+def triangulate_tracks(frames, feats, track_of, config, progress=True):
+    """World points (n_kp, 3) with NaN where a keypoint's track failed or it was an outlier."""
+    offsets = np.concatenate([[0], np.cumsum([len(f) for f in feats])])
+    frame_of = np.repeat(np.arange(len(feats)), np.diff(offsets))
+    kp_xy = np.concatenate([f.keypoints for f in feats]).astype(np.float64)
+    rigs = [pycolmap.Rigid3d(f.world_from_cam.inverse().matrix3x4()) for f in frames]
+    cams = [f.camera.to_pycolmap() for f in frames]
+    opts = pycolmap.EstimateTriangulationOptions()
+    opts.residual_type = pycolmap.TriangulationResidualType.REPROJECTION_ERROR
+    opts.ransac.max_error = config.max_reproj_px
+    opts.min_tri_angle = np.radians(config.min_tri_angle_deg)
+    points = np.full((len(kp_xy), 3), np.nan)
+    members = np.flatnonzero(track_of >= 0)
+    members = members[np.argsort(track_of[members], kind="stable")]
+    bounds = np.flatnonzero(np.diff(track_of[members])) + 1
+    for obs in track(np.split(members, bounds), "triangulating tracks", enabled=progress):
+        fr = frame_of[obs]
+        res = pycolmap.estimate_triangulation(kp_xy[obs], [rigs[k] for k in fr],
+                                              [cams[k] for k in fr], opts)
+        if res is not None and res["inliers"].sum() >= 2:
+            points[obs[res["inliers"]]] = res["xyz"]
+    # final per-observation check: in front of the camera, within the reprojection bound
+    errors = np.full(len(kp_xy), np.nan)
+    for k, frame in enumerate(frames):
+        sl = slice(offsets[k], offsets[k + 1])
+        pts_cam = frame.world_from_cam.inverse().transform(points[sl])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            uv = project(pts_cam, *frame.camera.params())
+            errors[sl] = np.where(pts_cam[:, 2] > 0.05,
+                                  np.linalg.norm(uv - kp_xy[sl], axis=1), np.inf)
+    bad = ~(errors <= config.max_reproj_px)
+    points[bad] = np.nan
+    return points, np.where(bad, np.nan, errors)
+
+
+def depth_points(frame: Frame, keypoints: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Back-project keypoints with registered depth (metres) to world; NaN where invalid or at
+    a depth edge (3x3 neighbourhood spread > 3 % of the depth)."""
+    h, w = depth.shape
+    u = np.clip(np.round(keypoints[:, 0]).astype(int), 1, w - 2)
+    v = np.clip(np.round(keypoints[:, 1]).astype(int), 1, h - 2)
+    win = np.stack([depth[v + dv, u + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)], axis=1)
+    z = depth[v, u].astype(np.float64)
+    ok = (win.min(axis=1) > 0) & (win.max(axis=1) - win.min(axis=1) < 0.03 * z)
+    c = frame.camera
+    pts_cam = np.column_stack([(keypoints[:, 0] - c.cx) / c.fx * z,
+                               (keypoints[:, 1] - c.cy) / c.fy * z, z])
+    pts = frame.world_from_cam.transform(pts_cam)
+    pts[~ok] = np.nan
+    return pts
+
+
+def build_labels(frames: list[Frame], feats: list[Features], depths: list[np.ndarray] | None,
+                 config: LabelConfig = LabelConfig(), progress: bool = True) -> LabelSet:
+    """Label the keypoints of posed frames. `depths`: registered depth maps (m) or None."""
+    pairs = select_pairs([f.world_from_cam for f in frames], config)
+    matches = verified_matches(frames, feats, pairs, config, progress)
+    track_of = build_tracks(feats, matches)
+    tri, errors = triangulate_tracks(frames, feats, track_of, config, progress)
+    offsets = np.concatenate([[0], np.cumsum([len(f) for f in feats])])
+    points = tri.copy()
+    n_depth = n_disagree = 0
+    if depths is not None and config.use_depth:
+        dep = np.concatenate([depth_points(f, ft.keypoints, d)
+                              for f, ft, d in zip(frames, feats, depths)])
+        has_dep, has_tri = ~np.isnan(dep[:, 0]), ~np.isnan(tri[:, 0])
+        depth_z = np.concatenate([f.world_from_cam.inverse().transform(dep[offsets[k]:offsets[k + 1]])[:, 2]
+                                  for k, f in enumerate(frames)])
+        gap = np.linalg.norm(dep - tri, axis=1)
+        disagree = has_dep & has_tri & ~(gap < config.depth_agreement_m + 0.02 * depth_z)
+        points = np.where(has_dep[:, None], dep, tri)
+        points[disagree] = np.nan
+        n_depth, n_disagree = int(has_dep.sum()), int(disagree.sum())
+    labelled = ~np.isnan(points[:, 0])
+    tracks_kept = track_of[~np.isnan(tri[:, 0])]
+    stats = {
+        "n_frames": len(frames), "n_pairs": len(pairs), "n_matches": len(matches),
+        "n_keypoints": int(offsets[-1]), "n_labelled": int(labelled.sum()),
+        "labelled_fraction": float(labelled.mean()) if len(labelled) else 0.0,
+        "n_tracks": int(len(np.unique(tracks_kept))),
+        "mean_track_length": float(len(tracks_kept) / max(len(np.unique(tracks_kept)), 1)),
+        "median_reproj_error_px": float(np.nanmedian(errors)) if np.any(~np.isnan(errors)) else None,
+        "n_depth_labels": n_depth, "n_track_depth_disagreements": n_disagree,
+    }
+    split = lambda a: [a[offsets[k]:offsets[k + 1]] for k in range(len(frames))]  # noqa: E731
+    return LabelSet(split(points.astype(np.float32)),
+                    split(np.where(np.isnan(tri[:, 0]), -1, track_of)), stats)

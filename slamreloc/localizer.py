@@ -1,0 +1,118 @@
+"""Localizers: image -> camera pose against a map, by regression (the method) or by matching.
+
+Both share feature extraction and PnP; they differ only in how 2D-3D correspondences are made:
+`RegressorLocalizer` regresses a world point per descriptor; `MatchingLocalizer` (the classical
+baseline) takes the world point of the nearest labelled training descriptor.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from slamreloc.features import make_extractor
+from slamreloc.features.matcher import top2
+from slamreloc.pnp import PnPConfig, PoseEstimate, estimate_pose
+from slamreloc.regressor.train import resolve_device
+from slamreloc.scene_map import SceneMap
+from slamreloc.types import Camera, Features
+
+METHODS = ("regressor", "matching")
+
+
+@dataclass
+class Localization:
+    estimate: PoseEstimate
+    timings_ms: dict[str, float] = field(default_factory=dict)  # features, regressor, pnp, total
+    n_keypoints: int = 0
+
+
+class Localizer:
+    method = ""
+
+    def __init__(self, scene_map: SceneMap, pnp: PnPConfig = PnPConfig(), device: str = "cpu"):
+        self.map = scene_map
+        self.pnp = pnp
+        self.device = resolve_device(device)
+        feat = dict(scene_map.meta["features"])
+        self.extractor = make_extractor(feat.pop("name"), **feat)
+
+    def correspondences(self, feats: Features) -> tuple[np.ndarray, np.ndarray]:
+        """(points2d (N, 2), points3d (N, 3)) for PnP."""
+        raise NotImplementedError
+
+    def localize(self, image: np.ndarray, camera: Camera) -> Localization:
+        """image: RGB uint8. Returns the pose estimate (failure included) and stage timings."""
+        t0 = time.perf_counter()
+        feats = self.extractor(image)
+        t1 = time.perf_counter()
+        p2d, p3d = self.correspondences(feats)
+        t2 = time.perf_counter()
+        est = estimate_pose(p2d, p3d, camera, self.pnp)
+        t3 = time.perf_counter()
+        ms = {"features": t1 - t0, "regressor": t2 - t1, "pnp": t3 - t2, "total": t3 - t0}
+        return Localization(est, {k: 1000 * v for k, v in ms.items()}, len(feats))
+
+
+class RegressorLocalizer(Localizer):
+    method = "regressor"
+
+    def __init__(self, scene_map: SceneMap, pnp: PnPConfig = PnPConfig(), device: str = "cpu",
+                 bf16: bool | None = None):
+        super().__init__(scene_map, pnp, device)
+        self.model = scene_map.regressor.to(self.device).eval()
+        self.bf16 = _fast_bf16() if bf16 is None else bf16
+
+    def predict(self, descriptors: np.ndarray) -> np.ndarray:
+        """(N, D) descriptors -> (N, 3) world points, metres."""
+        with torch.inference_mode(), torch.autocast(self.device.type, torch.bfloat16,
+                                                    enabled=self.bf16):
+            x = torch.as_tensor(descriptors, dtype=torch.float32, device=self.device)
+            return self.model(x).float().cpu().numpy()
+
+    def correspondences(self, feats):
+        return feats.keypoints, self.predict(feats.descriptors)
+
+
+class MatchingLocalizer(Localizer):
+    """Nearest labelled training descriptor; ratio test unless both neighbours are one point."""
+
+    method = "matching"
+
+    def __init__(self, scene_map: SceneMap, pnp: PnPConfig = PnPConfig(), device: str = "cpu",
+                 ratio: float = 0.9, same_point_m: float = 0.05):
+        super().__init__(scene_map, pnp, device)
+        db = scene_map.database
+        self.db_desc = torch.as_tensor(db.descriptors.astype(np.float32))
+        self.db_points = db.points
+        self.ratio, self.same_point_m = ratio, same_point_m
+
+    def correspondences(self, feats):
+        dist, idx = top2(feats.descriptors, self.db_desc)
+        same = np.linalg.norm(self.db_points[idx[:, 0]] - self.db_points[idx[:, 1]], axis=1)
+        keep = (dist[:, 0] < self.ratio * dist[:, 1]) | (same < self.same_point_m)
+        return feats.keypoints[keep], self.db_points[idx[keep, 0]]
+
+
+def _fast_bf16() -> bool:
+    """bf16 inference where the hardware has native support (AMX/AVX512-BF16 CPUs)."""
+    return bool(torch.backends.mkldnn.is_available()) and "amx" in _cpu_flags()
+
+
+def _cpu_flags() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next((line for line in f if line.startswith("flags")), "")
+    except OSError:
+        return ""
+
+
+def make_localizer(scene_map: SceneMap, method: str = "regressor", **kwargs) -> Localizer:
+    if method == "regressor":
+        return RegressorLocalizer(scene_map, **kwargs)
+    if method == "matching":
+        return MatchingLocalizer(scene_map, **kwargs)
+    raise ValueError(f"unknown method '{method}' (known: {', '.join(METHODS)})")

@@ -1,0 +1,86 @@
+"""`build_map`: features -> scene-coordinate labels -> trained regressor -> map folder."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from slamreloc.datasets import Dataset, read_depth
+from slamreloc.errors import InputError
+from slamreloc.extract import extract_frames
+from slamreloc.features import make_extractor
+from slamreloc.labels import LabelConfig, LabelSet, build_labels
+from slamreloc.progress import console
+from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
+from slamreloc.regressor.train import TrainConfig, train_regressor
+from slamreloc.scene_map import MapDatabase, SceneMap, save_map
+from slamreloc.types import Features, Frame
+
+
+@dataclass
+class MapConfig:
+    features: str = "sift"
+    feature_options: dict = field(default_factory=dict)  # e.g. {"weights": path} for superpoint
+    arch: str = "paper"
+    labels: LabelConfig = field(default_factory=LabelConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    device: str = "auto"
+
+
+def labelled_database(frames: list[Frame], feats: list[Features], labels: LabelSet) -> MapDatabase:
+    keep = [~np.isnan(p[:, 0]) for p in labels.points]
+    return MapDatabase(
+        descriptors=np.concatenate([f.descriptors[k] for f, k in zip(feats, keep)]),
+        points=np.concatenate([p[k] for p, k in zip(labels.points, keep)]),
+        keypoints=np.concatenate([f.keypoints[k] for f, k in zip(feats, keep)]),
+        frame_index=np.concatenate([np.full(k.sum(), i) for i, k in enumerate(keep)]),
+        frame_names=[f.name for f in frames],
+        world_from_cam=np.stack([f.world_from_cam.matrix() for f in frames]))
+
+
+def build_map(dataset: Dataset, out: Path, split: str = "train", config: MapConfig = MapConfig(),
+              progress: bool = True) -> SceneMap:
+    frames = dataset.frames(split)
+    if not frames:
+        raise InputError(f"{dataset.root}: split '{split}' has no frames")
+    unposed = [f.name for f in frames if f.world_from_cam is None]
+    if unposed:
+        raise InputError(f"{dataset.root}: frame {unposed[0]} has no pose; mapping needs poses")
+    extractor = make_extractor(config.features, **config.feature_options)
+    timings = {}
+    t0 = time.perf_counter()
+    feats = extract_frames(frames, extractor, progress)
+    timings["features_s"] = time.perf_counter() - t0
+    depths = None
+    if dataset.depth_registered and config.labels.use_depth:
+        depths = [read_depth(f.depth_path, dataset.depth_units_per_metre) if f.depth_path
+                  else np.zeros((f.camera.height, f.camera.width), np.float32) for f in frames]
+    t0 = time.perf_counter()
+    labels = build_labels(frames, feats, depths, config.labels, progress)
+    timings["labels_s"] = time.perf_counter() - t0
+    db = labelled_database(frames, feats, labels)
+    if len(db.points) < 100:
+        raise InputError(f"{dataset.root}: only {len(db.points)} keypoints could be labelled; "
+                         "are the poses and intrinsics right?")
+    console.print(f"labels: {labels.stats['n_labelled']} of {labels.stats['n_keypoints']} keypoints "
+                  f"({100 * labels.stats['labelled_fraction']:.1f} %), median reprojection error "
+                  f"{labels.stats['median_reproj_error_px'] or 0:.2f} px")
+    model = SceneCoordinateRegressor(RegressorConfig.preset(config.arch, extractor.dim))
+    t0 = time.perf_counter()
+    train_stats = train_regressor(model, db.descriptors, db.points, config.train, config.device,
+                                  progress)
+    timings["train_s"] = time.perf_counter() - t0
+    meta = {
+        "features": {"name": config.features, **extractor.config_dict()},
+        "regressor": {"arch": config.arch, "config": model.config.to_dict(),
+                      "parameters": model.num_parameters()},
+        "train": {**config.train.to_dict(), **train_stats},
+        "labels": labels.stats,
+        "camera": frames[0].camera.to_dict(),
+        "dataset": {"root": str(dataset.root.resolve()), "kind": dataset.kind, "split": split},
+        "timings_s": timings,
+    }
+    return SceneMap.load(save_map(out, meta, model, db))

@@ -1,0 +1,45 @@
+"""Pictures of an evaluation: cumulative error curves per method and a top view of positions."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from slamreloc.types import Frame
+
+
+def plot_evaluation(path: Path, results_by_method: dict, frames: list[Frame]) -> None:
+    """results_by_method: method -> list of evaluate.QueryResult (same frame order)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.8))
+    for method, results in results_by_method.items():
+        t = np.sort([100 * r.translation_error_m for r in results])
+        r = np.sort([r.rotation_error_deg for r in results])
+        frac = np.arange(1, len(t) + 1) / max(len(t), 1)
+        axes[0].step(t, frac, where="post", label=method)
+        axes[1].step(r, frac, where="post", label=method)
+        est = np.array([q.world_from_cam.translation for q in results if q.world_from_cam])
+        if len(est):
+            axes[2].scatter(est[:, 0], est[:, 1], s=6, label=f"{method} estimate")
+    gt = np.array([f.world_from_cam.translation for f in frames if f.world_from_cam])
+    axes[2].plot(gt[:, 0], gt[:, 1], "k-", lw=1, label="ground truth")
+    axes[0].set(xlim=(0, 20), ylim=(0, 1), xlabel="translation error (cm)",
+                ylabel="fraction of queries", title="translation")
+    axes[1].set(xlim=(0, 10), ylim=(0, 1), xlabel="rotation error (deg)", title="rotation")
+    axes[2].set(xlabel="x (m)", ylabel="y (m)", title="top view (world x-y)", aspect="equal")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.legend(loc="lower right" if ax is not axes[2] else "best", fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, path)

@@ -1,0 +1,69 @@
+"""Absolute pose from 2D-3D correspondences: pycolmap LO-RANSAC P3P + non-linear refinement."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+
+from slamreloc.geometry import Rigid3
+from slamreloc.types import Camera
+
+
+@dataclass(frozen=True)
+class PnPConfig:
+    max_error_px: float = 12.0  # RANSAC inlier threshold (the paper's value)
+    min_inliers: int = 20  # fewer inliers: the frame is reported as not localized
+    max_trials: int = 10000
+    seed: int = 0
+
+
+@dataclass
+class PoseEstimate:
+    """`cam_from_world` is None when the frame could not be localized."""
+
+    cam_from_world: Rigid3 | None
+    num_inliers: int
+    num_correspondences: int
+    inlier_mask: np.ndarray
+
+    @property
+    def success(self) -> bool:
+        return self.cam_from_world is not None
+
+    @property
+    def world_from_cam(self) -> Rigid3 | None:
+        return None if self.cam_from_world is None else self.cam_from_world.inverse()
+
+    @property
+    def confidence(self) -> float:
+        """Inlier ratio in [0, 1]; 0 for a failure."""
+        return self.num_inliers / max(self.num_correspondences, 1) if self.success else 0.0
+
+
+def estimate_pose(points2d: np.ndarray, points3d: np.ndarray, camera: Camera,
+                  config: PnPConfig = PnPConfig()) -> PoseEstimate:
+    """points2d: (N, 2) pixels; points3d: (N, 3) world metres."""
+    n = len(points2d)
+    fail = PoseEstimate(None, 0, n, np.zeros(n, bool))
+    if n < 4:
+        return fail
+    est = pycolmap.AbsolutePoseEstimationOptions()
+    est.ransac.max_error = config.max_error_px
+    est.ransac.max_num_trials = config.max_trials
+    est.ransac.random_seed = config.seed
+    ref = pycolmap.AbsolutePoseRefinementOptions()
+    ref.refine_focal_length = False
+    ref.refine_extra_params = False
+    res = pycolmap.estimate_and_refine_absolute_pose(
+        np.ascontiguousarray(points2d, np.float64), np.ascontiguousarray(points3d, np.float64),
+        camera.to_pycolmap(), est, ref)
+    if res is None or res["num_inliers"] < config.min_inliers:
+        if res is not None:
+            fail.num_inliers, fail.inlier_mask = int(res["num_inliers"]), np.asarray(res["inlier_mask"])
+        fail.cam_from_world = None
+        return fail
+    m = res["cam_from_world"].matrix()
+    return PoseEstimate(Rigid3(m[:, :3].copy(), m[:, 3].copy()), int(res["num_inliers"]), n,
+                        np.asarray(res["inlier_mask"]))

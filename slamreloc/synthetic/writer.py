@@ -1,0 +1,124 @@
+"""Render the synthetic scene to disk in the 7-Scenes layout, plus scene.json.
+
+    out_dir/seq-XX/frame-NNNNNN.color.png   RGB image (PNG)
+    out_dir/seq-XX/frame-NNNNNN.depth.png   uint16 z-depth in millimetres, 0 = invalid
+    out_dir/seq-XX/frame-NNNNNN.pose.txt    4x4 world_from_cam, metres
+    out_dir/intrinsics.txt, TrainSplit.txt, TestSplit.txt, scene.json
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from slamreloc.errors import InputError
+from slamreloc.synthetic.render import RenderScene, render_frame
+from slamreloc.synthetic.room import build_room
+from slamreloc.synthetic.trajectories import SEQUENCES, make_trajectories
+from slamreloc.types import Camera
+
+GENERATOR, VERSION = "slamreloc-synthetic", 1
+MIN_CLEARANCE_M = 0.4
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """Seed, image size and pinhole intrinsics (pixels), and frames per sequence."""
+
+    seed: int = 0
+    width: int = 640
+    height: int = 480
+    fx: float = 525.0
+    fy: float = 525.0
+    cx: float = 319.5
+    cy: float = 239.5
+    n_map: int = 150
+    n_query: int = 60
+    n_kidnap: int = 120
+    n_unlabelled: int = 80
+
+    def camera(self) -> Camera:
+        return Camera(self.width, self.height, self.fx, self.fy, self.cx, self.cy)
+
+    def counts(self) -> dict[str, int]:
+        return dict(zip(SEQUENCES, (self.n_map, self.n_query, self.n_kidnap, self.n_unlabelled)))
+
+
+def scene_json(config: SceneConfig) -> dict:
+    return {"generator": GENERATOR, "version": VERSION, "seed": config.seed,
+            "width": config.width, "height": config.height, "depth_registered": True,
+            "sequences": dict(SEQUENCES), "config": asdict(config)}
+
+
+def _existing(out_dir: Path, config: SceneConfig) -> bool:
+    """True if out_dir already holds this scene; InputError if it holds anything else."""
+    if not out_dir.exists() or (out_dir.is_dir() and not any(out_dir.iterdir())):
+        return False  # missing or empty: render into it
+    try:
+        meta = json.loads((out_dir / "scene.json").read_text())
+    except (OSError, ValueError):
+        raise InputError(f"{out_dir}: exists and is not a synthetic scene "
+                         "(no valid scene.json)") from None
+    if meta != json.loads(json.dumps(scene_json(config))):
+        raise InputError(f"{out_dir}: holds a synthetic scene with a different config; "
+                         "remove it or choose another folder")
+    return True
+
+
+Progress = Callable[[int, int], None]
+
+
+def _write_frames(tmp: Path, config: SceneConfig, progress: Progress | None) -> None:
+    scene = RenderScene(build_room(config.seed))
+    camera = config.camera()
+    trajectories = make_trajectories(config.seed, config.counts())
+    centres = np.array([p.translation for poses in trajectories.values() for p in poses])
+    if len(centres) and scene.distance(centres).min() < MIN_CLEARANCE_M - 0.05:
+        raise RuntimeError("synthetic trajectories come too close to the scene geometry")
+    total, done = sum(len(p) for p in trajectories.values()), 0
+    for seq_index, (seq, poses) in enumerate(trajectories.items()):
+        (tmp / seq).mkdir()
+        for i, world_from_cam in enumerate(poses):
+            rgb, depth = render_frame(scene, camera, world_from_cam,
+                                      noise_seed=(config.seed, seq_index, i))
+            stem = tmp / seq / f"frame-{i:06d}"
+            depth_mm = np.where(np.isfinite(depth) & (depth < 65.5), depth * 1000.0 + 0.5, 0)
+            cv2.imwrite(f"{stem}.color.png", rgb[:, :, ::-1])
+            cv2.imwrite(f"{stem}.depth.png", depth_mm.astype(np.uint16))
+            np.savetxt(f"{stem}.pose.txt", world_from_cam.matrix())
+            done += 1
+            if progress is not None:
+                progress(done, total)
+    np.savetxt(tmp / "intrinsics.txt", camera.K)
+    (tmp / "TrainSplit.txt").write_text("sequence1\n")
+    (tmp / "TestSplit.txt").write_text("sequence2\n")
+    (tmp / "scene.json").write_text(json.dumps(scene_json(config), indent=2) + "\n")
+
+
+def render_scene(out_dir: Path, config: SceneConfig = SceneConfig(),
+                 progress: Progress | None = None) -> Path:
+    """Render all sequences into out_dir (atomically, via a temporary sibling folder)."""
+    out_dir = Path(out_dir)
+    if _existing(out_dir, config):
+        return out_dir
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_dir.parent / f"{out_dir.name}.tmp-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    try:
+        _write_frames(tmp, config, progress)
+        try:
+            os.replace(tmp, out_dir)
+        except OSError:
+            if not _existing(out_dir, config):  # someone else finished the same scene first
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return out_dir
