@@ -4,8 +4,8 @@ Frames are paired by pose (similar viewing direction, overlapping look-at points
 baselines); their features are matched (mutual NN + ratio), kept if they fit the epipolar
 geometry of the known poses, joined into multi-view tracks, and each track is triangulated
 with pycolmap (LO-RANSAC on reprojection error) and filtered by reprojection error and
-triangulation angle. Where depth is registered to the image, a keypoint's back-projected depth
-is its label and disagreeing tracks are dropped.
+triangulation angle. Where depth is registered to the image, the back-projected depth of a
+track's keypoint refines its label, and keypoints whose depth disagrees with the track drop out.
 """
 
 from __future__ import annotations
@@ -188,7 +188,9 @@ def build_labels(frames: list[Frame], feats: list[Features], depths: list[np.nda
                                   for k, f in enumerate(frames)])
         gap = np.linalg.norm(dep - tri, axis=1)
         disagree = has_dep & has_tri & ~(gap < config.depth_agreement_m + 0.02 * depth_z)
-        points = np.where(has_dep[:, None], dep, tri)
+        # depth refines track points; keypoints seen in one frame only stay unlabelled (they
+        # are rarely re-detected, and would spend the regressor's capacity on noise)
+        points = np.where(has_dep[:, None] & has_tri[:, None], dep, tri)
         points[disagree] = np.nan
         n_depth, n_disagree = int(has_dep.sum()), int(disagree.sum())
     labelled = ~np.isnan(points[:, 0])

@@ -70,12 +70,14 @@ def make_texture(rng: np.random.Generator, height: int, width: int,
     img = base + rng.uniform(25, 60) * value_noise(rng, height, width)
     img = np.clip(img, 0, 255).astype(np.uint8)
     area = height * width
-    for count, lo, hi in ((area / 6000, 40, 180), (area / 1500, 12, 40), (area / 300, 3, 12)):
+    # few small shapes: many identical dots would give SIFT descriptors that look alike all
+    # over the room; the fractal grain below makes every patch unique instead
+    for count, lo, hi in ((area / 5000, 40, 180), (area / 1500, 12, 40), (area / 2500, 4, 12)):
         hi = max(lo, min(hi, max(height, width)))
         sizes = np.exp(rng.uniform(np.log(lo), np.log(hi), int(count) + 2))
         for size in sizes:  # scale by scale, large first, so small details stay on top
             _draw_shape(img, rng, float(size))
-    grain = value_noise(rng, height, width, octaves=2, cell=10.0)  # fine structure inside fills
-    img = img.astype(np.float32) * (1.0 + 0.12 * grain)
+    grain = value_noise(rng, height, width, octaves=4, cell=60.0)  # fractal detail everywhere
+    img = img.astype(np.float32) * (1.0 + 0.3 * grain)
     img = cv2.GaussianBlur(img * shade, (0, 0), 0.6)
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)

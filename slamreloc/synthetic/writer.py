@@ -24,7 +24,7 @@ from slamreloc.synthetic.room import build_room
 from slamreloc.synthetic.trajectories import SEQUENCES, make_trajectories
 from slamreloc.types import Camera
 
-GENERATOR, VERSION = "slamreloc-synthetic", 1
+GENERATOR, VERSION = "slamreloc-synthetic", 2
 MIN_CLEARANCE_M = 0.4
 
 

@@ -1,0 +1,43 @@
+"""Shared fixtures: a small synthetic scene and a quickly trained map, built once per session."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from slamreloc.mapping import MapConfig
+from slamreloc.regressor.train import TrainConfig
+from slamreloc.synthetic import SceneConfig, render_scene
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+REDKITCHEN = SHARED / "7scenes_redkitchen"
+STAIRS = SHARED / "7scenes_stairs_layout_sample"
+
+# Half-resolution scene: fast to render and to map, same geometry as the demo's.
+SMALL_SCENE = SceneConfig(width=320, height=240, fx=262.5, fy=262.5, cx=159.5, cy=119.5,
+                          n_map=60, n_query=20, n_kidnap=30, n_unlabelled=20)
+SMALL_MAP = MapConfig(arch="tiny", train=TrainConfig(epochs=25, batch_size=512))
+
+
+def needs(path: Path):
+    return pytest.mark.skipif(not path.is_dir(), reason=f"real data not found at {path}")
+
+
+@pytest.fixture(scope="session")
+def scene_dir(tmp_path_factory) -> Path:
+    return render_scene(tmp_path_factory.mktemp("synthetic") / "scene", SMALL_SCENE)
+
+
+@pytest.fixture(scope="session")
+def small_map(scene_dir, tmp_path_factory):
+    from slamreloc.datasets import load_dataset
+    from slamreloc.mapping import build_map
+
+    out = tmp_path_factory.mktemp("maps") / "small_map"
+    return build_map(load_dataset(scene_dir), out, "train", SMALL_MAP, progress=False)
+
+
+def small_map_config(**train) -> MapConfig:
+    return replace(SMALL_MAP, train=replace(SMALL_MAP.train, **train))

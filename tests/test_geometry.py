@@ -1,0 +1,80 @@
+"""Pose conventions and conversions (property-based)."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from slamreloc.errors import InputError
+from slamreloc.geometry import (Rigid3, axis_angle_to_matrix, look_at, matrix_to_quat,
+                                parse_tum_line, pose_error, quat_to_matrix, tum_line)
+
+vec3 = st.lists(st.floats(-10, 10, allow_nan=False), min_size=3, max_size=3).map(np.array)
+rotvec = st.lists(st.floats(-3.1, 3.1, allow_nan=False), min_size=3, max_size=3).map(np.array)
+rigid = st.builds(lambda r, t: Rigid3(axis_angle_to_matrix(r), t), rotvec, vec3)
+
+
+@given(rotvec)
+def test_quaternion_round_trip(r):
+    rot = axis_angle_to_matrix(r)
+    q = matrix_to_quat(rot)
+    assert q[3] >= 0 and np.isclose(np.linalg.norm(q), 1)
+    np.testing.assert_allclose(quat_to_matrix(q), rot, atol=1e-9)
+
+
+@given(rigid, rigid, vec3)
+def test_compose_and_inverse(b_from_a, c_from_b, x):
+    c_from_a = c_from_b @ b_from_a
+    np.testing.assert_allclose(c_from_a.transform(x[None])[0],
+                               c_from_b.transform(b_from_a.transform(x[None]))[0], atol=1e-9)
+    ident = b_from_a.inverse() @ b_from_a
+    np.testing.assert_allclose(ident.matrix(), np.eye(4), atol=1e-9)
+
+
+@given(rigid)
+def test_tum_line_round_trip(world_from_cam):
+    name, back = parse_tum_line(tum_line("frame-1", world_from_cam))
+    assert name == "frame-1"
+    dt, dr = pose_error(back, world_from_cam)
+    assert dt < 1e-5 and dr < 1e-3
+
+
+@given(rigid)
+@settings(max_examples=50)
+def test_matrix_round_trip(pose):
+    np.testing.assert_allclose(Rigid3.from_matrix(pose.matrix()).matrix(), pose.matrix(),
+                               atol=1e-9)
+
+
+def test_pose_error_known_values():
+    a = Rigid3.identity()
+    b = Rigid3(axis_angle_to_matrix([0, 0, np.radians(10)]), np.array([0.03, 0.04, 0]))
+    dt, dr = pose_error(b, a)
+    assert np.isclose(dt, 0.05) and np.isclose(dr, 10.0)
+
+
+def test_look_at_points_the_camera_axis_at_the_target():
+    world_from_cam = look_at([1, 2, 1.5], [3, 2, 1.5])
+    target_in_cam = world_from_cam.inverse().transform(np.array([[3, 2, 1.5]]))[0]
+    np.testing.assert_allclose(target_in_cam, [0, 0, 2], atol=1e-9)
+    # OpenCV convention: image y points down, i.e. world -z for an upright camera
+    np.testing.assert_allclose(world_from_cam.rotation[:, 1], [0, 0, -1], atol=1e-9)
+
+
+@pytest.mark.parametrize("matrix, message", [
+    (np.eye(3), "4x4"),
+    (np.diag([1, 1, 2, 1.0]), "not orthonormal"),
+    (np.diag([1, 1, -1, 1.0]), "not orthonormal"),
+    (np.vstack([np.eye(4)[:3], [0, 0, 1, 1]]), "last row"),
+    (np.full((4, 4), np.nan), "non-finite"),
+])
+def test_non_rigid_matrices_are_rejected(matrix, message):
+    with pytest.raises(InputError, match=message):
+        Rigid3.from_matrix(matrix, source="x.txt")
+
+
+def test_bad_tum_lines_are_rejected():
+    with pytest.raises(InputError, match="8 fields"):
+        parse_tum_line("a 1 2 3")
+    with pytest.raises(InputError, match="non-numeric"):
+        parse_tum_line("a 1 2 3 x 0 0 1")

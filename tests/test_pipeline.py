@@ -1,0 +1,107 @@
+"""End to end on the small synthetic scene: map -> regressor -> PnP, through API and CLI."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from slamreloc.datasets import load_dataset
+from slamreloc.localizer import make_localizer
+from slamreloc.pipeline import run_evaluation
+from slamreloc.scene_map import SceneMap
+
+CONTRACT_KEYS = {"method", "n_queries", "n_localized", "median_translation_m",
+                 "median_rotation_deg", "recall", "timing_ms", "map", "device"}
+
+
+def cli(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "slamreloc.cli", *map(str, args)],
+                          capture_output=True, text=True, cwd=cwd)
+
+
+def test_map_is_self_contained(small_map):
+    loaded = SceneMap.load(small_map.root)
+    assert loaded.meta["regressor"]["arch"] == "tiny"
+    assert 0.5e6 < loaded.regressor.num_parameters() < 0.9e6
+    assert loaded.size_bytes() < 2e6  # float16 weights
+    assert loaded.meta["labels"]["labelled_fraction"] > 0.5
+
+
+def test_regressor_predicts_training_points(small_map):
+    db = small_map.database
+    loc = make_localizer(small_map, "regressor")
+    pred = loc.predict(db.descriptors[:5000].astype(np.float32))
+    assert np.median(np.linalg.norm(pred - db.points[:5000], axis=1)) < 0.10
+
+
+@pytest.mark.parametrize("method, min_recall", [("regressor", 0.8), ("matching", 0.8)])
+def test_localizes_synthetic_queries(small_map, scene_dir, tmp_path, method, min_recall):
+    report = run_evaluation(small_map.root, scene_dir, tmp_path / "r.json", "test", method,
+                            poses=tmp_path / "poses.txt", progress=False)
+    assert CONTRACT_KEYS <= set(report)
+    assert report["recall"]["5cm5deg"] >= min_recall, report
+    assert report["median_translation_m"] < 0.03 and report["median_rotation_deg"] < 1.0
+    on_disk = json.loads((tmp_path / "r.json").read_text())
+    assert on_disk["n_queries"] == 20 and set(on_disk["timing_ms"]) == {
+        "features", "regressor", "pnp", "total"}
+    lines = (tmp_path / "poses.txt").read_text().splitlines()
+    assert len(lines) == report["n_localized"] and len(lines[0].split()) == 8
+
+
+def test_cli_evaluate_and_localize(small_map, scene_dir, tmp_path):
+    res = cli("evaluate", small_map.root, scene_dir, "--report", tmp_path / "r.json",
+              "--method", "matching", "--plot", tmp_path / "p.png")
+    assert res.returncode == 0, res.stderr
+    assert json.loads((tmp_path / "r.json").read_text())["method"] == "matching"
+    assert (tmp_path / "p.png").stat().st_size > 10_000
+    query = load_dataset(scene_dir).frames("test")[3]
+    res = cli("localize", small_map.root, query.image_path)
+    assert res.returncode == 0, res.stderr
+    name, *vals = res.stdout.split()
+    assert name == query.image_path.name and len(vals) == 8 and int(vals[7]) >= 20
+    assert np.linalg.norm(np.array(vals[:3], float) - query.world_from_cam.translation) < 0.05
+
+
+def test_unlocalizable_image_is_reported_and_the_command_goes_on(small_map, scene_dir, tmp_path):
+    import cv2
+
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.full((240, 320, 3), 128, np.uint8))
+    query = load_dataset(scene_dir).frames("test")[0]
+    res = cli("localize", small_map.root, blank, query.image_path)
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert lines[0].startswith("# blank.png: not localized")
+    assert lines[1].startswith(query.image_path.name)
+
+
+def test_bad_inputs_give_one_line_errors(small_map, scene_dir, tmp_path):
+    not_a_map = tmp_path / "stuff"
+    not_a_map.mkdir()
+    (not_a_map / "keep.txt").write_text("precious")
+    cases = [
+        (("evaluate", not_a_map, scene_dir, "--report", tmp_path / "r.json"), "not a slamreloc map"),
+        (("evaluate", small_map.root, tmp_path / "nope", "--report", tmp_path / "r.json"),
+         "dataset folder not found"),
+        (("localize", small_map.root, tmp_path / "missing.png"), "missing.png: image file not found"),
+        (("map", scene_dir, "--out", not_a_map, "--epochs", "1"), "not a slamreloc map"),
+        (("map", tmp_path, "--out", tmp_path / "m"), "not a known dataset layout"),
+        (("localize", small_map.root, scene_dir / "intrinsics.txt", "--intrinsics", "0", "1", "1",
+          "1"), "not a readable image"),
+    ]
+    for args, message in cases:
+        res = cli(*args)
+        assert res.returncode != 0, args
+        err_lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+        assert len(err_lines) == 1 and message in err_lines[0], (args, res.stderr)
+    assert (not_a_map / "keep.txt").read_text() == "precious"  # nothing the user had is lost
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_non_positive_intrinsics_are_rejected(small_map, scene_dir):
+    query = load_dataset(scene_dir).frames("test")[0]
+    res = cli("localize", small_map.root, query.image_path, "--intrinsics", "0", "262", "160",
+              "120")
+    assert res.returncode == 2 and "intrinsics must be positive" in res.stderr
