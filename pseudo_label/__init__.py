@@ -1,0 +1,1 @@
+"""Semi-supervised map updates from unlabelled sequences. Empty in this release."""

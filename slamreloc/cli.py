@@ -30,6 +30,7 @@ class FeatureName(str, Enum):
 class Arch(str, Enum):
     paper = "paper"
     tiny = "tiny"
+    wide = "wide"
 
 
 class Method(str, Enum):
@@ -51,7 +52,7 @@ def map_cmd(
     features: Annotated[FeatureName, typer.Option(help="local features")] = FeatureName.sift,
     superpoint_weights: Annotated[Optional[Path], typer.Option(
         help="SuperPoint weights (.pth), needed with --features superpoint")] = None,
-    arch: Annotated[Arch, typer.Option(help="regressor size: paper 2.3 M or tiny 0.7 M")] = None,
+    arch: Annotated[Arch, typer.Option(help="regressor: paper (2.3 M), tiny (0.7 M), wide (1.6 M, the default)")] = None,
     epochs: Annotated[Optional[int], typer.Option(help="training epochs")] = None,
     device: Annotated[Device, typer.Option(help="training device")] = Device.auto,
 ) -> None:

@@ -14,7 +14,7 @@ from slamreloc.regressor.train import TrainConfig
 from slamreloc.synthetic import SceneConfig, render_scene
 
 # Settings sized for a 2-core CPU: the whole demo in a few minutes.
-DEMO_MAP = MapConfig(arch="tiny", train=TrainConfig(epochs=40))
+DEMO_MAP = MapConfig(arch="wide", train=TrainConfig(epochs=60))
 
 
 def render_with_progress(out: Path, config: SceneConfig = SceneConfig()) -> Path:
@@ -25,12 +25,12 @@ def render_with_progress(out: Path, config: SceneConfig = SceneConfig()) -> Path
 
 
 def run_demo(workdir: Path, viewer: bool = True, port: int = 8080,
-             map_config: MapConfig = DEMO_MAP) -> dict:
+             map_config: MapConfig = DEMO_MAP, scene_config: SceneConfig = SceneConfig()) -> dict:
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     console.rule("1/3 synthetic scene")
-    scene_dir = render_with_progress(workdir / "scene")
+    scene_dir = render_with_progress(workdir / "scene", scene_config)
     dataset = load_dataset(scene_dir)
     console.rule("2/3 map: features, labels, regressor")
     scene_map = build_map(dataset, workdir / "map", "train", map_config)

@@ -24,7 +24,7 @@ from slamreloc.types import Features, Frame
 class MapConfig:
     features: str = "sift"
     feature_options: dict = field(default_factory=dict)  # e.g. {"weights": path} for superpoint
-    arch: str = "paper"
+    arch: str = "wide"
     labels: LabelConfig = field(default_factory=LabelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     device: str = "auto"

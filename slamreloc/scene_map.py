@@ -63,7 +63,7 @@ class SceneMap:
         try:
             state = torch.load(root / WEIGHTS, map_location="cpu", weights_only=True)
             cfg = meta["regressor"]["config"]
-            model = SceneCoordinateRegressor(RegressorConfig(cfg["in_dim"], tuple(cfg["hidden"])))
+            model = SceneCoordinateRegressor(RegressorConfig.from_dict(cfg))
             model.load_state_dict({k: v.float() for k, v in state.items()})
         except (OSError, RuntimeError, KeyError, EOFError) as err:
             raise InputError(f"{root / WEIGHTS}: cannot load regressor ({err})") from None

@@ -23,9 +23,9 @@ def cli(*args, cwd=None):
 
 def test_map_is_self_contained(small_map):
     loaded = SceneMap.load(small_map.root)
-    assert loaded.meta["regressor"]["arch"] == "tiny"
-    assert 0.5e6 < loaded.regressor.num_parameters() < 0.9e6
-    assert loaded.size_bytes() < 2e6  # float16 weights
+    assert loaded.meta["regressor"]["arch"] == "wide"
+    assert 1.4e6 < loaded.regressor.num_parameters() < 1.8e6
+    assert loaded.size_bytes() < 4e6  # float16 weights
     assert loaded.meta["labels"]["labelled_fraction"] > 0.5
 
 
@@ -105,3 +105,35 @@ def test_non_positive_intrinsics_are_rejected(small_map, scene_dir):
     res = cli("localize", small_map.root, query.image_path, "--intrinsics", "0", "262", "160",
               "120")
     assert res.returncode == 2 and "intrinsics must be positive" in res.stderr
+
+
+def test_demo_leaves_scene_map_and_report(scene_dir, tmp_path):
+    """The demo's steps on the small scene (the full-size demo is the README's `make demo`)."""
+    import shutil
+
+    from slamreloc.demo import run_demo
+    from tests.conftest import SMALL_SCENE, small_map_config
+
+    shutil.copytree(scene_dir, tmp_path / "scene")  # reuse the session's rendering
+    out = run_demo(tmp_path, viewer=False, map_config=small_map_config(epochs=10),
+                   scene_config=SMALL_SCENE)
+    assert (tmp_path / "scene" / "scene.json").is_file()
+    assert SceneMap.is_map(tmp_path / "map")
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert CONTRACT_KEYS <= set(report) and report["method"] == "regressor"
+    assert [s["method"] for s in out["summaries"]] == ["regressor", "matching"]
+
+
+def test_existing_map_is_replaced_whole(small_map, scene_dir, tmp_path):
+    import shutil
+
+    from slamreloc.mapping import build_map
+    from tests.conftest import small_map_config
+
+    target = tmp_path / "m"
+    shutil.copytree(small_map.root, target)
+    old_meta = (target / "slamreloc_map.json").read_text()
+    build_map(load_dataset(scene_dir), target, "train", small_map_config(epochs=1),
+              progress=False)
+    assert (target / "slamreloc_map.json").read_text() != old_meta
+    assert not list(tmp_path.glob(".m.*"))  # no temporary folders left behind

@@ -1,0 +1,1 @@
+"""The viser web viewer. Empty in this release."""

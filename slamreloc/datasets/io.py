@@ -13,25 +13,24 @@ from slamreloc.geometry import Rigid3
 INVALID_DEPTH = (0, 65535)  # raw uint16 values that mean "no measurement"
 
 
-def read_image(path: Path) -> np.ndarray:
-    """RGB uint8 (H, W, 3)."""
+def _imread(path: Path, flags: int, what: str) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: image file not found")
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        raise InputError(f"{path}: {what} file not found")
+    img = cv2.imread(str(path), flags)
     if img is None or img.size == 0:
-        raise InputError(f"{path}: not a readable image (empty or corrupt)")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        raise InputError(f"{path}: not a readable {what} (empty or corrupt)")
+    return img
+
+
+def read_image(path: Path) -> np.ndarray:
+    """RGB uint8 (H, W, 3)."""
+    return cv2.cvtColor(_imread(path, cv2.IMREAD_COLOR, "image"), cv2.COLOR_BGR2RGB)
 
 
 def read_depth(path: Path, units_per_metre: float = 1000.0) -> np.ndarray:
     """float32 depth in metres (H, W); invalid pixels (raw 0 or 65535) are 0."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: depth file not found")
-    raw = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
-    if raw is None or raw.size == 0:
-        raise InputError(f"{path}: not a readable depth image")
+    raw = _imread(path, cv2.IMREAD_ANYDEPTH, "depth")
     if raw.ndim != 2:
         raise InputError(f"{path}: depth must be a single-channel image, got shape {raw.shape}")
     depth = raw.astype(np.float32) / units_per_metre
@@ -48,6 +47,8 @@ def read_pose(path: Path) -> Rigid3:
         m = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except ValueError as err:
         raise InputError(f"{path}: pose is not a numeric 4x4 matrix ({err})") from None
+    if m.shape != (4, 4):
+        raise InputError(f"{path}: pose must be a 4x4 matrix, got shape {m.shape}")
     return Rigid3.from_matrix(m, source=str(path))
 
 

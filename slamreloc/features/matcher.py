@@ -26,9 +26,12 @@ def top2(query: np.ndarray, db: np.ndarray | torch.Tensor) -> tuple[np.ndarray, 
     """(distances (N, 2) in descriptor L2 units, indices (N, 2)) of the two nearest db rows."""
     q = torch.as_tensor(query, dtype=torch.float32)
     d = db if isinstance(db, torch.Tensor) else torch.as_tensor(db, dtype=torch.float32)
-    with torch.inference_mode():
-        dist2, idx = _sq_dist_top2(q, d.float())
-    return dist2.sqrt().numpy(), idx.numpy()
+    with torch.inference_mode():  # query blocks bound memory to ~1 GB of similarities
+        parts = [_sq_dist_top2(q[s:s + 4096], d.float()) for s in range(0, len(q), 4096)]
+    if not parts:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.int64)
+    return (torch.cat([p[0] for p in parts]).sqrt().numpy(),
+            torch.cat([p[1] for p in parts]).numpy())
 
 
 def match_mutual(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8) -> np.ndarray:

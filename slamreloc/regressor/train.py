@@ -13,14 +13,17 @@ from slamreloc.regressor.model import SceneCoordinateRegressor
 
 @dataclass(frozen=True)
 class TrainConfig:
-    epochs: int = 60
-    batch_size: int = 4096
-    lr: float = 1e-3
+    epochs: int = 100
+    batch_size: int = 1024
+    lr: float = 2e-3
     weight_decay: float = 5e-4
     betas: tuple[float, float] = (0.9, 0.999)
     lr_halvings: int = 5  # the paper halves the lr every fifth of training
-    noise: float = 0.2  # Gaussian noise on standardised inputs (fraction of each dim's std)
-    input_dropout: float = 0.2
+    noise: float = 0.0  # Gaussian noise on standardised inputs (fraction of each dim's std),
+    # decayed linearly to zero over training when noise_anneal is set: robustness to new views
+    # early, precision on the labels at the end
+    noise_anneal: bool = True
+    input_dropout: float = 0.0
     bf16: bool = True  # mixed precision (CPU AMX / CUDA tensor cores)
     seed: int = 0
 
@@ -47,23 +50,26 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
     model.to(dev).set_normalisation(x, y)
     x = model.normalise_input(x)
     y_n = (y - model.out_mean) / model.out_scale
+    gen = torch.Generator(device=dev).manual_seed(config.seed)
+    if model.config.prototype_init:
+        model.init_prototypes(x, gen)
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, betas=config.betas,
                             weight_decay=config.weight_decay)
     steps_per_epoch = max(1, len(x) // config.batch_size)
     total = config.epochs * steps_per_epoch
     sched = torch.optim.lr_scheduler.StepLR(
         opt, step_size=max(1, total // config.lr_halvings), gamma=0.5)
-    gen = torch.Generator(device=dev).manual_seed(config.seed)
     model.train()
     losses = []
-    for _ in track(range(config.epochs), "training regressor", enabled=progress):
+    for epoch in track(range(config.epochs), "training regressor", enabled=progress):
+        noise = config.noise * (1 - epoch / config.epochs if config.noise_anneal else 1.0)
         perm = torch.randperm(len(x), device=dev, generator=gen)
         epoch_loss = torch.zeros((), device=dev)
         for s in range(steps_per_epoch):
             idx = perm[s * config.batch_size:(s + 1) * config.batch_size]
             xb = x[idx]
-            if config.noise > 0:
-                xb = xb + config.noise * torch.randn(xb.shape, device=dev, generator=gen)
+            if noise > 0:
+                xb = xb + noise * torch.randn(xb.shape, device=dev, generator=gen)
             if config.input_dropout > 0:
                 keep = torch.rand(xb.shape, device=dev, generator=gen) > config.input_dropout
                 xb = xb * keep / (1 - config.input_dropout)

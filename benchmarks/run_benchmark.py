@@ -1,0 +1,78 @@
+"""Map a dataset, evaluate the regressor and the matching baseline side by side, write a table.
+
+    python benchmarks/run_benchmark.py ../shared/data/7scenes_redkitchen --out bench.md \
+        [--arch wide] [--epochs 20] [--workdir /tmp/bench]
+
+Both methods run in the same process on the same map, one after the other, so their timings
+are comparable. Numbers are medians per query.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from slamreloc.datasets import load_dataset
+from slamreloc.mapping import MapConfig, build_map
+from slamreloc.pipeline import run_evaluation
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("dataset", type=Path)
+    ap.add_argument("--out", type=Path, default=Path("bench.md"))
+    ap.add_argument("--workdir", type=Path, default=Path("/tmp/slamreloc-bench"))
+    ap.add_argument("--arch", default=None)
+    ap.add_argument("--epochs", type=int, default=None)
+    ap.add_argument("--device", default="auto")
+    args = ap.parse_args()
+    config = MapConfig(device=args.device)
+    if args.arch:
+        config.arch = args.arch
+    if args.epochs:
+        config.train = replace(config.train, epochs=args.epochs)
+    t0 = time.perf_counter()
+    scene_map = build_map(load_dataset(args.dataset), args.workdir / "map", "train", config)
+    map_s = time.perf_counter() - t0
+    rows = []
+    for method in ("regressor", "matching"):
+        rep = run_evaluation(scene_map.root, args.dataset, args.workdir / f"{method}.json",
+                             "test", method, plot=args.workdir / f"{method}.png")
+        rows.append(rep)
+    t = scene_map.meta["timings_s"]
+    lines = [
+        f"dataset `{args.dataset}`, map = train split, queries = test split; "
+        f"machine: {platform.processor() or platform.machine()}, {torch.get_num_threads()} "
+        f"torch threads, torch {torch.__version__}",
+        f"mapping {map_s:.0f} s (features {t['features_s']:.0f} s, labels {t['labels_s']:.0f} s, "
+        f"training {t['train_s']:.0f} s), arch {scene_map.meta['regressor']['arch']}, "
+        f"{scene_map.meta['train']['epochs']} epochs, device {scene_map.meta['train']['device']}",
+        "",
+        "| method | 5cm5deg | 10cm5deg | 2cm2deg | median | localized | features ms | "
+        "regressor/matching ms | PnP ms | total ms | map size |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        size = (r["map"]["size_bytes"] if r["method"] == "regressor"
+                else r["map"]["database_bytes"]) / 1e6
+        med = (f"{100 * r['median_translation_m']:.1f} cm / {r['median_rotation_deg']:.2f} deg"
+               if r["median_translation_m"] is not None else "inf")
+        tm = r["timing_ms"]
+        lines.append(
+            f"| {r['method']} | {100 * r['recall']['5cm5deg']:.1f} % | "
+            f"{100 * r['recall']['10cm5deg']:.1f} % | {100 * r['recall']['2cm2deg']:.1f} % | "
+            f"{med} | {r['n_localized']}/{r['n_queries']} | {tm['features']:.0f} | "
+            f"{tm['regressor']:.1f} | {tm['pnp']:.1f} | {tm['total']:.0f} | {size:.1f} MB |")
+    args.out.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    (args.workdir / "summary.json").write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()

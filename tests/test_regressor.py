@@ -1,0 +1,78 @@
+"""The regressor model: presets, normalisation, bf16 precision, training on a toy problem."""
+
+import numpy as np
+import pytest
+import torch
+
+from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
+from slamreloc.regressor.train import TrainConfig, resolve_device, train_regressor
+
+
+@pytest.mark.parametrize("arch, dim, low, high", [("paper", 256, 2.2e6, 2.4e6),
+                                                  ("tiny", 256, 0.6e6, 0.8e6)])
+def test_paper_presets_have_the_published_sizes(arch, dim, low, high):
+    n = SceneCoordinateRegressor(RegressorConfig.preset(arch, dim)).num_parameters()
+    assert low < n < high
+
+
+def test_unknown_preset():
+    with pytest.raises(ValueError, match="unknown architecture"):
+        RegressorConfig.preset("huge", 128)
+
+
+def _toy(n_points=300, views=6, dim=128, seed=0):
+    """Each 3D point is seen as `views` noisy copies of one random unit descriptor."""
+    rng = np.random.default_rng(seed)
+    centres = rng.normal(size=(n_points, dim))
+    desc = np.repeat(centres, views, 0) + 0.3 * rng.normal(size=(n_points * views, dim))
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    points = np.repeat(rng.uniform(-2, 2, (n_points, 3)), views, 0)
+    return desc.astype(np.float32), points.astype(np.float32)
+
+
+def test_training_fits_and_generalises_to_new_observations():
+    desc, points = _toy()
+    model = SceneCoordinateRegressor(RegressorConfig(128, (512, 256, 128)))
+    stats = train_regressor(model, desc, points, TrainConfig(epochs=60, batch_size=256),
+                            "cpu", progress=False)
+    assert stats["final_loss_m"] < 0.2
+    new_desc, new_points = _toy(seed=0)  # same points, fresh observation noise
+    rng = np.random.default_rng(1)
+    noisy = new_desc + 0.02 * rng.normal(size=new_desc.shape).astype(np.float32)
+    with torch.no_grad():
+        err = np.linalg.norm(model(torch.as_tensor(noisy)).numpy() - new_points, axis=1)
+    assert np.median(err) < 0.15
+
+
+def test_bf16_inference_keeps_centimetre_precision():
+    """The output layer runs in float32 even under bf16 autocast."""
+    model = SceneCoordinateRegressor(RegressorConfig(128, (256, 128))).eval()
+    x = torch.randn(512, 128)
+    model.out_mean.fill_(30.0)  # a map far from the origin
+    with torch.no_grad():
+        ref = model(x)
+        with torch.autocast("cpu", torch.bfloat16):
+            fast = model(x)
+    assert fast.dtype == torch.float32
+    assert (fast - ref).norm(dim=1).median() < 0.05 * ref.sub(30).norm(dim=1).median()
+
+
+def test_prototype_initialisation_uses_training_descriptors():
+    desc, points = _toy(n_points=50)
+    model = SceneCoordinateRegressor(RegressorConfig(128, (64, 32), prototype_threshold=0.5))
+    x = torch.as_tensor(desc)
+    model.set_normalisation(x, torch.as_tensor(points))
+    xn = model.normalise_input(x)
+    model.init_prototypes(xn, torch.Generator().manual_seed(0))
+    act = torch.relu(model.mlp[0](xn))
+    # sparse: each descriptor fires few units, and every unit fires for its own prototype
+    assert (act > 0).float().mean() < 0.3
+    assert ((act > 0).sum(0) > 0).all()
+
+
+def test_device_resolution():
+    assert resolve_device("cpu").type == "cpu"
+    if not torch.cuda.is_available():
+        assert resolve_device("auto").type == "cpu"
+        with pytest.raises(ValueError, match="CUDA"):
+            resolve_device("cuda")
