@@ -14,10 +14,12 @@ from slamreloc.regressor.train import TrainConfig
 from slamreloc.synthetic import SceneConfig, render_scene
 
 # Settings sized for a 2-core CPU: the whole demo in a few minutes.
-DEMO_MAP = MapConfig(arch="wide", train=TrainConfig(epochs=60))
+DEMO_MAP = MapConfig(arch="wide", train=TrainConfig(epochs=100))
 
 
 def render_with_progress(out: Path, config: SceneConfig = SceneConfig()) -> Path:
+    if (out / "scene.json").is_file():  # already rendered (render_scene checks the config)
+        return render_scene(out, config)
     with make_progress() as bar:
         task = bar.add_task("rendering scene", total=sum(config.counts().values()), rate="")
         return render_scene(out, config, progress=lambda done, total: bar.update(

@@ -19,7 +19,7 @@ class TrainConfig:
     weight_decay: float = 5e-4
     betas: tuple[float, float] = (0.9, 0.999)
     lr_halvings: int = 5  # the paper halves the lr every fifth of training
-    noise: float = 0.0  # Gaussian noise on standardised inputs (fraction of each dim's std),
+    noise: float = 0.3  # Gaussian noise on standardised inputs (fraction of each dim's std),
     # decayed linearly to zero over training when noise_anneal is set: robustness to new views
     # early, precision on the labels at the end
     noise_anneal: bool = True
