@@ -16,7 +16,7 @@ from slamreloc.labels import LabelConfig, LabelSet, build_labels
 from slamreloc.progress import console
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
-from slamreloc.scene_map import MapDatabase, SceneMap, save_map
+from slamreloc.scene_map import MapDatabase, SceneMap, check_map_target, save_map
 from slamreloc.types import Features, Frame
 
 
@@ -43,6 +43,7 @@ def labelled_database(frames: list[Frame], feats: list[Features], labels: LabelS
 
 def build_map(dataset: Dataset, out: Path, split: str = "train", config: MapConfig = MapConfig(),
               progress: bool = True) -> SceneMap:
+    check_map_target(out)  # fail before the work, not after it
     frames = dataset.frames(split)
     if not frames:
         raise InputError(f"{dataset.root}: split '{split}' has no frames")

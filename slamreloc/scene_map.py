@@ -90,13 +90,19 @@ class SceneMap:
         return (self.root / DATABASE).stat().st_size
 
 
+def check_map_target(out: Path) -> None:
+    """Raise unless `out` is absent, an empty folder, or a slamreloc map (to be replaced)."""
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not SceneMap.is_map(out))):
+        raise InputError(f"{out}: exists and is not a slamreloc map; refusing to overwrite it")
+
+
 def save_map(out: str | Path, meta: dict, model: SceneCoordinateRegressor, db: MapDatabase) -> Path:
     """Write a map atomically: into a temporary sibling folder, then rename over `out`.
 
     Refuses to replace an existing non-empty folder that is not a slamreloc map."""
     out = Path(out)
-    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not SceneMap.is_map(out))):
-        raise InputError(f"{out}: exists and is not a slamreloc map; refusing to overwrite it")
+    check_map_target(out)
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)

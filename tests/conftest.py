@@ -18,7 +18,7 @@ STAIRS = SHARED / "7scenes_stairs_layout_sample"
 # Half-resolution scene: fast to render and to map, same geometry as the demo's.
 SMALL_SCENE = SceneConfig(width=320, height=240, fx=262.5, fy=262.5, cx=159.5, cy=119.5,
                           n_map=60, n_query=20, n_kidnap=30, n_unlabelled=20)
-SMALL_MAP = MapConfig(arch="wide", train=TrainConfig(epochs=40))
+SMALL_MAP = MapConfig(arch="wide", train=TrainConfig(epochs=120))
 
 
 def needs(path: Path):
