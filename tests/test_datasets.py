@@ -102,7 +102,7 @@ def test_tum_layout(scene_dir, tmp_path):
 @pytest.mark.parametrize("content, message", [
     ("1 0 0 0\n0 1 0 0\n0 0 1 0\n", "4x4"),
     ("1 0 0 0\n0 2 0 0\n0 0 1 0\n0 0 0 1\n", "not orthonormal"),
-    ("a b c d\n", "not a numeric"),
+    ("a b c d\n", "not a numeric matrix"),
 ])
 def test_malformed_pose_names_the_file(tmp_path, content, message):
     path = tmp_path / "frame-000000.pose.txt"

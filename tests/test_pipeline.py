@@ -36,7 +36,9 @@ def test_regressor_predicts_training_points(small_map):
     assert np.median(np.linalg.norm(pred - db.points[:5000], axis=1)) < 0.10
 
 
-@pytest.mark.parametrize("method, min_recall", [("regressor", 0.8), ("matching", 0.8)])
+# measured on this scene: regressor 0.85 (17 of 20 queries), matching 1.0; a regressor that
+# has not learned the scene localizes none
+@pytest.mark.parametrize("method, min_recall", [("regressor", 0.75), ("matching", 0.9)])
 def test_localizes_synthetic_queries(small_map, scene_dir, tmp_path, method, min_recall):
     report = run_evaluation(small_map.root, scene_dir, tmp_path / "r.json", "test", method,
                             poses=tmp_path / "poses.txt", progress=False)

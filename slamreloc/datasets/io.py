@@ -38,18 +38,23 @@ def read_depth(path: Path, units_per_metre: float = 1000.0) -> np.ndarray:
     return depth
 
 
-def read_pose(path: Path) -> Rigid3:
-    """A 4x4 camera-to-world matrix in metres (7-Scenes pose.txt) -> world_from_cam."""
+def _read_matrix(path: Path, what: str, shape: tuple[int, int]) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: pose file not found")
+        raise InputError(f"{path}: {what} file not found")
     try:
         m = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except ValueError as err:
-        raise InputError(f"{path}: pose is not a numeric 4x4 matrix ({err})") from None
-    if m.shape != (4, 4):
-        raise InputError(f"{path}: pose must be a 4x4 matrix, got shape {m.shape}")
-    return Rigid3.from_matrix(m, source=str(path))
+        raise InputError(f"{path}: {what} is not a numeric matrix ({err})") from None
+    if m.shape != shape:
+        raise InputError(f"{path}: {what} must be a {shape[0]}x{shape[1]} matrix, "
+                         f"got shape {m.shape}")
+    return m
+
+
+def read_pose(path: Path) -> Rigid3:
+    """A 4x4 camera-to-world matrix in metres (7-Scenes pose.txt) -> world_from_cam."""
+    return Rigid3.from_matrix(_read_matrix(path, "pose", (4, 4)), source=str(path))
 
 
 def write_pose(path: Path, world_from_cam: Rigid3) -> None:
@@ -58,12 +63,7 @@ def write_pose(path: Path, world_from_cam: Rigid3) -> None:
 
 def read_intrinsics(path: Path) -> np.ndarray:
     """A 3x3 K matrix; raises unless fx, fy > 0 and cx, cy >= 0."""
-    try:
-        k = np.loadtxt(path, dtype=np.float64, ndmin=2)
-    except ValueError as err:
-        raise InputError(f"{path}: intrinsics are not a numeric 3x3 matrix ({err})") from None
-    if k.shape != (3, 3):
-        raise InputError(f"{path}: intrinsics must be a 3x3 matrix, got shape {k.shape}")
+    k = _read_matrix(path, "intrinsics", (3, 3))
     if not np.all(np.isfinite(k)) or k[0, 0] <= 0 or k[1, 1] <= 0 or k[0, 2] < 0 or k[1, 2] < 0:
         raise InputError(f"{path}: intrinsics must have positive fx, fy and non-negative cx, cy")
     return k
