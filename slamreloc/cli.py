@@ -52,7 +52,8 @@ def map_cmd(
     features: Annotated[FeatureName, typer.Option(help="local features")] = FeatureName.sift,
     superpoint_weights: Annotated[Optional[Path], typer.Option(
         help="SuperPoint weights (.pth), needed with --features superpoint")] = None,
-    arch: Annotated[Arch, typer.Option(help="regressor: paper (2.3 M), tiny (0.7 M), wide (1.6 M, the default)")] = None,
+    arch: Annotated[Optional[Arch], typer.Option(
+        help="regressor: wide (1.6 M, the default), paper (2.3 M), tiny (0.7 M)")] = None,
     epochs: Annotated[Optional[int], typer.Option(help="training epochs")] = None,
     device: Annotated[Device, typer.Option(help="training device")] = Device.auto,
 ) -> None:
@@ -89,7 +90,9 @@ def evaluate(
 
     summary = run_evaluation(map_dir, dataset, report, split, method.value, poses, plot,
                              device.value)
-    _print_summary([summary])
+    from slamreloc.evaluate import print_summary
+
+    print_summary([summary])
 
 
 @app.command()
@@ -136,24 +139,6 @@ def _print_map(scene_map) -> None:
                   f"({reg['parameters'] / 1e6:.2f} M parameters, "
                   f"{scene_map.size_bytes() / 1e6:.1f} MB), trained on {lab['n_labelled']} "
                   "labelled keypoints")
-
-
-def _print_summary(summaries: list[dict]) -> None:
-    from rich.table import Table
-
-    from slamreloc.progress import console
-
-    table = Table(title="relocalization")
-    for col in ("method", "localized", "median", "5cm5deg", "10cm5deg", "ms/query"):
-        table.add_column(col)
-    for s in summaries:
-        med_t, med_r = s["median_translation_m"], s["median_rotation_deg"]
-        median = "inf" if med_t is None else f"{100 * med_t:.1f} cm, {med_r:.2f} deg"
-        table.add_row(s["method"], f"{s['n_localized']}/{s['n_queries']}", median,
-                      f"{100 * s['recall']['5cm5deg']:.1f} %",
-                      f"{100 * s['recall']['10cm5deg']:.1f} %",
-                      f"{s['timing_ms'].get('total', float('nan')):.0f}")
-    console.print(table)
 
 
 def main() -> None:

@@ -3,17 +3,18 @@
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from rich.table import Table
 
 from slamreloc.datasets import read_image
 from slamreloc.errors import InputError
+from slamreloc.fileio import atomic_file
 from slamreloc.geometry import Rigid3, pose_error, tum_line
 from slamreloc.localizer import Localizer
-from slamreloc.progress import track
+from slamreloc.progress import console, track
 from slamreloc.types import Frame
 
 THRESHOLDS = {"1cm1deg": (0.01, 1.0), "2cm2deg": (0.02, 2.0), "5cm5deg": (0.05, 5.0),
@@ -63,19 +64,27 @@ def summarize(results: list[QueryResult], method: str) -> dict:
 
 
 def write_json(path: Path, data: dict) -> None:
-    """Atomic write: temporary file in the same folder, then rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(data, indent=2))
-    os.replace(tmp, path)
+    with atomic_file(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2))
 
 
 def write_tum(path: Path, results: list[QueryResult]) -> None:
     """Localized frames as TUM lines (camera-to-world); failures are left out."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text("".join(tum_line(q.name, q.world_from_cam) + "\n"
-                           for q in results if q.world_from_cam is not None))
-    os.replace(tmp, path)
+    with atomic_file(path) as tmp:
+        tmp.write_text("".join(tum_line(q.name, q.world_from_cam) + "\n"
+                               for q in results if q.world_from_cam is not None))
+
+
+def print_summary(summaries: list[dict]) -> None:
+    """A rich table of evaluation summaries, one row per method."""
+    table = Table(title="relocalization")
+    for col in ("method", "localized", "median", "5cm5deg", "10cm5deg", "ms/query"):
+        table.add_column(col)
+    for s in summaries:
+        med_t, med_r = s["median_translation_m"], s["median_rotation_deg"]
+        median = "inf" if med_t is None else f"{100 * med_t:.1f} cm, {med_r:.2f} deg"
+        table.add_row(s["method"], f"{s['n_localized']}/{s['n_queries']}", median,
+                      f"{100 * s['recall']['5cm5deg']:.1f} %",
+                      f"{100 * s['recall']['10cm5deg']:.1f} %",
+                      f"{s['timing_ms'].get('total', float('nan')):.0f}")
+    console.print(table)

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
+from slamreloc.fileio import atomic_file
 from slamreloc.types import Frame
 
 
@@ -35,14 +35,13 @@ def plot_evaluation(path: Path, results_by_method: dict, frames: list[Frame]) ->
     axes[0].set(xlim=(0, 20), ylim=(0, 1), xlabel="translation error (cm)",
                 ylabel="fraction of queries", title="translation")
     axes[1].set(xlim=(0, 10), ylim=(0, 1), xlabel="rotation error (deg)", title="rotation")
-    axes[2].set(xlabel="x (m)", ylabel="y (m)", title="top view (world x-y), +-0.5 m around the truth")
+    axes[2].set(xlabel="x (m)", ylabel="y (m)", title="top view (world x-y), +-0.5 m around truth")
     for ax in axes:
         ax.grid(alpha=0.3)
         ax.legend(loc="lower right" if ax is not axes[2] else "best", fontsize=8)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    os.replace(tmp, path)
+    try:
+        with atomic_file(path) as tmp:
+            fig.savefig(tmp, dpi=110)
+    finally:
+        plt.close(fig)
