@@ -7,7 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from slamreloc.datasets import load_dataset
+from slamreloc.datasets import load_dataset, read_image
+from slamreloc.geometry import tum_line
 from slamreloc.localizer import make_localizer
 from slamreloc.pipeline import run_evaluation
 from slamreloc.scene_map import SceneMap
@@ -59,11 +60,20 @@ def test_cli_evaluate_and_localize(small_map, scene_dir, tmp_path):
     assert json.loads((tmp_path / "r.json").read_text())["method"] == "matching"
     assert (tmp_path / "p.png").stat().st_size > 10_000
     query = load_dataset(scene_dir).frames("test")[3]
-    res = cli("localize", small_map.root, query.image_path)
+    # matching localizes every query of this scene to < 1 cm: the CLI's pose must be that good
+    res = cli("localize", small_map.root, query.image_path, "--method", "matching")
     assert res.returncode == 0, res.stderr
     name, *vals = res.stdout.split()
     assert name == query.image_path.name and len(vals) == 8 and int(vals[7]) >= 20
     assert np.linalg.norm(np.array(vals[:3], float) - query.world_from_cam.translation) < 0.05
+    # the regressor (85 % of these queries within 5 cm, so no per-frame bound): the CLI prints
+    # exactly what the Python API computes
+    res = cli("localize", small_map.root, query.image_path)
+    assert res.returncode == 0, res.stderr
+    api = make_localizer(small_map, "regressor").localize(read_image(query.image_path),
+                                                          query.camera).estimate
+    assert res.stdout.split() == [*tum_line(name, api.world_from_cam).split(),
+                                  str(api.num_inliers)]
 
 
 def test_unlocalizable_image_is_reported_and_the_command_goes_on(small_map, scene_dir, tmp_path):
