@@ -61,20 +61,30 @@ class RegressorLocalizer(Localizer):
     method = "regressor"
 
     def __init__(self, scene_map: SceneMap, pnp: PnPConfig = PnPConfig(), device: str = "cpu",
-                 bf16: bool | None = None):
+                 bf16: bool | None = None, keep_fraction: float = 0.5):
+        """keep_fraction: PnP uses this share of the predictions, the most confident ones (a
+        regressor without a confidence output always uses all)."""
         super().__init__(scene_map, pnp, device)
         self.model = scene_map.regressor.to(self.device).eval()
         self.bf16 = _fast_bf16() if bf16 is None else bf16
+        self.keep_fraction = keep_fraction
 
-    def predict(self, descriptors: np.ndarray) -> np.ndarray:
-        """(N, D) descriptors -> (N, 3) world points, metres."""
+    def predict(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """(N, D) descriptors -> world points (N, 3), metres, and confidences (N,) or None."""
         with torch.inference_mode(), torch.autocast(self.device.type, torch.bfloat16,
                                                     enabled=self.bf16):
             x = torch.as_tensor(descriptors, dtype=torch.float32, device=self.device)
-            return self.model(x).float().cpu().numpy()
+            points, confidence = self.model.predict(x)
+            return (points.float().cpu().numpy(),
+                    None if confidence is None else confidence.float().cpu().numpy())
 
     def correspondences(self, feats):
-        return feats.keypoints, self.predict(feats.descriptors)
+        points, confidence = self.predict(feats.descriptors)
+        if confidence is None or self.keep_fraction >= 1 or len(points) == 0:
+            return feats.keypoints, points
+        n_keep = max(int(round(self.keep_fraction * len(points))), min(len(points), 50))
+        keep = np.argsort(-confidence, kind="stable")[:n_keep]
+        return feats.keypoints[keep], points[keep]
 
 
 class MatchingLocalizer(Localizer):

@@ -30,9 +30,11 @@ def _toy(n_points=300, views=6, dim=128, seed=0):
     return desc.astype(np.float32), points.astype(np.float32)
 
 
-def test_training_fits_and_generalises_to_new_observations():
+@pytest.mark.parametrize("head", ["regression", "clusters"])
+def test_training_fits_and_generalises_to_new_observations(head):
     desc, points = _toy()
-    model = SceneCoordinateRegressor(RegressorConfig(128, (512, 256, 128)))
+    model = SceneCoordinateRegressor(RegressorConfig(128, (512, 256, 128), head=head,
+                                                     n_clusters=64))
     stats = train_regressor(model, desc, points, TrainConfig(epochs=60, batch_size=256),
                             "cpu", progress=False)
     assert stats["final_loss_m"] < 0.2
@@ -44,9 +46,12 @@ def test_training_fits_and_generalises_to_new_observations():
     assert np.median(err) < 0.15
 
 
-def test_bf16_inference_keeps_centimetre_precision():
+@pytest.mark.parametrize("head", ["regression", "clusters"])
+def test_bf16_inference_keeps_centimetre_precision(head):
     """The output layer runs in float32 even under bf16 autocast."""
-    model = SceneCoordinateRegressor(RegressorConfig(128, (256, 128))).eval()
+    model = SceneCoordinateRegressor(RegressorConfig(128, (256, 128), head=head,
+                                                     n_clusters=32)).eval()
+    model.centres.normal_()
     x = torch.randn(512, 128)
     model.out_mean.fill_(30.0)  # a map far from the origin
     with torch.no_grad():
@@ -55,6 +60,35 @@ def test_bf16_inference_keeps_centimetre_precision():
             fast = model(x)
     assert fast.dtype == torch.float32
     assert (fast - ref).norm(dim=1).median() < 0.05 * ref.sub(30).norm(dim=1).median()
+
+
+def test_clusters_partition_the_training_points():
+    model = SceneCoordinateRegressor(RegressorConfig(128, (64,), head="clusters", n_clusters=16))
+    points = torch.randn(2000, 3)
+    assign = model.set_clusters(points, torch.Generator().manual_seed(0))
+    nearest = torch.cdist(points, model.centres).argmin(1)
+    assert torch.equal(assign, nearest)
+    assert len(assign.unique()) == 16
+    offset = (points - model.centres[assign]).norm(dim=1).mean()
+    assert torch.isclose(model.offset_scale, offset)
+
+
+def test_cluster_head_confidence_is_a_probability():
+    desc, points = _toy(n_points=100)
+    model = SceneCoordinateRegressor(RegressorConfig(128, (256, 128), head="clusters",
+                                                     n_clusters=32))
+    train_regressor(model, desc, points, TrainConfig(epochs=30, batch_size=256), "cpu",
+                    progress=False)
+    with torch.no_grad():
+        _, seen = model.predict(torch.as_tensor(desc))
+        _, unseen = model.predict(torch.as_tensor(_toy(n_points=100, seed=5)[0]))
+    assert ((seen >= 0) & (seen <= 1)).all()
+    assert seen.median() > unseen.median()  # training descriptors are the confident ones
+
+
+def test_unknown_head():
+    with pytest.raises(ValueError, match="unknown head"):
+        SceneCoordinateRegressor(RegressorConfig(128, (64,), head="mixture"))
 
 
 def test_prototype_initialisation_uses_training_descriptors():

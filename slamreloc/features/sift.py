@@ -13,10 +13,15 @@ from slamreloc.types import Features
 
 @dataclass(frozen=True)
 class SiftConfig(ExtractorConfig):
-    contrast_threshold: float = 0.02  # lower than OpenCV's 0.04: more keypoints on low texture
+    contrast_threshold: float = 0.01  # lower than OpenCV's 0.04: more keypoints on low texture
     edge_threshold: float = 10.0
     n_octave_layers: int = 3
     root: bool = True  # RootSIFT: L1-normalise, square root (Hellinger kernel)
+    # OpenCV always doubles the image for its first octave; with upsample=False (the default)
+    # the image is halved first, so the pyramid starts at full resolution: ~3x faster, fewer
+    # but more repeatable keypoints (see BENCHMARKS.md). Keypoints are returned in
+    # full-resolution pixels either way.
+    upsample: bool = False
 
 
 class Sift(Extractor):
@@ -32,13 +37,18 @@ class Sift(Extractor):
                                      edgeThreshold=c.edge_threshold)
 
     def extract_grey(self, grey: np.ndarray) -> Features:
+        scale = 1.0
+        if not self.config.upsample:
+            grey = cv2.resize(grey, (grey.shape[1] // 2, grey.shape[0] // 2),
+                              interpolation=cv2.INTER_AREA)
+            scale = 2.0
         kps, desc = self._sift.detectAndCompute(grey, None)
         if desc is None or len(kps) == 0:
             return Features(np.zeros((0, 2), np.float32), np.zeros((0, self.dim), np.float32),
                             np.zeros(0, np.float32))
         # OpenCV can return slightly more than nfeatures (ties); keep the strongest.
         order = np.argsort([-k.response for k in kps])[: self.config.max_keypoints]
-        xy = np.array([kps[i].pt for i in order], np.float32)
+        xy = np.array([kps[i].pt for i in order], np.float32) * scale
         scores = np.array([kps[i].response for i in order], np.float32)
         desc = desc[order].astype(np.float32)
         if self.config.root:

@@ -12,31 +12,39 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
-PRESETS: dict[str, tuple[int, ...]] = {
-    "paper": (512, 1024, 1024, 512),  # ~2.3 M parameters with 256-d input
-    "tiny": (512, 512, 512, 128),  # ~0.7 M
-    # slamreloc's CPU default: a wide first (prototype) layer, then the tiny net's tail (~1.6 M
-    # with 128-d SIFT); on CPU it beats both paper presets for the same training time
-    "wide": (2048, 512, 512, 128),
+PRESETS: dict[str, dict] = {
+    # the paper's two MLPs, plain xyz regression
+    "paper": {"hidden": (512, 1024, 1024, 512)},  # ~2.3 M parameters with 256-d input
+    "tiny": {"hidden": (512, 512, 512, 128)},  # ~0.7 M
+    # slamreloc's default: a wide first (prototype) layer, the tiny net's tail and a
+    # region-classification head (~2.2 M with 128-d SIFT); see BENCHMARKS.md
+    "wide": {"hidden": (2048, 512, 512, 128), "head": "clusters", "n_clusters": 1024},
 }
 
 
 @dataclass(frozen=True)
 class RegressorConfig:
     in_dim: int = 128
-    hidden: tuple[int, ...] = PRESETS["paper"]
+    hidden: tuple[int, ...] = PRESETS["paper"]["hidden"]
     # First-layer weights start as (standardised, unit-norm) training descriptors and its bias
     # as -threshold, so each first-layer unit starts as a detector of descriptors whose cosine
     # to its prototype exceeds the threshold: a nearest-neighbour-like start that trains far
     # faster than a random one (see BENCHMARKS.md).
     prototype_init: bool = True
     prototype_threshold: float = 0.45
+    # Output head. "regression": 3 outputs (x, y, z). "clusters": the training points are
+    # k-means-clustered; the head classifies a descriptor into one of `n_clusters` scene
+    # regions and regresses its offset from that region's centre (hierarchical scene
+    # coordinate classification, Li et al. 2020). A descriptor that looks like two places then
+    # gets one of them, not their average, and the class probability is a confidence.
+    head: str = "regression"
+    n_clusters: int = 512
 
     @staticmethod
     def preset(arch: str, in_dim: int) -> RegressorConfig:
         if arch not in PRESETS:
             raise ValueError(f"unknown architecture '{arch}' (known: {', '.join(PRESETS)})")
-        return RegressorConfig(in_dim=in_dim, hidden=PRESETS[arch])
+        return RegressorConfig(in_dim=in_dim, **PRESETS[arch])
 
     def to_dict(self) -> dict:
         return {**asdict(self), "hidden": list(self.hidden)}
@@ -57,12 +65,17 @@ class SceneCoordinateRegressor(nn.Module):
         for h in config.hidden:
             layers += [nn.Linear(width, h), nn.ReLU(inplace=True)]
             width = h
-        layers.append(nn.Linear(width, 3))
+        if config.head not in ("regression", "clusters"):
+            raise ValueError(f"unknown head '{config.head}' (known: regression, clusters)")
+        k = config.n_clusters if config.head == "clusters" else 0
+        layers.append(nn.Linear(width, 4 * k if k else 3))  # k logits + k offsets, or xyz
         self.mlp = nn.Sequential(*layers)
         self.register_buffer("in_mean", torch.zeros(config.in_dim))
         self.register_buffer("in_std", torch.ones(config.in_dim))
         self.register_buffer("out_mean", torch.zeros(3))
         self.register_buffer("out_scale", torch.ones(()))
+        self.register_buffer("centres", torch.zeros(k, 3))  # cluster centres, normalised frame
+        self.register_buffer("offset_scale", torch.ones(()))  # mean point-to-centre distance
 
     def set_normalisation(self, descriptors: torch.Tensor, points: torch.Tensor) -> None:
         """Standardise inputs per dimension; centre and scale outputs on the training points."""
@@ -86,16 +99,60 @@ class SceneCoordinateRegressor(nn.Module):
     def normalise_input(self, desc: torch.Tensor) -> torch.Tensor:
         return (desc - self.in_mean) / self.in_std
 
-    def forward_normalised(self, desc_normalised: torch.Tensor) -> torch.Tensor:
-        """Standardised descriptors -> outputs in the normalised point frame. Under bf16
-        autocast the hidden layers run in bf16 but the output layer in float32: bf16's 8-bit
-        mantissa would otherwise round world points to ~1 % of the scene's size."""
-        hidden = self.mlp[:-1](desc_normalised)
-        with torch.autocast(desc_normalised.device.type, enabled=False):
-            return self.mlp[-1](hidden.float())
+    @torch.no_grad()
+    def set_clusters(self, points_normalised: torch.Tensor, generator: torch.Generator,
+                     iterations: int = 20) -> torch.Tensor:
+        """k-means of the (normalised) training points; returns each point's cluster."""
+        k = len(self.centres)
+        centres = points_normalised[torch.randperm(len(points_normalised), generator=generator,
+                                                   device=points_normalised.device)[:k]].clone()
+        for _ in range(iterations + 1):
+            assign = torch.cat([torch.cdist(chunk, centres).argmin(1)
+                                for chunk in points_normalised.split(65536)])
+            if _ == iterations:
+                break
+            count = torch.bincount(assign, minlength=k).float()
+            total = torch.zeros_like(centres).index_add_(0, assign, points_normalised)
+            centres[count > 0] = total[count > 0] / count[count > 0, None]
+        self.centres.copy_(centres)
+        self.offset_scale.copy_((points_normalised - centres[assign]).norm(dim=1).mean()
+                                .clamp_min(1e-6))
+        return assign
+
+    def hidden(self, desc_normalised: torch.Tensor) -> torch.Tensor:
+        return self.mlp[:-1](desc_normalised)
+
+    def head_outputs(self, hidden: torch.Tensor, cluster: torch.Tensor | None = None):
+        """Hidden features -> (points (N, 3) in the normalised frame, logits (N, K) or None).
+
+        The output layer runs in float32 even under bf16 autocast: bf16's 8-bit mantissa would
+        round world points to ~1 % of the scene's size. `cluster` (N,) picks the cluster whose
+        offset is used (training: the true one); by default the most probable one."""
+        out = self.mlp[-1]
+        with torch.autocast(hidden.device.type, enabled=False):
+            hidden = hidden.float()
+            if self.config.head == "regression":
+                return out(hidden), None
+            k = len(self.centres)
+            logits = nn.functional.linear(hidden, out.weight[:k], out.bias[:k])
+            if cluster is None:
+                cluster = logits.argmax(1)
+            # only the chosen cluster's 3 offset rows are evaluated
+            w = out.weight[k:].view(k, 3, -1)[cluster]
+            b = out.bias[k:].view(k, 3)[cluster]
+            offset = torch.bmm(w, hidden.unsqueeze(2)).squeeze(2) + b
+            return self.centres[cluster] + offset * self.offset_scale, logits
+
+    def predict(self, desc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(N, D) descriptors -> world points (N, 3), metres, and a confidence (N,) in [0, 1]
+        (the cluster's probability; None for the regression head)."""
+        points, logits = self.head_outputs(self.hidden(self.normalise_input(desc)))
+        confidence = None if logits is None else logits.softmax(1).amax(1)
+        return points * self.out_scale + self.out_mean, confidence
 
     def forward(self, desc: torch.Tensor) -> torch.Tensor:
-        return self.forward_normalised(self.normalise_input(desc)) * self.out_scale + self.out_mean
+        """(N, D) descriptors -> (N, 3) world points, metres."""
+        return self.predict(desc)[0]
 
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())

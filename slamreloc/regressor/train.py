@@ -6,6 +6,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
+from torch import nn
 
 from slamreloc.progress import track
 from slamreloc.regressor.model import SceneCoordinateRegressor
@@ -19,11 +20,12 @@ class TrainConfig:
     weight_decay: float = 5e-4
     betas: tuple[float, float] = (0.9, 0.999)
     lr_halvings: int = 5  # the paper halves the lr every fifth of training
-    noise: float = 0.3  # Gaussian noise on standardised inputs (fraction of each dim's std),
-    # decayed linearly to zero over training when noise_anneal is set: robustness to new views
-    # early, precision on the labels at the end
-    noise_anneal: bool = True
-    input_dropout: float = 0.0
+    # Gaussian noise on standardised inputs (fraction of each dim's std) and input dropout:
+    # robustness to the descriptor changes of new views (optionally decayed to zero over
+    # training with noise_anneal)
+    noise: float = 0.2
+    noise_anneal: bool = False
+    input_dropout: float = 0.2
     bf16: bool = True  # mixed precision (CPU AMX / CUDA tensor cores)
     seed: int = 0
 
@@ -53,6 +55,7 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
     gen = torch.Generator(device=dev).manual_seed(config.seed)
     if model.config.prototype_init:
         model.init_prototypes(x, gen)
+    cluster = model.set_clusters(y_n, gen) if model.config.head == "clusters" else None
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, betas=config.betas,
                             weight_decay=config.weight_decay)
     steps_per_epoch = max(1, len(x) // config.batch_size)
@@ -74,13 +77,18 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
                 keep = torch.rand(xb.shape, device=dev, generator=gen) > config.input_dropout
                 xb = xb * keep / (1 - config.input_dropout)
             with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=config.bf16):
-                pred = model.forward_normalised(xb)
-            loss = (pred.float() - y_n[idx]).norm(dim=1).mean()
+                hidden = model.hidden(xb)
+            target = None if cluster is None else cluster[idx]
+            pred, logits = model.head_outputs(hidden, target)
+            dist = (pred - y_n[idx]).norm(dim=1).mean()
+            loss = dist
+            if logits is not None:  # region classification + offset within the true region
+                loss = dist / model.offset_scale + nn.functional.cross_entropy(logits, target)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
             sched.step()
-            epoch_loss += loss.detach()
+            epoch_loss += dist.detach()
         losses.append(float(epoch_loss) / steps_per_epoch * float(model.out_scale))
     model.eval().cpu()
     return {"final_loss_m": losses[-1] if losses else None, "epochs": config.epochs,
