@@ -3,6 +3,9 @@
     python benchmarks/run_benchmark.py ../shared/data/7scenes_redkitchen --out bench.md \
         [--arch wide] [--epochs 20] [--workdir /tmp/bench]
 
+Writes WORKDIR/map, one contract report per method (regressor.json, matching.json) and
+WORKDIR/curves.png (both methods' error curves and positions).
+
 Both methods run in the same process on the same map, one after the other, so their timings
 are comparable. Numbers are medians per query.
 """
@@ -19,8 +22,10 @@ from pathlib import Path
 import torch
 
 from slamreloc.datasets import load_dataset
+from slamreloc.evaluate import write_json
 from slamreloc.mapping import MapConfig, build_map
-from slamreloc.pipeline import run_evaluation
+from slamreloc.pipeline import evaluate_method
+from slamreloc.plots import plot_evaluation
 
 
 def main() -> None:
@@ -40,11 +45,12 @@ def main() -> None:
     t0 = time.perf_counter()
     scene_map = build_map(load_dataset(args.dataset), args.workdir / "map", "train", config)
     map_s = time.perf_counter() - t0
-    rows = []
+    rows, results = [], {}
     for method in ("regressor", "matching"):
-        rep = run_evaluation(scene_map.root, args.dataset, args.workdir / f"{method}.json",
-                             "test", method, plot=args.workdir / f"{method}.png")
+        rep, results[method], frames = evaluate_method(scene_map, args.dataset, "test", method)
+        write_json(args.workdir / f"{method}.json", rep)
         rows.append(rep)
+    plot_evaluation(args.workdir / "curves.png", results, frames)  # both methods, one figure
     t = scene_map.meta["timings_s"]
     lines = [
         f"dataset `{args.dataset}`, map = train split, queries = test split; "

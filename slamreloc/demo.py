@@ -14,7 +14,7 @@ from slamreloc.regressor.train import TrainConfig
 from slamreloc.synthetic import SceneConfig, render_scene
 
 # Settings sized for a 2-core CPU: the whole demo in a few minutes.
-DEMO_MAP = MapConfig(arch="wide", train=TrainConfig(epochs=140))
+DEMO_MAP = MapConfig(arch="wide", train=TrainConfig(epochs=60))
 
 
 def render_with_progress(out: Path, config: SceneConfig = SceneConfig()) -> Path:

@@ -13,13 +13,10 @@ from slamreloc.scene_map import SceneMap
 from slamreloc.types import Camera
 
 
-def run_evaluation(map_dir: Path, dataset_dir: Path, report: Path, split: str = "test",
-                   method: str = "regressor", poses: Path | None = None,
-                   plot: Path | None = None, device: str = "cpu", progress: bool = True) -> dict:
-    """Localize a split, write REPORT.json (and TUM poses / a plot); returns the report."""
-    scene_map = SceneMap.load(map_dir)
-    dataset = load_dataset(dataset_dir)
-    frames = dataset.frames(split)
+def evaluate_method(scene_map: SceneMap, dataset_dir: Path, split: str = "test",
+                    method: str = "regressor", device: str = "cpu", progress: bool = True):
+    """Localize a split with one method. Returns (report dict, per-query results, frames)."""
+    frames = load_dataset(dataset_dir).frames(split)
     localizer = make_localizer(scene_map, method, device=device)
     results = evaluate_frames(localizer, frames, progress)
     summary = summarize(results, method)
@@ -33,6 +30,15 @@ def run_evaluation(map_dir: Path, dataset_dir: Path, report: Path, split: str = 
         {"name": r.name, "translation_error_m": r.translation_error_m if r.world_from_cam else None,
          "rotation_error_deg": r.rotation_error_deg if r.world_from_cam else None,
          "num_inliers": r.num_inliers} for r in results]
+    return summary, results, frames
+
+
+def run_evaluation(map_dir: Path, dataset_dir: Path, report: Path, split: str = "test",
+                   method: str = "regressor", poses: Path | None = None,
+                   plot: Path | None = None, device: str = "cpu", progress: bool = True) -> dict:
+    """Localize a split, write REPORT.json (and TUM poses / a plot); returns the report."""
+    summary, results, frames = evaluate_method(SceneMap.load(map_dir), dataset_dir, split,
+                                               method, device, progress)
     write_json(report, summary)
     if poses:
         write_tum(poses, results)

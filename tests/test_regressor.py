@@ -73,6 +73,12 @@ def test_clusters_partition_the_training_points():
     assert torch.isclose(model.offset_scale, offset)
 
 
+def test_clusters_with_fewer_points_than_regions():
+    model = SceneCoordinateRegressor(RegressorConfig(128, (64,), head="clusters", n_clusters=16))
+    assign = model.set_clusters(torch.randn(5, 3), torch.Generator().manual_seed(0))
+    assert len(assign) == 5 and torch.isfinite(model.centres).all()
+
+
 def test_cluster_head_confidence_is_a_probability():
     desc, points = _toy(n_points=100)
     model = SceneCoordinateRegressor(RegressorConfig(128, (256, 128), head="clusters",

@@ -103,9 +103,10 @@ class SceneCoordinateRegressor(nn.Module):
     def set_clusters(self, points_normalised: torch.Tensor, generator: torch.Generator,
                      iterations: int = 20) -> torch.Tensor:
         """k-means of the (normalised) training points; returns each point's cluster."""
-        k = len(self.centres)
-        centres = points_normalised[torch.randperm(len(points_normalised), generator=generator,
-                                                   device=points_normalised.device)[:k]].clone()
+        k, n, dev = len(self.centres), len(points_normalised), points_normalised.device
+        start = (torch.randperm(n, generator=generator, device=dev)[:k] if n >= k else
+                 torch.randint(n, (k,), generator=generator, device=dev))  # tiny maps
+        centres = points_normalised[start].clone()
         for _ in range(iterations + 1):
             assign = torch.cat([torch.cdist(chunk, centres).argmin(1)
                                 for chunk in points_normalised.split(65536)])
