@@ -107,14 +107,17 @@ class SceneCoordinateRegressor(nn.Module):
         start = (torch.randperm(n, generator=generator, device=dev)[:k] if n >= k else
                  torch.randint(n, (k,), generator=generator, device=dev))  # tiny maps
         centres = points_normalised[start].clone()
-        for _ in range(iterations + 1):
-            assign = torch.cat([torch.cdist(chunk, centres).argmin(1)
-                                for chunk in points_normalised.split(65536)])
-            if _ == iterations:
-                break
+
+        def nearest() -> torch.Tensor:
+            return torch.cat([torch.cdist(chunk, centres).argmin(1)
+                              for chunk in points_normalised.split(65536)])
+
+        for _ in range(iterations):  # Lloyd's; empty clusters keep their centre
+            assign = nearest()
             count = torch.bincount(assign, minlength=k).float()
             total = torch.zeros_like(centres).index_add_(0, assign, points_normalised)
             centres[count > 0] = total[count > 0] / count[count > 0, None]
+        assign = nearest()
         self.centres.copy_(centres)
         self.offset_scale.copy_((points_normalised - centres[assign]).norm(dim=1).mean()
                                 .clamp_min(1e-6))
