@@ -62,8 +62,8 @@ class RegressorLocalizer(Localizer):
 
     def __init__(self, scene_map: SceneMap, pnp: PnPConfig = PnPConfig(), device: str = "cpu",
                  bf16: bool | None = None, keep_fraction: float = 0.5):
-        """keep_fraction: PnP uses this share of the predictions, the most confident ones (a
-        regressor without a confidence output always uses all)."""
+        """keep_fraction: PnP uses this share of the predictions, the most confident ones, but
+        at least 50 (a regressor without a confidence output always uses all)."""
         super().__init__(scene_map, pnp, device)
         self.model = scene_map.regressor.to(self.device).eval()
         self.bf16 = _fast_bf16() if bf16 is None else bf16
