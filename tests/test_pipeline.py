@@ -7,8 +7,9 @@ import sys
 import numpy as np
 import pytest
 
-from slamreloc.datasets import load_dataset, read_image
+from slamreloc.datasets import load_dataset, read_depth, read_image
 from slamreloc.geometry import tum_line
+from slamreloc.labels import depth_points
 from slamreloc.localizer import make_localizer
 from slamreloc.pipeline import run_evaluation
 from slamreloc.scene_map import SceneMap
@@ -34,12 +35,31 @@ def test_map_is_self_contained(small_map):
 def test_regressor_predicts_training_points(small_map):
     db = small_map.database
     loc = make_localizer(small_map, "regressor")
-    pred, confidence = loc.predict(db.descriptors[:5000].astype(np.float32))
+    pred, _ = loc.predict(db.descriptors[:5000].astype(np.float32))
     error = np.linalg.norm(pred - db.points[:5000], axis=1)
     assert np.median(error) < 0.10
-    # the confidence ranks predictions: the most confident half is the more accurate one
-    confident = confidence >= np.median(confidence)
-    assert np.median(error[confident]) < np.median(error[~confident])
+
+
+def test_confidence_ranks_query_predictions(small_map, scene_dir):
+    """On new views the most confident half of the predictions is the right one: what the
+    localizer relies on when it gives PnP only that half. (On training descriptors the
+    confidence saturates near 1 and every prediction is within centimetres, so it cannot rank
+    them.) Measured: 99.6 % of the confident half within 10 cm of the truth, 30 % of the rest."""
+    dataset = load_dataset(scene_dir)
+    loc = make_localizer(small_map, "regressor")
+    shares = []
+    for frame in dataset.frames("test"):
+        feats = loc.extractor(read_image(frame.image_path))
+        truth = depth_points(frame, feats.keypoints,
+                             read_depth(frame.depth_path, dataset.depth_units_per_metre))
+        pred, confidence = loc.predict(feats.descriptors)
+        ok = ~np.isnan(truth[:, 0])
+        right = np.linalg.norm(pred - truth, axis=1)[ok] < 0.10
+        confident = confidence[ok] >= np.median(confidence[ok])
+        shares.append((right[confident].mean(), right[~confident].mean()))
+    confident_share, rest_share = np.mean(shares, axis=0)
+    assert confident_share > 0.9
+    assert confident_share > rest_share + 0.3
 
 
 # measured on this scene: regressor 0.85 (17 of 20 queries), matching 1.0; a regressor that
