@@ -10,7 +10,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from slamreloc.errors import SlamrelocError
+from slamreloc.errors import Interrupted, SlamrelocError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Camera relocalization with a lightweight scene-coordinate regressor.")
@@ -38,6 +38,12 @@ class Method(str, Enum):
     matching = "matching"
 
 
+class Precision(str, Enum):
+    auto = "auto"
+    fp32 = "fp32"
+    bf16 = "bf16"
+
+
 class Device(str, Enum):
     auto = "auto"
     cpu = "cpu"
@@ -56,6 +62,11 @@ def map_cmd(
         help="regressor: wide (2.2 M, the default), paper (2.3 M), tiny (0.7 M)")] = None,
     epochs: Annotated[Optional[int], typer.Option(help="training epochs")] = None,
     device: Annotated[Device, typer.Option(help="training device")] = Device.auto,
+    precision: Annotated[Precision, typer.Option(
+        help="training precision: auto = bf16 where the hardware runs it natively (AMX, "
+             "AVX512-BF16, recent CUDA), else fp32")] = Precision.auto,
+    resume: Annotated[bool, typer.Option(
+        "--resume", help="continue an interrupted run from its training checkpoint")] = False,
 ) -> None:
     """Extract features, build scene-coordinate labels and train the regressor into OUT."""
     from slamreloc.datasets import load_dataset
@@ -66,9 +77,9 @@ def map_cmd(
         config.arch = arch.value
     if features == FeatureName.superpoint:
         config.feature_options = {"weights": str(superpoint_weights or "")}
-    if epochs is not None:
-        config.train = replace(config.train, epochs=epochs)
-    scene_map = build_map(load_dataset(dataset), out, split, config)
+    config.train = replace(config.train, precision=precision.value,
+                           **({} if epochs is None else {"epochs": epochs}))
+    scene_map = build_map(load_dataset(dataset), out, split, config, resume=resume)
     _print_map(scene_map)
 
 
@@ -136,14 +147,21 @@ def _print_map(scene_map) -> None:
 
     lab, reg = scene_map.meta["labels"], scene_map.meta["regressor"]
     console.print(f"[green]map written[/green] to {scene_map.root}: {reg['arch']} regressor "
-                  f"({reg['parameters'] / 1e6:.2f} M parameters, "
+                  f"({reg['parameters'] / 1e6:.2f} M parameters, trained in "
+                  f"{scene_map.meta['train'].get('precision', '?')}, "
                   f"{scene_map.size_bytes() / 1e6:.1f} MB), trained on {lab['n_labelled']} "
                   "labelled keypoints")
 
 
 def main() -> None:
+    import warnings
+
+    warnings.formatwarning = lambda message, *args, **kwargs: f"warning: {message}\n"
     try:
         app()
+    except Interrupted as err:
+        print(f"interrupted: {err}", file=sys.stderr)
+        sys.exit(130)
     except SlamrelocError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)

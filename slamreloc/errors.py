@@ -7,3 +7,7 @@ class SlamrelocError(Exception):
 
 class InputError(SlamrelocError):
     """Bad input: a missing or malformed file, wrong dimensions, a folder that is not a map."""
+
+
+class Interrupted(SlamrelocError):
+    """Ctrl-C during long work; the message says what was saved and how to continue."""

@@ -15,6 +15,7 @@ import torch
 
 from slamreloc.features import make_extractor
 from slamreloc.features.matcher import top2
+from slamreloc.precision import autocast, resolve_precision
 from slamreloc.pnp import PnPConfig, PoseEstimate, estimate_pose
 from slamreloc.regressor.train import resolve_device
 from slamreloc.scene_map import SceneMap
@@ -61,18 +62,18 @@ class RegressorLocalizer(Localizer):
     method = "regressor"
 
     def __init__(self, scene_map: SceneMap, pnp: PnPConfig = PnPConfig(), device: str = "cpu",
-                 bf16: bool | None = None, keep_fraction: float = 0.5):
-        """keep_fraction: PnP uses this share of the predictions, the most confident ones, but
+                 precision: str = "auto", keep_fraction: float = 0.5):
+        """precision: auto | fp32 | bf16 (auto: bf16 where the hardware runs it natively).
+        keep_fraction: PnP uses this share of the predictions, the most confident ones, but
         at least 50 (a regressor without a confidence output always uses all)."""
         super().__init__(scene_map, pnp, device)
         self.model = scene_map.regressor.to(self.device).eval()
-        self.bf16 = _fast_bf16() if bf16 is None else bf16
+        self.precision = resolve_precision(precision, self.device.type)
         self.keep_fraction = keep_fraction
 
     def predict(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """(N, D) descriptors -> world points (N, 3), metres, and confidences (N,) or None."""
-        with torch.inference_mode(), torch.autocast(self.device.type, torch.bfloat16,
-                                                    enabled=self.bf16):
+        with torch.inference_mode(), autocast(self.device.type, self.precision):
             x = torch.as_tensor(descriptors, dtype=torch.float32, device=self.device)
             # pad the batch to a multiple of 256 rows: oneDNN compiles a kernel per batch
             # shape, which costs ~20 ms per query when every image has its own keypoint count
@@ -109,19 +110,6 @@ class MatchingLocalizer(Localizer):
         same = np.linalg.norm(self.db_points[idx[:, 0]] - self.db_points[idx[:, 1]], axis=1)
         keep = (dist[:, 0] < self.ratio * dist[:, 1]) | (same < self.same_point_m)
         return feats.keypoints[keep], self.db_points[idx[keep, 0]]
-
-
-def _fast_bf16() -> bool:
-    """bf16 inference where the hardware has native support (AMX/AVX512-BF16 CPUs)."""
-    return bool(torch.backends.mkldnn.is_available()) and "amx" in _cpu_flags()
-
-
-def _cpu_flags() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            return next((line for line in f if line.startswith("flags")), "")
-    except OSError:
-        return ""
 
 
 def make_localizer(scene_map: SceneMap, method: str = "regressor", **kwargs) -> Localizer:

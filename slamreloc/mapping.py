@@ -14,6 +14,7 @@ from slamreloc.extract import extract_frames
 from slamreloc.features import make_extractor
 from slamreloc.labels import LabelConfig, LabelSet, build_labels
 from slamreloc.progress import console
+from slamreloc.regressor.checkpoint import checkpoint_path
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
 from slamreloc.scene_map import MapDatabase, SceneMap, check_map_target, save_map
@@ -42,8 +43,13 @@ def labelled_database(frames: list[Frame], feats: list[Features], labels: LabelS
 
 
 def build_map(dataset: Dataset, out: Path, split: str = "train", config: MapConfig = MapConfig(),
-              progress: bool = True) -> SceneMap:
+              progress: bool = True, resume: bool = False) -> SceneMap:
+    """Map a split of `dataset` into the folder `out` (written atomically). Training state is
+    checkpointed beside `out`; `resume` continues an interrupted run from it."""
     check_map_target(out)  # fail before the work, not after it
+    ckpt = checkpoint_path(out)
+    if resume and not ckpt.is_file():
+        raise InputError(f"{ckpt}: no training checkpoint to resume from")
     frames = dataset.frames(split)
     if not frames:
         raise InputError(f"{dataset.root}: split '{split}' has no frames")
@@ -72,7 +78,7 @@ def build_map(dataset: Dataset, out: Path, split: str = "train", config: MapConf
     model = SceneCoordinateRegressor(RegressorConfig.preset(config.arch, extractor.dim))
     t0 = time.perf_counter()
     train_stats = train_regressor(model, db.descriptors, db.points, config.train, config.device,
-                                  progress)
+                                  progress, checkpoint=ckpt, resume=resume)
     timings["train_s"] = time.perf_counter() - t0
     meta = {
         "features": {"name": config.features, **extractor.config_dict()},
@@ -84,4 +90,6 @@ def build_map(dataset: Dataset, out: Path, split: str = "train", config: MapConf
         "dataset": {"root": str(dataset.root.resolve()), "kind": dataset.kind, "split": split},
         "timings_s": timings,
     }
-    return SceneMap.load(save_map(out, meta, model, db))
+    scene_map = SceneMap.load(save_map(out, meta, model, db))
+    ckpt.unlink(missing_ok=True)  # the map now holds what the checkpoint was for
+    return scene_map

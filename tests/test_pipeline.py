@@ -170,7 +170,8 @@ def test_existing_map_is_replaced_whole(small_map, scene_dir, tmp_path):
     target = tmp_path / "m"
     shutil.copytree(small_map.root, target)
     old_meta = (target / "slamreloc_map.json").read_text()
-    build_map(load_dataset(scene_dir), target, "train", small_map_config(epochs=1),
-              progress=False)
+    new = build_map(load_dataset(scene_dir), target, "train",
+                    small_map_config(epochs=1, precision="fp32"), progress=False)
     assert (target / "slamreloc_map.json").read_text() != old_meta
+    assert new.meta["train"]["precision"] == "fp32"  # as asked for, whatever the hardware
     assert not list(tmp_path.glob(".m.*"))  # no temporary folders left behind

@@ -106,22 +106,22 @@ class SceneCoordinateRegressor(nn.Module):
         k, n, dev = len(self.centres), len(points_normalised), points_normalised.device
         start = (torch.randperm(n, generator=generator, device=dev)[:k] if n >= k else
                  torch.randint(n, (k,), generator=generator, device=dev))  # tiny maps
-        centres = points_normalised[start].clone()
-
-        def nearest() -> torch.Tensor:
-            return torch.cat([torch.cdist(chunk, centres).argmin(1)
-                              for chunk in points_normalised.split(65536)])
-
+        self.centres.copy_(points_normalised[start])
         for _ in range(iterations):  # Lloyd's; empty clusters keep their centre
-            assign = nearest()
+            assign = self.assign_clusters(points_normalised)
             count = torch.bincount(assign, minlength=k).float()
-            total = torch.zeros_like(centres).index_add_(0, assign, points_normalised)
-            centres[count > 0] = total[count > 0] / count[count > 0, None]
-        assign = nearest()
-        self.centres.copy_(centres)
-        self.offset_scale.copy_((points_normalised - centres[assign]).norm(dim=1).mean()
+            total = torch.zeros_like(self.centres).index_add_(0, assign, points_normalised)
+            self.centres[count > 0] = total[count > 0] / count[count > 0, None]
+        assign = self.assign_clusters(points_normalised)
+        self.offset_scale.copy_((points_normalised - self.centres[assign]).norm(dim=1).mean()
                                 .clamp_min(1e-6))
         return assign
+
+    @torch.no_grad()
+    def assign_clusters(self, points_normalised: torch.Tensor) -> torch.Tensor:
+        """Index of the nearest cluster centre for each (normalised) point."""
+        return torch.cat([torch.cdist(chunk, self.centres).argmin(1)
+                          for chunk in points_normalised.split(65536)])
 
     def hidden(self, desc_normalised: torch.Tensor) -> torch.Tensor:
         return self.mlp[:-1](desc_normalised)

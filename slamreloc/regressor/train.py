@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
 
-from slamreloc.progress import track
+from slamreloc.precision import autocast, bf16_support, resolve_precision
+from slamreloc.errors import Interrupted
+from slamreloc.progress import console, track
+from slamreloc.regressor.checkpoint import fingerprint, load_checkpoint, save_checkpoint
 from slamreloc.regressor.model import SceneCoordinateRegressor
 
 
@@ -26,8 +31,9 @@ class TrainConfig:
     noise: float = 0.2
     noise_anneal: bool = False
     input_dropout: float = 0.2
-    bf16: bool = True  # mixed precision (CPU AMX / CUDA tensor cores)
+    precision: str = "auto"  # auto | fp32 | bf16 (slamreloc.precision: bf16 where native)
     seed: int = 0
+    checkpoint_every_s: float = 30.0  # training state saved this often (when a path is given)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -43,9 +49,18 @@ def resolve_device(device: str) -> torch.device:
 
 def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, points: np.ndarray,
                     config: TrainConfig = TrainConfig(), device: str = "auto",
-                    progress: bool = True) -> dict:
-    """Fit `model` to (N, D) descriptors -> (N, 3) world points. Returns training stats."""
+                    progress: bool = True, checkpoint: Path | None = None,
+                    resume: bool = False) -> dict:
+    """Fit `model` to (N, D) descriptors -> (N, 3) world points (metres). Returns training stats.
+
+    checkpoint: a file to save training state to every `config.checkpoint_every_s` seconds
+    and on Ctrl-C (which then raises `Interrupted`); resume: continue from it."""
     dev = resolve_device(device)
+    precision = resolve_precision(config.precision, dev.type)
+    fp = fingerprint(descriptors, points, {**config.to_dict(), "precision": None,
+                                           "checkpoint_every_s": None,
+                                           "model": model.config.to_dict()})
+    state = load_checkpoint(checkpoint, fp) if resume and checkpoint else None
     torch.manual_seed(config.seed)
     x = torch.as_tensor(descriptors, dtype=torch.float32, device=dev)
     y = torch.as_tensor(points, dtype=torch.float32, device=dev)
@@ -53,43 +68,80 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
     x = model.normalise_input(x)
     y_n = (y - model.out_mean) / model.out_scale
     gen = torch.Generator(device=dev).manual_seed(config.seed)
-    if model.config.prototype_init:
+    if model.config.prototype_init and state is None:
         model.init_prototypes(x, gen)
-    cluster = model.set_clusters(y_n, gen) if model.config.head == "clusters" else None
+    cluster = None
+    if model.config.head == "clusters" and state is None:
+        cluster = model.set_clusters(y_n, gen)
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, betas=config.betas,
                             weight_decay=config.weight_decay)
     steps_per_epoch = max(1, len(x) // config.batch_size)
-    total = config.epochs * steps_per_epoch
     sched = torch.optim.lr_scheduler.StepLR(
-        opt, step_size=max(1, total // config.lr_halvings), gamma=0.5)
+        opt, step_size=max(1, config.epochs * steps_per_epoch // config.lr_halvings), gamma=0.5)
+    start, losses = 0, []
+    if state is not None:
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        gen.set_state(state["generator"])
+        start, losses = int(state["epoch"]), list(state["losses"])
+        if model.config.head == "clusters":
+            cluster = model.assign_clusters(y_n)
+        if progress:
+            console.print(f"resuming training at epoch {start + 1}/{config.epochs}")
     model.train()
-    losses = []
-    for epoch in track(range(config.epochs), "training regressor", enabled=progress):
-        noise = config.noise * (1 - epoch / config.epochs if config.noise_anneal else 1.0)
-        perm = torch.randperm(len(x), device=dev, generator=gen)
-        epoch_loss = torch.zeros((), device=dev)
-        for s in range(steps_per_epoch):
-            idx = perm[s * config.batch_size:(s + 1) * config.batch_size]
-            xb = x[idx]
-            if noise > 0:
-                xb = xb + noise * torch.randn(xb.shape, device=dev, generator=gen)
-            if config.input_dropout > 0:
-                keep = torch.rand(xb.shape, device=dev, generator=gen) > config.input_dropout
-                xb = xb * keep / (1 - config.input_dropout)
-            with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=config.bf16):
-                hidden = model.hidden(xb)
-            target = None if cluster is None else cluster[idx]
-            pred, logits = model.head_outputs(hidden, target)
-            dist = (pred - y_n[idx]).norm(dim=1).mean()
-            loss = dist
-            if logits is not None:  # region classification + offset within the true region
-                loss = dist / model.offset_scale + nn.functional.cross_entropy(logits, target)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            sched.step()
-            epoch_loss += dist.detach()
-        losses.append(float(epoch_loss) / steps_per_epoch * float(model.out_scale))
+    if progress:  # printed once training state exists: Ctrl-C from here on is resumable
+        console.print(f"training on {dev.type} in {precision} ({bf16_support(dev.type)[1]})")
+    last_save = time.monotonic()
+    epoch = start
+    try:
+        for epoch in track(range(start, config.epochs), "training regressor",
+                           total=config.epochs - start, enabled=progress):
+            noise = config.noise * (1 - epoch / config.epochs if config.noise_anneal else 1.0)
+            perm = torch.randperm(len(x), device=dev, generator=gen)
+            epoch_loss = torch.zeros((), device=dev)
+            for s in range(steps_per_epoch):
+                idx = perm[s * config.batch_size:(s + 1) * config.batch_size]
+                dist = _step(model, opt, x[idx], y_n[idx],
+                             None if cluster is None else cluster[idx], noise, config, gen,
+                             precision)
+                sched.step()
+                epoch_loss += dist
+            losses.append(float(epoch_loss) / steps_per_epoch * float(model.out_scale))
+            if checkpoint and time.monotonic() - last_save > config.checkpoint_every_s:
+                save_checkpoint(checkpoint, fp, epoch + 1, losses, model, opt, sched, gen)
+                last_save = time.monotonic()
+    except KeyboardInterrupt:
+        if not checkpoint:
+            raise
+        # the interrupted epoch is redone from the state it had reached
+        save_checkpoint(checkpoint, fp, epoch, losses, model, opt, sched, gen)
+        raise Interrupted(
+            f"{checkpoint}: training interrupted at epoch {epoch + 1}/{config.epochs}; its "
+            "state is saved there: run the same command with --resume to continue") from None
     model.eval().cpu()
     return {"final_loss_m": losses[-1] if losses else None, "epochs": config.epochs,
-            "n_samples": len(x), "device": dev.type}
+            "resumed_at_epoch": start if state is not None else None,
+            "n_samples": len(x), "device": dev.type, "precision": precision}
+
+
+def _step(model, opt, xb, yb, target, noise, config, gen, precision) -> torch.Tensor:
+    """One optimisation step on a batch (augmented here); returns the mean distance (detached,
+    normalised frame)."""
+    dev = xb.device
+    if noise > 0:
+        xb = xb + noise * torch.randn(xb.shape, device=dev, generator=gen)
+    if config.input_dropout > 0:
+        keep = torch.rand(xb.shape, device=dev, generator=gen) > config.input_dropout
+        xb = xb * keep / (1 - config.input_dropout)
+    with autocast(dev.type, precision):
+        hidden = model.hidden(xb)
+    pred, logits = model.head_outputs(hidden, target)
+    dist = (pred - yb).norm(dim=1).mean()
+    loss = dist
+    if logits is not None:  # region classification + offset within the true region
+        loss = dist / model.offset_scale + nn.functional.cross_entropy(logits, target)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return dist.detach()

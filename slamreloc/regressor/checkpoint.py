@@ -1,0 +1,59 @@
+"""Training checkpoints: resume an interrupted `slamreloc map` where it stopped.
+
+A checkpoint holds the model, optimiser, lr schedule and random-generator states after a whole
+epoch, plus a fingerprint of the training data and recipe; it is only resumed from when the
+fingerprint matches (same labels, same config). Written atomically; loaded with torch's
+weights-only unpickler, so a checkpoint file cannot run code.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from slamreloc.errors import InputError
+from slamreloc.fileio import atomic_file
+
+
+def checkpoint_path(map_dir: str | Path) -> Path:
+    """Where `slamreloc map --out MAP` keeps its training checkpoint: a hidden sibling of MAP."""
+    map_dir = Path(map_dir)
+    return map_dir.parent / f".{map_dir.name}.train-checkpoint.pt"
+
+
+def fingerprint(descriptors: np.ndarray, points: np.ndarray, recipe: dict) -> str:
+    """Hash of the training data and of everything in the recipe that shapes training."""
+    h = hashlib.sha256()
+    for a in (descriptors, points):
+        a = np.ascontiguousarray(a)
+        h.update(str((a.shape, a.dtype.str)).encode())
+        h.update(a.tobytes())
+    h.update(json.dumps(recipe, sort_keys=True, default=str).encode())
+    return h.hexdigest()
+
+
+def save_checkpoint(path: Path, fp: str, epoch: int, losses: list[float], model, opt, sched,
+                    gen: torch.Generator) -> None:
+    state = {"fingerprint": fp, "epoch": epoch, "losses": losses,
+             "model": model.state_dict(), "optimizer": opt.state_dict(),
+             "scheduler": sched.state_dict(), "generator": gen.get_state()}
+    with atomic_file(path) as tmp:
+        torch.save(state, tmp)
+
+
+def load_checkpoint(path: Path, fp: str) -> dict:
+    """The checkpoint at `path`; InputError if it is unreadable or from other data/recipe."""
+    if not path.is_file():
+        raise InputError(f"{path}: no training checkpoint to resume from")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
+        raise InputError(f"{path}: unreadable training checkpoint ({type(err).__name__})") from None
+    if not isinstance(state, dict) or state.get("fingerprint") != fp:
+        raise InputError(f"{path}: checkpoint is from other training data or settings; "
+                         "remove it or run without --resume")
+    return state
