@@ -26,6 +26,15 @@ from slamreloc.evaluate import write_json
 from slamreloc.mapping import MapConfig, build_map
 from slamreloc.pipeline import evaluate_method
 from slamreloc.plots import plot_evaluation
+from slamreloc.precision import bf16_support
+
+
+def cpu_name() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next(ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor() or platform.machine()
 
 
 def main() -> None:
@@ -36,15 +45,17 @@ def main() -> None:
     ap.add_argument("--arch", default=None)
     ap.add_argument("--epochs", type=int, default=None)
     ap.add_argument("--device", default="auto")
+    ap.add_argument("--precision", default="auto", help="auto | fp32 | bf16")
     args = ap.parse_args()
     config = MapConfig(device=args.device)
+    config.train = replace(config.train, precision=args.precision)
     if args.arch:
         config.arch = args.arch
     if args.epochs:
         config.train = replace(config.train, epochs=args.epochs)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     scene_map = build_map(load_dataset(args.dataset), args.workdir / "map", "train", config)
-    map_s = time.perf_counter() - t0
+    map_s, map_cpu_s = time.perf_counter() - t0, time.process_time() - c0
     rows, results = [], {}
     for method in ("regressor", "matching"):
         rep, results[method], frames = evaluate_method(scene_map, args.dataset, "test", method)
@@ -54,9 +65,10 @@ def main() -> None:
     t = scene_map.meta["timings_s"]
     lines = [
         f"dataset `{args.dataset}`, map = train split, queries = test split; "
-        f"machine: {platform.processor() or platform.machine()}, {torch.get_num_threads()} "
-        f"torch threads, torch {torch.__version__}",
-        f"mapping {map_s:.0f} s (features {t['features_s']:.0f} s, labels {t['labels_s']:.0f} s, "
+        f"machine: {cpu_name()} ({bf16_support('cpu')[1]}), {torch.get_num_threads()} "
+        f"torch threads, torch {torch.__version__}, precision "
+        f"{scene_map.meta['train']['precision']}",
+        f"mapping {map_s:.0f} s wall, {map_cpu_s:.0f} s CPU (features {t['features_s']:.0f} s, labels {t['labels_s']:.0f} s, "
         f"training {t['train_s']:.0f} s), arch {scene_map.meta['regressor']['arch']}, "
         f"{scene_map.meta['train']['epochs']} epochs, device {scene_map.meta['train']['device']}",
         "",

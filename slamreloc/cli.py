@@ -59,7 +59,7 @@ def map_cmd(
     superpoint_weights: Annotated[Optional[Path], typer.Option(
         help="SuperPoint weights (.pth), needed with --features superpoint")] = None,
     arch: Annotated[Optional[Arch], typer.Option(
-        help="regressor: wide (2.2 M, the default), paper (2.3 M), tiny (0.7 M)")] = None,
+        help="regressor: wide (1.4 M, the default), paper (2.3 M), tiny (0.7 M)")] = None,
     epochs: Annotated[Optional[int], typer.Option(help="training epochs")] = None,
     device: Annotated[Device, typer.Option(help="training device")] = Device.auto,
     precision: Annotated[Precision, typer.Option(
