@@ -76,6 +76,12 @@ def test_localizes_synthetic_queries(small_map, scene_dir, tmp_path, method, min
         "features", "regressor", "pnp", "total"}
     lines = (tmp_path / "poses.txt").read_text().splitlines()
     assert len(lines) == report["n_localized"] and len(lines[0].split()) == 8
+    # evo reads it: numeric timestamps (the names are in the sidecar)
+    from evo.tools.file_interface import read_tum_trajectory_file
+
+    assert read_tum_trajectory_file(str(tmp_path / "poses.txt")).num_poses == len(lines)
+    names = (tmp_path / "poses.names.txt").read_text().split()
+    assert names[1].startswith("seq-02/frame-") and float(lines[0].split()[0]) == float(names[0])
 
 
 def test_cli_evaluate_and_localize(small_map, scene_dir, tmp_path):
