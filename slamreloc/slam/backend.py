@@ -12,7 +12,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from enum import Enum
 
-from slamreloc.geometry import Rigid3
+import numpy as np
+
+from slamreloc.geometry import Rigid3, rotation_angle_deg
 from slamreloc.slam.anchoring import AnchoringMixin
 from slamreloc.slam.events import Event, EventKind, FrameData, Plugin
 from slamreloc.slam.graph import GraphConfig, PoseGraph
@@ -88,7 +90,7 @@ class SlamBackend(AnchoringMixin):
         prev = self.frames[-1] if self.frames else None
         motion = (prev.odom_from_cam.inverse() @ step.odom_from_cam
                   if prev is not None and prev.epoch == self.epoch else None)
-        report = check_health(step, motion, self.config.health)
+        report = check_health(step, motion, self.config.health, self._recent_motion())
         if report.verdict == Health.LOST:
             self._lose(index, report.reason)
             if odometry_world_from_cam is None and self.odometry is not None:
@@ -106,6 +108,15 @@ class SlamBackend(AnchoringMixin):
                           "fitness": step.fitness, "state": self.state.value}))
         rec.online_world_from_cam = self.pose_of(index)
         return StepResult(index, rec.online_world_from_cam, self.state, self._events)
+
+    def _recent_motion(self, n: int = 10) -> tuple[float, float]:
+        """Median motion per frame (metres, degrees) over the last n frames of this epoch."""
+        recent = [f.motion for f in self.frames[-n:] if f.epoch == self.epoch
+                  and f.health == Health.OK]
+        if len(recent) < 3:
+            return 0.0, 0.0
+        return (float(np.median([np.linalg.norm(m.translation) for m in recent])),
+                float(np.median([rotation_angle_deg(m.rotation) for m in recent])))
 
     def _odometry(self, data: FrameData, given: Rigid3 | None) -> OdometryStep:
         if given is not None:

@@ -33,6 +33,10 @@ class HealthConfig:
     lost_fitness: float = 0.6
     suspect_fitness: float = 0.8
     min_points: int = 200  # fewer depth points than this: nothing to register
+    # a camera that moves fast all the time raises the motion limits to these multiples of
+    # its median recent motion (per frame)
+    lost_motion_ratio: float = 5.0
+    suspect_motion_ratio: float = 2.5
 
 
 @dataclass
@@ -44,23 +48,28 @@ class HealthReport:
 
 
 def check_health(step: OdometryStep, cam_prev_from_cam: Rigid3 | None,
-                 config: HealthConfig = HealthConfig()) -> HealthReport:
+                 config: HealthConfig = HealthConfig(),
+                 recent: tuple[float, float] = (0.0, 0.0)) -> HealthReport:
     """Judge one odometry step; `cam_prev_from_cam` is the motion since the previous frame
-    (None for the first frame of a track)."""
+    (None for the first frame of a track); `recent` the median motion per frame over the last
+    frames (metres, degrees)."""
     if cam_prev_from_cam is None:
         return HealthReport(Health.OK, "first frame", 0.0, 0.0)
     dm = float(np.linalg.norm(cam_prev_from_cam.translation))
     dr = rotation_angle_deg(cam_prev_from_cam.rotation)
     fit = step.fitness
+    c = config
+    lost_m = max(c.lost_motion_m, c.lost_motion_ratio * recent[0])
+    lost_deg = max(c.lost_motion_deg, c.lost_motion_ratio * recent[1])
+    sus_m = max(c.suspect_motion_m, c.suspect_motion_ratio * recent[0])
+    sus_deg = max(c.suspect_motion_deg, c.suspect_motion_ratio * recent[1])
     checks = [
-        (step.extra.get("n_points", step.n_points) < config.min_points and step.n_points > 0,
-         Health.LOST, f"only {step.n_points} depth points"),
-        (dm > config.lost_motion_m or dr > config.lost_motion_deg, Health.LOST,
+        (0 < step.n_points < c.min_points, Health.LOST, f"only {step.n_points} depth points"),
+        (dm > lost_m or dr > lost_deg, Health.LOST,
          f"implausible motion {dm:.3f} m / {dr:.1f} deg in one frame"),
-        (fit is not None and fit < config.lost_fitness, Health.LOST, f"fitness {fit}"),
-        (dm > config.suspect_motion_m or dr > config.suspect_motion_deg, Health.SUSPECT,
-         f"fast motion {dm:.3f} m / {dr:.1f} deg"),
-        (fit is not None and fit < config.suspect_fitness, Health.SUSPECT, f"fitness {fit}"),
+        (fit is not None and fit < c.lost_fitness, Health.LOST, f"fitness {fit:.2f}"),
+        (dm > sus_m or dr > sus_deg, Health.SUSPECT, f"fast motion {dm:.3f} m / {dr:.1f} deg"),
+        (fit is not None and fit < c.suspect_fitness, Health.SUSPECT, f"fitness {fit:.2f}"),
     ]
     for failed, verdict, reason in checks:
         if failed:

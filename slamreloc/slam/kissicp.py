@@ -19,7 +19,7 @@ class KissIcpConfig:
 
     sampling: DepthSampling = field(default_factory=DepthSampling)
     voxel_m: float = 0.05
-    max_points_per_voxel: int = 20
+    max_points_per_voxel: int = 5
     max_iterations: int = 100
     depth_intrinsics: tuple[float, float, float, float] | None = None
     fitness_cell_m: float = 0.05
