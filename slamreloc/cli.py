@@ -141,7 +141,8 @@ def slam(
         help="teleport the camera after every N processed frames (0: never)")] = 0,
     kidnap_skip: Annotated[int, typer.Option(help="frames dropped at each kidnapping")] = 20,
     odometry: Annotated[str, typer.Option(
-        help="kiss-icp | open3d | a TUM trajectory file from another system")] = "kiss-icp",
+        help="auto | kiss-icp | open3d | a TUM trajectory file from another system (auto: "
+             "kiss-icp on unregistered depth, open3d RGB-D on registered depth)")] = "auto",
     trajectory: Annotated[Optional[Path], typer.Option(
         help="write the map-frame trajectory (TUM, camera-to-world)")] = None,
 ) -> None:

@@ -15,7 +15,7 @@ from slamreloc.slam.trajectory import write_tum
 
 
 def run_slam_command(dataset: Path, map_dir: Path, report: Path, split: str = "test",
-                     kidnap_every: int = 0, kidnap_skip: int = 20, odometry: str = "kiss-icp",
+                     kidnap_every: int = 0, kidnap_skip: int = 20, odometry: str = "auto",
                      trajectory: Path | None = None, progress: bool = True) -> dict:
     if kidnap_every < 0 or kidnap_skip < 0:
         raise InputError("--kidnap-every and --kidnap-skip must be >= 0")

@@ -1,5 +1,6 @@
-"""open3d's multi-scale RGB-D odometry (tensor API), frame to frame, point-to-plane on depth
-only (7-Scenes depth is not registered to RGB, so photometric terms would be misaligned)."""
+"""open3d's multi-scale RGB-D odometry (tensor API), frame to frame. With depth registered to
+the image (`depth_intrinsics` None) it uses the hybrid photometric + geometric loss; otherwise
+(7-Scenes: depth from another camera) point-to-plane on depth only."""
 
 from __future__ import annotations
 
@@ -35,7 +36,10 @@ class Open3dOdometry(Odometry):
 
         cam = depth_camera(camera, depth.shape, self.config.depth_intrinsics)
         d = o3d.core.Tensor(np.ascontiguousarray(depth, dtype=np.float32))
-        color = o3d.core.Tensor(np.zeros((*depth.shape, 1), np.float32))
+        hybrid = self.config.depth_intrinsics is None and image is not None
+        rgb = (image.astype(np.float32) / 255.0 if hybrid
+               else np.zeros((*depth.shape, 3), np.float32))
+        color = o3d.core.Tensor(np.ascontiguousarray(rgb))
         rgbd = o3d.t.geometry.RGBDImage(o3d.t.geometry.Image(color), o3d.t.geometry.Image(d))
         fitness = None
         if self._prev is not None:
@@ -43,7 +47,7 @@ class Open3dOdometry(Odometry):
                 rgbd, self._prev, o3d.core.Tensor(cam.K), o3d.core.Tensor(self._delta),
                 1.0, self.config.depth_max_m,
                 [o3o.OdometryConvergenceCriteria(n) for n in self.config.iterations],
-                o3o.Method.PointToPlane)
+                o3o.Method.Hybrid if hybrid else o3o.Method.PointToPlane)
             self._delta = res.transformation.numpy()  # prev_from_cur
             self._pose = self._pose @ self._delta
             fitness = float(res.fitness)

@@ -22,7 +22,11 @@ SEVENSCENES_DEPTH_K = (585.0, 585.0, 320.0, 240.0)  # 7-Scenes depth camera at 6
 @dataclass
 class SlamRunConfig:
     split: str = "test"
-    odometry: str = "kiss-icp"  # kiss-icp | open3d | path to a TUM trajectory file
+    # auto | kiss-icp | open3d | path to a TUM trajectory file. auto: kiss-icp on depth that
+    # is not registered to the image (best drift on RedKitchen), open3d's hybrid RGB-D
+    # odometry on registered depth (best on the synthetic scene, whose flat walls make
+    # geometry-only ICP slide); see BENCHMARKS.md
+    odometry: str = "auto"
     kidnap_every: int = 0  # 0: no kidnapping
     kidnap_skip: int = 20
     backend: BackendConfig = field(default_factory=BackendConfig)
@@ -44,6 +48,10 @@ def kidnap_schedule(n_frames: int, every: int, skip: int) -> tuple[list[int], li
 
 
 def make_odometry(name: str, depth_intrinsics) -> Odometry:
+    """depth_intrinsics: the depth camera's (fx, fy, cx, cy) at 640x480 when depth is not
+    registered to the image, else None."""
+    if name == "auto":
+        name = "kiss-icp" if depth_intrinsics is not None else "open3d"
     if name == "kiss-icp":
         return KissIcpOdometry(KissIcpConfig(depth_intrinsics=depth_intrinsics))
     if name == "open3d":
