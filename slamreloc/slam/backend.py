@@ -109,6 +109,13 @@ class SlamBackend(AnchoringMixin):
         rec.online_world_from_cam = self.pose_of(index)
         return StepResult(index, rec.online_world_from_cam, self.state, self._events)
 
+    def finish(self) -> None:
+        """End of the run: let plugins settle pending work, then optimise the whole graph."""
+        for plugin in self.plugins:
+            getattr(plugin, "finish", lambda: None)()
+        with self.timer("final_optimization"):
+            self.graph.optimize_batch()
+
     def _recent_motion(self, n: int = 10) -> tuple[float, float]:
         """Median motion per frame (metres, degrees) over the last n frames of this epoch."""
         recent = [f.motion for f in self.frames[-n:] if f.epoch == self.epoch

@@ -43,6 +43,7 @@ class PoseGraph:
         self.config = config
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(config.relinearize_threshold)
+        params.relinearizeSkip = 1  # robust kernels re-weight with every relinearization
         self._isam = gtsam.ISAM2(params)
         self._estimate = gtsam.Values()
         self.n_odometry, self.n_priors = 0, 0
@@ -85,6 +86,12 @@ class PoseGraph:
     def _update(self, graph, values) -> None:
         self._isam.update(graph, values)
         self._estimate = self._isam.calculateEstimate()
+
+    def optimize_batch(self) -> None:
+        """Polish the whole graph with Levenberg-Marquardt from the ISAM2 estimate (end of a
+        run: ISAM2 relinearizes only part of the graph at each update)."""
+        graph = self._isam.getFactorsUnsafe()
+        self._estimate = gtsam.LevenbergMarquardtOptimizer(graph, self._estimate).optimize()
 
     def pose(self, key: int) -> Rigid3:
         return _rigid(self._estimate.atPose3(key))

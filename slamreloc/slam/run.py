@@ -89,7 +89,6 @@ def run_slam(dataset_dir: Path, map_dir: Path, config: SlamRunConfig = SlamRunCo
         backend.process(read_image(frame.image_path), depth, frame.camera,
                         timestamp=frame.timestamp)
         t_backend += time.perf_counter() - t0
-    for plugin in plugins:
-        getattr(plugin, "finish", lambda: None)()
+    backend.finish()
     report = build_report(backend, processed, jumps, plugins, config, t_backend)
     return report, backend, processed
