@@ -52,7 +52,8 @@ def test_external_odometry_api(kidnap_scene, small_map):  # noqa: F811
     assert EventKind.MAP_UPDATED in kinds
     # odometry did not notice the jump: the next loop-closure relocalization (every 3rd
     # keyframe = 9 frames) disagrees with the track, the frame after it confirms the jump
-    lost = [e for e in events if e.kind == EventKind.TRACKING_LOST]
+    # (a drift of 0.4 deg per frame may also be re-anchored before the jump: not asserted)
+    lost = [e for e in events if e.kind == EventKind.TRACKING_LOST and e.frame >= jumps[0]]
     assert lost and jumps[0] <= lost[0].frame <= jumps[0] + 10, [(e.frame, e.info) for e in lost]
     assert "relocalizations agree" in lost[0].info["reason"]
     back = next(e.frame for e in events

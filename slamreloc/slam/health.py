@@ -58,6 +58,7 @@ def check_health(step: OdometryStep, cam_prev_from_cam: Rigid3 | None,
     dm = float(np.linalg.norm(cam_prev_from_cam.translation))
     dr = rotation_angle_deg(cam_prev_from_cam.rotation)
     fit = step.fitness
+    fit_text = "n/a" if fit is None else f"{fit:.2f}"
     c = config
     lost_m = max(c.lost_motion_m, c.lost_motion_ratio * recent[0])
     lost_deg = max(c.lost_motion_deg, c.lost_motion_ratio * recent[1])
@@ -67,9 +68,9 @@ def check_health(step: OdometryStep, cam_prev_from_cam: Rigid3 | None,
         (0 < step.n_points < c.min_points, Health.LOST, f"only {step.n_points} depth points"),
         (dm > lost_m or dr > lost_deg, Health.LOST,
          f"implausible motion {dm:.3f} m / {dr:.1f} deg in one frame"),
-        (fit is not None and fit < c.lost_fitness, Health.LOST, f"fitness {fit:.2f}"),
+        (fit is not None and fit < c.lost_fitness, Health.LOST, f"fitness {fit_text}"),
         (dm > sus_m or dr > sus_deg, Health.SUSPECT, f"fast motion {dm:.3f} m / {dr:.1f} deg"),
-        (fit is not None and fit < c.suspect_fitness, Health.SUSPECT, f"fitness {fit:.2f}"),
+        (fit is not None and fit < c.suspect_fitness, Health.SUSPECT, f"fitness {fit_text}"),
     ]
     for failed, verdict, reason in checks:
         if failed:
