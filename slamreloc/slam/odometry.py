@@ -75,8 +75,8 @@ def occupied_fraction(points: np.ndarray, model: np.ndarray, cell_m: float) -> f
     """Share of `points` falling in a cell of size `cell_m` that holds a `model` point."""
     if len(points) == 0 or len(model) == 0:
         return 0.0
-    keys = lambda p: np.floor(p / cell_m).astype(np.int64) @ np.array([1, 1 << 21, 1 << 42])  # noqa: E731
-    occupied = np.unique(keys(model))
-    q = keys(points)
+    weights = np.array([1, 1 << 21, 1 << 42])
+    occupied = np.unique(np.floor(model / cell_m).astype(np.int64) @ weights)
+    q = np.floor(points / cell_m).astype(np.int64) @ weights
     pos = np.clip(np.searchsorted(occupied, q), 0, len(occupied) - 1)
     return float(np.mean(occupied[pos] == q))

@@ -63,7 +63,8 @@ def build_report(backend, frames, jumps, plugins, config, t_backend_s: float) ->
     core_ms = sum(timing.get(k, {}).get("total_ms", 0.0) for k in ("odometry", "graph"))
     rnd = (lambda v: None if v is None else round(v, 4))  # noqa: E731
     report = {
-        "n_frames": n, "odometry": getattr(backend.odometry, "name", config.odometry), "split": config.split,
+        "n_frames": n,
+        "odometry": getattr(backend.odometry, "name", config.odometry), "split": config.split,
         "ate_rmse_m": rnd(_ate(final, truth)),
         "ate_rmse_aligned_m": rnd(_ate(final, truth, align=True)),
         "ate_rmse_odometry_only_m": rnd(_ate(odo, truth)),
