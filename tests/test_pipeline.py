@@ -165,6 +165,9 @@ def test_demo_leaves_scene_map_and_report(scene_dir, tmp_path):
     report = json.loads((tmp_path / "report.json").read_text())
     assert CONTRACT_KEYS <= set(report) and report["method"] == "regressor"
     assert [s["method"] for s in out["summaries"]] == ["regressor", "matching"]
+    slam = json.loads((tmp_path / "report_slam.json").read_text())  # the SLAM stage ran
+    assert {"ate_rmse_m", "n_kidnaps", "n_recovered", "backend_fps"} <= set(slam)
+    assert slam == out["slam"] and (tmp_path / "trajectory_slam.txt").is_file()
 
 
 def test_existing_map_is_replaced_whole(small_map, scene_dir, tmp_path):
