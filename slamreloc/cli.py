@@ -142,6 +142,29 @@ def demo(
     run_demo(workdir, viewer=not no_viewer, port=port)
 
 
+@app.command()
+def slam(
+    dataset: Annotated[Path, typer.Argument(help="RGB-D dataset folder (7-Scenes, TUM, synthetic)")],
+    map_dir: Annotated[Path, typer.Option("--map", help="map folder to relocalize against")],
+    report: Annotated[Path, typer.Option("--report", help="REPORT.json to write")],
+    split: Annotated[str, typer.Option(help="split, role or sequence names to track")] = "test",
+    kidnap_every: Annotated[int, typer.Option(
+        help="teleport the camera after every N processed frames (0: never)")] = 0,
+    kidnap_skip: Annotated[int, typer.Option(help="frames dropped at each kidnapping")] = 20,
+    odometry: Annotated[str, typer.Option(
+        help="auto | kiss-icp | open3d | a TUM trajectory file from another system (auto: "
+             "kiss-icp on unregistered depth, open3d RGB-D on registered depth)")] = "auto",
+    trajectory: Annotated[Optional[Path], typer.Option(
+        help="write the map-frame trajectory (TUM, camera-to-world)")] = None,
+) -> None:
+    """Track a split with odometry, relocalize after tracking loss and at keyframes, optimise
+    the pose graph in the map frame; report ATE, recoveries and loop closures."""
+    from slamreloc.slam.cli_stage import run_slam_command
+
+    run_slam_command(dataset, map_dir, report, split, kidnap_every, kidnap_skip, odometry,
+                     trajectory)
+
+
 def _print_map(scene_map) -> None:
     from slamreloc.progress import console
 

@@ -11,12 +11,14 @@ from slamreloc.mapping import MapConfig, build_map
 from slamreloc.pipeline import run_evaluation
 from slamreloc.progress import console, make_progress
 from slamreloc.regressor.train import TrainConfig
+from slamreloc.slam.cli_stage import print_slam_summary, run_slam_command
 from slamreloc.synthetic import SceneConfig, render_scene
 
 # Settings sized for a 2-core CPU without native bf16: the whole demo within 10 minutes. The
 # synthetic room's labels are dense (80 % of keypoints): 20 epochs localize every query within
 # 2 cm (15 epochs: worst 2.0 cm, 30: 1.5 cm; BENCHMARKS.md).
 DEMO_MAP = MapConfig(arch="wide", train=TrainConfig(epochs=20))
+DEMO_KIDNAP = (30, 15)  # kidnap after every 30 frames, 15 dropped: twice in 120 frames
 
 
 def render_with_progress(out: Path, config: SceneConfig = SceneConfig()) -> Path:
@@ -33,19 +35,25 @@ def run_demo(workdir: Path, viewer: bool = True, port: int = 8080,
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    console.rule("1/3 synthetic scene")
+    console.rule("1/4 synthetic scene")
     scene_dir = render_with_progress(workdir / "scene", scene_config)
     dataset = load_dataset(scene_dir)
-    console.rule("2/3 map: features, labels, regressor")
+    console.rule("2/4 map: features, labels, regressor")
     scene_map = build_map(dataset, workdir / "map", "train", map_config)
-    console.rule("3/3 relocalize the query sequence")
+    console.rule("3/4 relocalize the query sequence")
     summaries = [run_evaluation(scene_map.root, scene_dir, workdir / f"report_{m}.json", "test",
                                 m, poses=workdir / f"poses_{m}.txt") for m in
                  ("regressor", "matching")]
     write_json(workdir / "report.json", summaries[0])  # the contract's name: the method itself
+    console.rule("4/4 SLAM backend on the kidnap sequence, camera kidnapped twice")
+    slam = run_slam_command(scene_dir, scene_map.root, workdir / "report_slam.json", "kidnap",
+                            kidnap_every=DEMO_KIDNAP[0], kidnap_skip=DEMO_KIDNAP[1],
+                            trajectory=workdir / "trajectory_slam.txt")
     print_summary(summaries)
+    print_slam_summary(slam)
     console.print(f"demo finished in {time.perf_counter() - t0:.0f} s; scene, map and reports "
                   f"are in {workdir}")
     if viewer:
         console.print("the viewer is not part of this release yet (see README)")
-    return {"summaries": summaries, "map": str(scene_map.root), "scene": str(scene_dir)}
+    return {"summaries": summaries, "slam": slam, "map": str(scene_map.root),
+            "scene": str(scene_dir)}

@@ -29,6 +29,7 @@ class QueryResult:
     translation_error_m: float  # inf when not localized
     rotation_error_deg: float
     timings_ms: dict
+    timestamp: float = 0.0  # the frame's timestamp (seconds), the TUM file's first column
 
 
 def evaluate_frames(localizer: Localizer, frames: list[Frame],
@@ -41,7 +42,7 @@ def evaluate_frames(localizer: Localizer, frames: list[Frame],
         est = loc.estimate.world_from_cam
         dt, dr = pose_error(est, frame.world_from_cam) if est else (np.inf, np.inf)
         results.append(QueryResult(frame.name, est, loc.estimate.num_inliers, dt, dr,
-                                   loc.timings_ms))
+                                   loc.timings_ms, frame.timestamp))
     return results
 
 
@@ -69,10 +70,18 @@ def write_json(path: Path, data: dict) -> None:
 
 
 def write_tum(path: Path, results: list[QueryResult]) -> None:
-    """Localized frames as TUM lines (camera-to-world); failures are left out."""
+    """Localized frames as TUM lines `timestamp tx ty tz qx qy qz qw` (camera-to-world, as
+    evo reads them); failures are left out. The first column is the frame's timestamp, or
+    its index in `results` when timestamps repeat (several sequences); the frame names go to
+    the sidecar `<path stem>.names.txt` (`stamp name` per line)."""
+    stamps = [q.timestamp for q in results]
+    if len(set(stamps)) < len(stamps):
+        stamps = [float(i) for i in range(len(results))]
+    done = [(f"{t:.6f}", q) for t, q in zip(stamps, results) if q.world_from_cam is not None]
     with atomic_file(path) as tmp:
-        tmp.write_text("".join(tum_line(q.name, q.world_from_cam) + "\n"
-                               for q in results if q.world_from_cam is not None))
+        tmp.write_text("".join(tum_line(t, q.world_from_cam) + "\n" for t, q in done))
+    with atomic_file(Path(path).with_suffix(".names.txt")) as tmp:
+        tmp.write_text("".join(f"{t} {q.name}\n" for t, q in done))
 
 
 def print_summary(summaries: list[dict]) -> None:

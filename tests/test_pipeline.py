@@ -76,6 +76,12 @@ def test_localizes_synthetic_queries(small_map, scene_dir, tmp_path, method, min
         "features", "regressor", "pnp", "total"}
     lines = (tmp_path / "poses.txt").read_text().splitlines()
     assert len(lines) == report["n_localized"] and len(lines[0].split()) == 8
+    # evo reads it: numeric timestamps (the names are in the sidecar)
+    from evo.tools.file_interface import read_tum_trajectory_file
+
+    assert read_tum_trajectory_file(str(tmp_path / "poses.txt")).num_poses == len(lines)
+    names = (tmp_path / "poses.names.txt").read_text().split()
+    assert names[1].startswith("seq-02/frame-") and float(lines[0].split()[0]) == float(names[0])
 
 
 def test_cli_evaluate_and_localize(small_map, scene_dir, tmp_path):
@@ -159,6 +165,9 @@ def test_demo_leaves_scene_map_and_report(scene_dir, tmp_path):
     report = json.loads((tmp_path / "report.json").read_text())
     assert CONTRACT_KEYS <= set(report) and report["method"] == "regressor"
     assert [s["method"] for s in out["summaries"]] == ["regressor", "matching"]
+    slam = json.loads((tmp_path / "report_slam.json").read_text())  # the SLAM stage ran
+    assert {"ate_rmse_m", "n_kidnaps", "n_recovered", "backend_fps"} <= set(slam)
+    assert slam == out["slam"] and (tmp_path / "trajectory_slam.txt").is_file()
 
 
 def test_existing_map_is_replaced_whole(small_map, scene_dir, tmp_path):

@@ -1,0 +1,101 @@
+"""SLAM backend benchmark: odometry front ends (drift, frames per second), the backend without
+relocalization (odometry + keyframe graph updates), and the relocalization cost per call.
+
+    OMP_NUM_THREADS=1 python benchmarks/slam_benchmark.py DATASET --map MAP [--split test]
+
+Prints a markdown table (medians; drift = ATE RMSE of the odometry chained from the first
+true pose, metres).
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+
+import numpy as np
+import torch
+
+from slamreloc.datasets import load_dataset, read_depth, read_image
+from slamreloc.slam.backend import SlamBackend
+from slamreloc.slam.events import EventKind
+from slamreloc.slam.metrics import ate_rmse
+from slamreloc.slam.run import SEVENSCENES_DEPTH_K, make_odometry
+
+
+class AnchorAtStart:
+    """Anchors the backend once at the true first pose: the graph runs, nothing relocalizes."""
+
+    name = "anchor-at-start"
+
+    def __init__(self, world_from_cam):
+        self.world_from_cam = world_from_cam
+
+    def attach(self, backend):
+        self.backend = backend
+
+    def on_event(self, event, frame):
+        if event.kind == EventKind.FRAME and self.backend.state.value != "tracking":
+            self.backend.anchor(frame.index, self.world_from_cam)
+
+
+def run_odometry(name, frames, depths, depth_k):
+    backend = SlamBackend(make_odometry(name, depth_k), [AnchorAtStart(frames[0].world_from_cam)])
+    t0, c0 = time.perf_counter(), time.thread_time()
+    for f, d in zip(frames, depths):
+        backend.process(None, d, f.camera, timestamp=f.timestamp)
+    wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
+    odo = [frames[0].world_from_cam @ r.odom_from_cam for r in backend.frames]
+    timing = backend.timer.summary()
+    truth = [f.world_from_cam for f in frames]
+    return {"odometry": name, "drift_ate_m": ate_rmse(odo, truth),
+            "odometry_ms": timing["odometry"]["median_ms"],
+            "graph_ms": timing.get("graph", {}).get("median_ms", 0.0),
+            "backend_fps": len(frames) / wall, "backend_cpu_fps": len(frames) / cpu,
+            "lost": sum(e.kind == EventKind.TRACKING_LOST for e in backend.event_log)}
+
+
+def relocalization_cost(map_dir, frames, n=30):
+    from slamreloc.localizer import RegressorLocalizer
+    from slamreloc.scene_map import SceneMap
+
+    loc = RegressorLocalizer(SceneMap.load(map_dir))
+    ms, cpu = [], []
+    for f in frames[:: max(1, len(frames) // n)]:
+        image, c0 = read_image(f.image_path), time.thread_time()
+        ms.append(loc.localize(image, f.camera).timings_ms["total"])
+        cpu.append(1000 * (time.thread_time() - c0))
+    return float(np.median(ms)), float(np.median(cpu))
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("dataset")
+    ap.add_argument("--map", default=None)
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--odometry", nargs="+", default=["kiss-icp", "open3d"])
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    ds = load_dataset(args.dataset)
+    frames = ds.frames(args.split)
+    depths = [read_depth(f.depth_path, ds.depth_units_per_metre) for f in frames]
+    depth_k = None if ds.depth_registered else SEVENSCENES_DEPTH_K
+    print(f"{args.dataset} split {args.split}: {len(frames)} frames "
+          f"{depths[0].shape[1]}x{depths[0].shape[0]}; {platform.machine()}, "
+          f"{platform.processor() or ''} torch threads 1")
+    print("| odometry | drift ATE | odometry ms | graph ms | backend fps (wall) | "
+          "backend fps (CPU time of this thread) | false tracking losses |")
+    print("|---|---|---|---|---|---|---|")
+    for name in args.odometry:
+        r = run_odometry(name, frames, depths, depth_k)
+        print(f"| {name} | {100 * r['drift_ate_m']:.1f} cm | {r['odometry_ms']:.1f} | "
+              f"{r['graph_ms']:.2f} | {r['backend_fps']:.1f} | {r['backend_cpu_fps']:.1f} | "
+              f"{r['lost']} |")
+    if args.map:
+        wall, cpu = relocalization_cost(args.map, frames)
+        print(f"relocalization (SIFT + regressor + PnP) per call: {wall:.1f} ms wall, "
+              f"{cpu:.1f} ms CPU time (median)")
+
+
+if __name__ == "__main__":
+    main()

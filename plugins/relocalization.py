@@ -1,0 +1,152 @@
+"""The relocalization plugin: the core's regressor + PnP inside the SLAM backend.
+
+(a) Kidnapped recovery: while the backend is lost (or not yet started) every incoming frame is
+    relocalized; once two relocalizations agree through odometry the backend is anchored.
+(b) Loop closure: every `loop_closure_every` keyframes the keyframe is relocalized; a result
+    that fits the track becomes a robust prior in the graph. One that does not fit is held
+    and the next frames are relocalized: if a later one agrees with it the track was wrong
+    (re-anchor), if none does within the window it is rejected.
+Inputs to every decision: the PnP inlier count and the regressor's confidence (gating.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from slamreloc.geometry import Rigid3, axis_angle_to_matrix
+from slamreloc.plugins.gating import (Candidate, GateConfig, find_agreeing, fits_track,
+                                      good_quality)
+from slamreloc.plugins.relocstats import RelocStats
+from slamreloc.pnp import estimate_pose
+from slamreloc.slam.backend import TrackState
+from slamreloc.slam.events import Event, EventKind, FrameData
+
+
+@dataclass(frozen=True)
+class RelocalizationConfig:
+    gate: GateConfig = field(default_factory=GateConfig)
+    loop_closure_every: int = 3  # keyframes between loop-closure relocalizations
+    keep_fraction: float = 0.5  # PnP on this share of the most confident predictions
+    inject_wrong_fraction: float = 0.0  # test hook: replace results by poses >= 0.5 m / 20 deg off
+    inject_seed: int = 0
+
+
+class RelocalizationPlugin:
+    name = "relocalization"
+
+    def __init__(self, map_dir: str | Path | None = None, localizer=None,
+                 config: RelocalizationConfig = RelocalizationConfig(), device: str = "cpu"):
+        if localizer is None:
+            from slamreloc.localizer import RegressorLocalizer
+            from slamreloc.scene_map import SceneMap
+
+            localizer = RegressorLocalizer(SceneMap.load(map_dir), device=device)
+        self.localizer, self.config = localizer, config
+        self.stats = RelocStats()
+        self.pending: list[Candidate] = []  # tracking: candidates that do not fit the track
+        self.lost: list[Candidate] = []  # lost: candidates waiting for an agreeing one
+        self._rng = np.random.default_rng(config.inject_seed)
+        self._keyframes, self._keyframe_due = 0, False
+
+    def attach(self, backend) -> None:
+        self.backend = backend
+
+    def on_event(self, event: Event, frame: FrameData) -> None:
+        if event.kind == EventKind.NEW_KEYFRAME:
+            self._keyframes += 1
+            self._keyframe_due = self._keyframes % self.config.loop_closure_every == 1
+        elif event.kind == EventKind.TRACKING_LOST:
+            self._reject(self.pending)
+        elif event.kind == EventKind.FRAME:
+            due, self._keyframe_due = self._keyframe_due, False
+            if self.backend.state == TrackState.TRACKING:
+                if due or self.pending or event.info.get("health") == "suspect":
+                    self._while_tracking(frame)
+            else:
+                self._while_lost(frame)
+
+    def _while_lost(self, frame: FrameData) -> None:
+        c = self.relocalize(frame)
+        if c is None:
+            return
+        agreeing = find_agreeing(c, self.lost, self.backend, self.config.gate)
+        if agreeing:
+            self.backend.anchor(c.frame, c.world_from_cam,
+                                [(a.frame, a.world_from_cam) for a in agreeing])
+            self.stats.accept([c, *agreeing], "anchor")
+            self._reject([x for x in self.lost if x not in agreeing])
+            self.lost = []
+        else:
+            self.lost = self._age([*self.lost, c], c.frame)
+
+    def _while_tracking(self, frame: FrameData) -> None:
+        c = self.relocalize(frame)
+        if c is None:
+            self.pending = self._age(self.pending, frame.index)
+            return
+        if fits_track(c, self.backend, self.config.gate):
+            self.backend.add_loop_closure(c.frame, c.world_from_cam)
+            self.stats.accept([c], "loop_closure")
+            self._reject(self.pending)
+            return
+        agreeing = find_agreeing(c, self.pending, self.backend, self.config.gate)
+        if agreeing:  # consistent with each other, not with the track: the track is wrong
+            self.backend.reanchor(c.frame, c.world_from_cam,
+                                  [(a.frame, a.world_from_cam) for a in agreeing],
+                                  reason="relocalizations agree with each other, not the track")
+            self.stats.accept([c, *agreeing], "reanchor")
+            self._reject([x for x in self.pending if x not in agreeing])
+        else:
+            self.pending = self._age([*self.pending, c], c.frame)
+
+    def _age(self, cands: list[Candidate], now: int) -> list[Candidate]:
+        """Drop (and count as rejected) candidates too old to be confirmed."""
+        old = [c for c in cands if now - c.frame >= self.config.gate.window]
+        self._reject(old)
+        return [c for c in cands if c not in old]
+
+    def _reject(self, cands: list[Candidate]) -> None:
+        self.stats.reject(cands)
+        self.pending = [c for c in self.pending if c not in cands]
+
+    def relocalize(self, frame: FrameData) -> Candidate | None:
+        """Regressor + PnP on the frame's image; None when PnP fails or quality is too low."""
+        loc = self.localizer
+        with self.backend.timer("relocalization"):
+            feats = loc.extractor(frame.image)
+            points, conf = loc.predict(feats.descriptors)
+            keep = np.arange(len(points))
+            if conf is not None and len(points):
+                n_keep = max(round(self.config.keep_fraction * len(points)), min(len(points), 50))
+                keep = np.argsort(-conf, kind="stable")[:n_keep]
+            est = estimate_pose(feats.keypoints[keep], points[keep], frame.camera, loc.pnp)
+        self.stats.n_attempts += 1
+        if not est.success:
+            self.stats.n_failed += 1
+            return None
+        confidence = float(np.median(conf[keep][est.inlier_mask])) if conf is not None else 1.0
+        c = Candidate(frame.index, est.world_from_cam, est.num_inliers, confidence)
+        if self._rng.random() < self.config.inject_wrong_fraction:
+            c.world_from_cam, c.injected = self._wrong(c.world_from_cam), True
+        if not good_quality(c, self.config.gate):
+            self.stats.n_failed += 1
+            return None
+        return c
+
+    def _wrong(self, world_from_cam: Rigid3) -> Rigid3:
+        """A pose at least 0.5 m or 20 deg from the given one (the robustness test hook)."""
+        axis = self._rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        if self._rng.random() < 0.5:
+            return Rigid3(world_from_cam.rotation,
+                          world_from_cam.translation + axis * self._rng.uniform(0.5, 1.0))
+        rot = axis_angle_to_matrix(axis * np.radians(self._rng.uniform(20, 40)))
+        return Rigid3(world_from_cam.rotation @ rot, world_from_cam.translation)
+
+    def finish(self) -> None:
+        """End of the run: candidates still waiting for confirmation count as rejected."""
+        self._reject([*self.pending, *self.lost])
+        self.lost = []

@@ -1,0 +1,44 @@
+"""Counters of the relocalization plugin, for the SLAM report."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+from slamreloc.plugins.gating import Candidate
+
+
+@dataclass
+class RelocStats:
+    n_attempts: int = 0  # relocalizations run
+    n_failed: int = 0  # PnP failed or inliers / confidence too low
+    n_loop_closures: int = 0  # accepted while tracking (fit the track)
+    n_anchors: int = 0  # confirmed after tracking loss
+    n_reanchors: int = 0  # confirmed against the track
+    n_rejected: int = 0  # never confirmed
+    n_injected: int = 0  # test hook: wrong poses injected (with enough inliers)
+    n_injected_rejected: int = 0
+    n_injected_accepted: int = 0
+    accepted_frames: list[int] = field(default_factory=list)
+
+    def accept(self, cands: list[Candidate], how: str) -> None:
+        if how == "loop_closure":
+            self.n_loop_closures += 1
+        elif how == "anchor":
+            self.n_anchors += 1
+        else:
+            self.n_reanchors += 1
+        for c in cands:
+            self.n_injected += c.injected
+            self.n_injected_accepted += c.injected
+            self.accepted_frames.append(c.frame)
+
+    def reject(self, cands: list[Candidate]) -> None:
+        for c in cands:
+            self.n_rejected += 1
+            self.n_injected += c.injected
+            self.n_injected_rejected += c.injected
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d.pop("accepted_frames")
+        return d

@@ -1,0 +1,48 @@
+"""The `slamreloc slam` command's stage: run, write the report and trajectory, print a table."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from rich.table import Table
+
+from slamreloc.errors import InputError
+from slamreloc.evaluate import write_json
+from slamreloc.progress import console
+from slamreloc.slam.poses import final_trajectory
+from slamreloc.slam.run import SlamRunConfig, run_slam
+from slamreloc.slam.trajectory import write_tum
+
+
+def run_slam_command(dataset: Path, map_dir: Path, report: Path, split: str = "test",
+                     kidnap_every: int = 0, kidnap_skip: int = 20, odometry: str = "auto",
+                     trajectory: Path | None = None, progress: bool = True) -> dict:
+    if kidnap_every < 0 or kidnap_skip < 0:
+        raise InputError("--kidnap-every and --kidnap-skip must be >= 0")
+    config = SlamRunConfig(split=split, odometry=odometry, kidnap_every=kidnap_every,
+                           kidnap_skip=kidnap_skip, progress=progress)
+    result, backend, frames = run_slam(dataset, map_dir, config)
+    write_json(report, result)
+    if trajectory is not None:
+        poses = final_trajectory(backend)
+        keep = [i for i, p in enumerate(poses) if p is not None]
+        write_tum(trajectory, [frames[i].timestamp for i in keep], [poses[i] for i in keep],
+                  [f"slamreloc slam {dataset} (split {split}), map frame, camera-to-world",
+                   "timestamp tx ty tz qx qy qz qw"])
+    print_slam_summary(result)
+    return result
+
+
+def print_slam_summary(r: dict) -> None:
+    table = Table(title="SLAM backend")
+    for col in ("frames", "ATE", "ATE odometry only", "kidnaps recovered", "frames to recover",
+                "loop closures (rejected)", "backend fps"):
+        table.add_column(col)
+    cm = (lambda v: "-" if v is None else f"{100 * v:.1f} cm")  # noqa: E731
+    table.add_row(str(r["n_frames"]), cm(r["ate_rmse_m"]), cm(r["ate_rmse_odometry_only_m"]),
+                  f"{r['n_recovered']}/{r['n_kidnaps']}",
+                  "-" if r["median_frames_to_recover"] is None
+                  else f"{r['median_frames_to_recover']:.0f}",
+                  f"{r['n_loop_closures']} ({r['n_loop_closures_rejected']})",
+                  "-" if r["backend_fps"] is None else f"{r['backend_fps']:.1f}")
+    console.print(table)

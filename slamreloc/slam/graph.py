@@ -1,0 +1,106 @@
+"""Keyframe pose graph on gtsam ISAM2: nodes are map-frame `world_from_cam` poses of keyframes,
+odometry between-factors link consecutive keyframes of one track segment, relocalizations are
+robust (Cauchy) prior factors tying a keyframe to the map frame."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from slamreloc.geometry import Rigid3
+
+
+@dataclass(frozen=True)
+class GraphConfig:
+    """Sigmas: rotation in radians, translation in metres. Odometry noise grows with the
+    distance and angle travelled between the two keyframes (per metre / per radian)."""
+
+    odom_sigma_rad: float = 0.003
+    odom_sigma_m: float = 0.005
+    odom_sigma_per_m: float = 0.04
+    odom_sigma_per_rad: float = 0.04
+    reloc_sigma_rad: float = 0.03
+    reloc_sigma_m: float = 0.04
+    cauchy_k: float = 1.0  # robust kernel scale, in standard deviations
+    relinearize_threshold: float = 0.01
+
+
+def _pose3(p: Rigid3) -> gtsam.Pose3:
+    return gtsam.Pose3(p.matrix())
+
+
+def _rigid(p: gtsam.Pose3) -> Rigid3:
+    m = p.matrix()
+    return Rigid3(m[:3, :3].copy(), m[:3, 3].copy())
+
+
+class PoseGraph:
+    """Incremental keyframe graph. Keys are integers (keyframe ids); poses are world_from_cam."""
+
+    def __init__(self, config: GraphConfig = GraphConfig()):
+        self.config = config
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(config.relinearize_threshold)
+        params.relinearizeSkip = 1  # robust kernels re-weight with every relinearization
+        self._isam = gtsam.ISAM2(params)
+        self._estimate = gtsam.Values()
+        self.n_odometry, self.n_priors = 0, 0
+
+    def _sigmas(self, rad: float, m: float) -> np.ndarray:
+        return np.array([rad] * 3 + [m] * 3)
+
+    def add_node(self, key: int, initial: Rigid3, prev_key: int | None = None,
+                 prev_from_cur: Rigid3 | None = None, prior: Rigid3 | None = None) -> None:
+        """A new keyframe: linked to `prev_key` by odometry, and/or anchored by `prior`."""
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        values.insert(key, _pose3(initial))
+        if prev_key is not None:
+            c = self.config
+            dist = float(np.linalg.norm(prev_from_cur.translation))
+            ang = float(np.radians(_angle_deg(prev_from_cur)))
+            grow = c.odom_sigma_per_m * dist + c.odom_sigma_per_rad * ang
+            noise = gtsam.noiseModel.Diagonal.Sigmas(
+                self._sigmas(c.odom_sigma_rad + grow, c.odom_sigma_m + grow))
+            graph.add(gtsam.BetweenFactorPose3(prev_key, key, _pose3(prev_from_cur), noise))
+            self.n_odometry += 1
+        if prior is not None:
+            graph.add(self._prior(key, prior))
+        self._update(graph, values)
+
+    def add_prior(self, key: int, world_from_cam: Rigid3) -> None:
+        """A relocalization of keyframe `key` in the map frame (robust)."""
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(self._prior(key, world_from_cam))
+        self._update(graph, gtsam.Values())
+
+    def _prior(self, key: int, world_from_cam: Rigid3):
+        c = self.config
+        base = gtsam.noiseModel.Diagonal.Sigmas(self._sigmas(c.reloc_sigma_rad, c.reloc_sigma_m))
+        robust = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Cauchy.Create(c.cauchy_k), base)
+        self.n_priors += 1
+        return gtsam.PriorFactorPose3(key, _pose3(world_from_cam), robust)
+
+    def _update(self, graph, values) -> None:
+        self._isam.update(graph, values)
+        self._estimate = self._isam.calculateEstimate()
+
+    def optimize_batch(self) -> None:
+        """Polish the whole graph with Levenberg-Marquardt from the ISAM2 estimate (end of a
+        run: ISAM2 relinearizes only part of the graph at each update)."""
+        graph = self._isam.getFactorsUnsafe()
+        self._estimate = gtsam.LevenbergMarquardtOptimizer(graph, self._estimate).optimize()
+
+    def pose(self, key: int) -> Rigid3:
+        return _rigid(self._estimate.atPose3(key))
+
+    def poses(self) -> dict[int, Rigid3]:
+        return {k: _rigid(self._estimate.atPose3(k)) for k in self._estimate.keys()}
+
+
+def _angle_deg(p: Rigid3) -> float:
+    from slamreloc.geometry import rotation_angle_deg
+
+    return rotation_angle_deg(p.rotation)

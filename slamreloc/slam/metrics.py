@@ -1,0 +1,32 @@
+"""Absolute trajectory error (translation RMSE, metres), as evo's `evo_ape` computes it: with no
+alignment, or after the SE(3) Umeyama alignment of the estimate onto the reference (`-a`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slamreloc.geometry import Rigid3
+
+
+def umeyama_se3(source: np.ndarray, target: np.ndarray) -> Rigid3:
+    """target_from_source minimising sum |target - (R source + t)|^2 over (N, 3) point pairs
+    (Umeyama 1991, no scale)."""
+    mu_s, mu_t = source.mean(0), target.mean(0)
+    cov = (target - mu_t).T @ (source - mu_s) / len(source)
+    u, _, vt = np.linalg.svd(cov)
+    s = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        s[2, 2] = -1
+    rot = u @ s @ vt
+    return Rigid3(rot, mu_t - rot @ mu_s)
+
+
+def ate_rmse(estimate: list[Rigid3], reference: list[Rigid3], align: bool = False) -> float:
+    """RMSE of camera-centre distances (metres); `align`: SE(3)-align the estimate first."""
+    est = np.array([p.translation for p in estimate])
+    ref = np.array([p.translation for p in reference])
+    if len(est) == 0:
+        return float("nan")
+    if align and len(est) >= 3:
+        est = umeyama_se3(est, ref).transform(est)
+    return float(np.sqrt(np.mean(np.sum((est - ref) ** 2, axis=1))))

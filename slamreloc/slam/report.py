@@ -1,0 +1,84 @@
+"""The REPORT.json of `slamreloc slam` (DESIGN.md contract plus diagnostics)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slamreloc.geometry import pose_error
+from slamreloc.slam.events import EventKind
+from slamreloc.slam.metrics import ate_rmse
+from slamreloc.slam.poses import final_trajectory, odometry_only_trajectory
+
+FALSE_ANCHOR = (0.25, 10.0)  # metres, degrees: an anchor further than this from the truth
+
+
+def _ate(poses, truth, align=False):
+    pairs = [(p, t) for p, t in zip(poses, truth) if p is not None and t is not None]
+    if not pairs:
+        return None
+    return ate_rmse([p for p, _ in pairs], [t for _, t in pairs], align)
+
+
+def kidnap_stats(backend, truth, jumps: list[int]) -> dict:
+    """Per kidnap (first frame after the jump = p): the first frame c >= p, before the next
+    kidnap, where a relocalization confirmed a map-frame pose (anchor or accepted loop
+    closure); frames to recover = c - p; error of the pose returned at c."""
+    confirm = {EventKind.TRACKING_RECOVERED, EventKind.MAP_UPDATED}
+    ends = [*jumps[1:], len(backend.frames)]
+    frames, errors = [], []
+    for p, end in zip(jumps, ends):
+        c = next((e.frame for e in backend.event_log if e.kind in confirm
+                  and p <= e.frame < end), None)
+        if c is None:
+            continue
+        frames.append(c - p)
+        pose = backend.frames[c].online_world_from_cam
+        if truth[c] is not None and pose is not None:
+            errors.append(pose_error(pose, truth[c]))
+    med = (lambda v: float(np.median(v)) if len(v) else None)  # noqa: E731
+    return {"n_kidnaps": len(jumps), "n_recovered": len(frames),
+            "median_frames_to_recover": med(frames), "frames_to_recover": frames,
+            "recovered_median_error_m": med([e[0] for e in errors]),
+            "recovered_median_error_deg": med([e[1] for e in errors])}
+
+
+def anchor_stats(backend, truth) -> dict:
+    anchors = [e for e in backend.event_log if e.kind == EventKind.TRACKING_RECOVERED]
+    errs = [pose_error(e.world_from_cam, truth[e.frame]) for e in anchors
+            if truth[e.frame] is not None]
+    false = [e for e in errs if e[0] > FALSE_ANCHOR[0] or e[1] > FALSE_ANCHOR[1]]
+    return {"n_anchors": len(anchors),
+            "n_reanchors": sum(bool(e.info.get("reanchor")) for e in anchors),
+            "n_tracking_lost": sum(e.kind == EventKind.TRACKING_LOST for e in backend.event_log),
+            "n_false_anchors": len(false) if errs else None}
+
+
+def build_report(backend, frames, jumps, plugins, config, t_backend_s: float) -> dict:
+    truth = [f.world_from_cam for f in frames]
+    final, odo = final_trajectory(backend), odometry_only_trajectory(backend)
+    online = [f.online_world_from_cam for f in backend.frames]
+    timing = backend.timer.summary()
+    stats = next((p.stats.to_dict() for p in plugins if hasattr(p, "stats")), {})
+    n = len(frames)
+    core_ms = sum(timing.get(k, {}).get("total_ms", 0.0) for k in ("odometry", "graph"))
+    rnd = (lambda v: None if v is None else round(v, 4))  # noqa: E731
+    report = {
+        "n_frames": n,
+        "odometry": getattr(backend.odometry, "name", config.odometry), "split": config.split,
+        "ate_rmse_m": rnd(_ate(final, truth)),
+        "ate_rmse_aligned_m": rnd(_ate(final, truth, align=True)),
+        "ate_rmse_odometry_only_m": rnd(_ate(odo, truth)),
+        "ate_rmse_online_m": rnd(_ate(online, truth)),
+        "n_frames_without_pose_online": sum(p is None for p in online),
+        **kidnap_stats(backend, truth, jumps),
+        "n_loop_closures": stats.get("n_loop_closures", 0),
+        "n_loop_closures_rejected": stats.get("n_rejected", 0),
+        **anchor_stats(backend, truth),
+        "relocalization": stats,
+        "kidnap_every": config.kidnap_every, "kidnap_skip": config.kidnap_skip,
+        "timing_ms": {k: {kk: round(vv, 3) for kk, vv in v.items()} for k, v in timing.items()},
+        "backend_fps": round(n / (core_ms / 1000), 2) if core_ms else None,
+        "overall_fps": round(n / t_backend_s, 2) if t_backend_s else None,
+        "relocalization_ms_per_call": timing.get("relocalization", {}).get("median_ms"),
+    }
+    return report

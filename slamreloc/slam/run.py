@@ -1,0 +1,94 @@
+"""`slamreloc slam`: track a dataset split with the backend and the relocalization plugin,
+optionally kidnapping the camera, and score the result (report + TUM trajectory)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from slamreloc.datasets import load_dataset, read_depth, read_image
+from slamreloc.errors import InputError
+from slamreloc.progress import track
+from slamreloc.slam.backend import BackendConfig, SlamBackend
+from slamreloc.slam.events import load_plugin
+from slamreloc.slam.kissicp import KissIcpConfig, KissIcpOdometry
+from slamreloc.slam.odometry import Odometry
+from slamreloc.slam.report import build_report
+
+SEVENSCENES_DEPTH_K = (585.0, 585.0, 320.0, 240.0)  # 7-Scenes depth camera at 640x480
+
+
+@dataclass
+class SlamRunConfig:
+    split: str = "test"
+    # auto | kiss-icp | open3d | path to a TUM trajectory file. auto: kiss-icp on depth that
+    # is not registered to the image (best drift on RedKitchen), open3d's hybrid RGB-D
+    # odometry on registered depth (best on the synthetic scene, whose flat walls make
+    # geometry-only ICP slide); see BENCHMARKS.md
+    odometry: str = "auto"
+    kidnap_every: int = 0  # 0: no kidnapping
+    kidnap_skip: int = 20
+    backend: BackendConfig = field(default_factory=BackendConfig)
+    plugin_options: dict = field(default_factory=dict)  # RelocalizationPlugin keyword args
+    progress: bool = True
+
+
+def kidnap_schedule(n_frames: int, every: int, skip: int) -> tuple[list[int], list[int]]:
+    """(indices of the frames processed, positions in that list where a kidnap landed):
+    after every `every` processed frames the next `skip` frames are dropped."""
+    kept, jumps, i = [], [], 0
+    while i < n_frames:
+        kept.append(i)
+        i += 1
+        if every > 0 and len(kept) % every == 0 and i + skip < n_frames:
+            i += skip
+            jumps.append(len(kept))
+    return kept, jumps
+
+
+def make_odometry(name: str, depth_intrinsics) -> Odometry:
+    """depth_intrinsics: the depth camera's (fx, fy, cx, cy) at 640x480 when depth is not
+    registered to the image, else None."""
+    if name == "auto":
+        name = "kiss-icp" if depth_intrinsics is not None else "open3d"
+    if name == "kiss-icp":
+        return KissIcpOdometry(KissIcpConfig(depth_intrinsics=depth_intrinsics))
+    if name == "open3d":
+        from slamreloc.slam.open3d_odometry import Open3dConfig, Open3dOdometry
+
+        return Open3dOdometry(Open3dConfig(depth_intrinsics=depth_intrinsics))
+    from slamreloc.slam.external import TrajectoryOdometry
+
+    return TrajectoryOdometry(name)
+
+
+def run_slam(dataset_dir: Path, map_dir: Path, config: SlamRunConfig = SlamRunConfig(),
+             plugins: list | None = None) -> tuple[dict, SlamBackend, list]:
+    """Returns (report, backend, processed frames)."""
+    if not (Path(map_dir) / "slamreloc_map.json").is_file():
+        raise InputError(f"{map_dir}: not a slamreloc map (no slamreloc_map.json)")
+    dataset = load_dataset(dataset_dir)
+    frames = dataset.frames(config.split)
+    if not frames:
+        raise InputError(f"{dataset_dir}: split '{config.split}' has no frames")
+    depth_k = None if dataset.depth_registered else SEVENSCENES_DEPTH_K
+    odometry = make_odometry(config.odometry, depth_k)
+    external = odometry.name == "trajectory"
+    if plugins is None:
+        plugins = [load_plugin("relocalization", map_dir=map_dir, **config.plugin_options)]
+    backend = SlamBackend(odometry, plugins, config.backend)
+    kept, jumps = kidnap_schedule(len(frames), config.kidnap_every, config.kidnap_skip)
+    processed, t_backend = [frames[i] for i in kept], 0.0
+    for frame in track(processed, "slam", enabled=config.progress):
+        if frame.depth_path is None and not external:
+            raise InputError(f"{frame.image_path}: no depth image for depth odometry")
+        depth = (None if external else
+                 read_depth(frame.depth_path, dataset.depth_units_per_metre))
+        t0 = time.perf_counter()
+        backend.process(read_image(frame.image_path), depth, frame.camera,
+                        timestamp=frame.timestamp)
+        t_backend += time.perf_counter() - t0
+    backend.finish()
+    report = build_report(backend, processed, jumps, plugins, config, t_backend)
+    return report, backend, processed

@@ -1,0 +1,124 @@
+"""The Python API for an external SLAM system, plugin discovery, and bad input."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from importlib import metadata
+
+import numpy as np
+import pytest
+
+from slamreloc.datasets import load_dataset, read_image
+from slamreloc.geometry import Rigid3, axis_angle_to_matrix, pose_error
+from slamreloc.slam import EventKind, SlamBackend, available_plugins, load_plugin
+from slamreloc.slam.run import kidnap_schedule
+from tests.test_slam import kidnap_scene  # noqa: F401 - the session fixture
+
+
+def cli(*args):
+    return subprocess.run([sys.executable, "-m", "slamreloc.cli", *map(str, args)],
+                          capture_output=True, text=True)
+
+
+def drifting_odometry(truth: list[Rigid3], jump_at: int | None) -> list[Rigid3]:
+    """Odometry that drifts 0.4 deg of yaw per frame and, at `jump_at`, does not notice the
+    camera's jump (it repeats the previous frame's motion instead)."""
+    bias = Rigid3(axis_angle_to_matrix([0, np.radians(0.4), 0]), np.array([0.002, 0, 0]))
+    poses = [Rigid3.identity()]
+    for k in range(1, len(truth)):
+        j = k - 1 if k == jump_at else k
+        poses.append(poses[-1] @ truth[j - 1].inverse() @ truth[j] @ bias)
+    return poses
+
+
+def test_external_odometry_api(kidnap_scene, small_map):  # noqa: F811
+    frames = load_dataset(kidnap_scene).frames("kidnap")
+    kept, jumps = kidnap_schedule(len(frames), 45, 15)
+    frames = [frames[i] for i in kept]
+    truth = [f.world_from_cam for f in frames]
+    odometry = drifting_odometry(truth, jump_at=jumps[0])
+    # the README's example: your own odometry in, map-frame poses and events out
+    backend = SlamBackend(plugins=[load_plugin("relocalization", map_dir=small_map.root)])
+    events, poses = [], []
+    for frame, odom_from_cam in zip(frames, odometry):
+        result = backend.process(read_image(frame.image_path), None, frame.camera,
+                                 odometry_world_from_cam=odom_from_cam,
+                                 timestamp=frame.timestamp)
+        events += result.events
+        poses.append(result.world_from_cam)
+    kinds = [e.kind for e in events]
+    assert kinds.count(EventKind.TRACKING_RECOVERED) >= 2  # the start and the kidnapping
+    assert EventKind.MAP_UPDATED in kinds
+    # odometry did not notice the jump: the next loop-closure relocalization (every 3rd
+    # keyframe = 9 frames) disagrees with the track, the frame after it confirms the jump
+    # (a drift of 0.4 deg per frame may also be re-anchored before the jump: not asserted)
+    lost = [e for e in events if e.kind == EventKind.TRACKING_LOST and e.frame >= jumps[0]]
+    assert lost and jumps[0] <= lost[0].frame <= jumps[0] + 10, [(e.frame, e.info) for e in lost]
+    assert "relocalizations agree" in lost[0].info["reason"]
+    back = next(e.frame for e in events
+                if e.kind == EventKind.TRACKING_RECOVERED and e.frame >= lost[0].frame)
+    # after the re-anchoring the corrected poses are in the map frame; raw odometry is not
+    after = range(back, len(frames))
+    err = np.median([pose_error(poses[i], truth[i])[0] for i in after])
+    odo_err = np.median([pose_error(truth[0] @ odometry[i], truth[i])[0] for i in after])
+    assert err < 0.05 and odo_err > 0.3, (err, odo_err)
+
+
+def test_plugins_come_from_the_entry_point_group(monkeypatch):
+    class Dummy:
+        name = "dummy"
+
+        def __init__(self, **kwargs):
+            self.kwargs = kwargs
+
+    ep = metadata.EntryPoint("dummy", "tests.test_slam_api:Dummy", "slamreloc.plugins")
+    real = metadata.entry_points
+    monkeypatch.setattr(metadata, "entry_points",
+                        lambda **kw: [ep] if kw.get("group") == "slamreloc.plugins"
+                        else real(**kw))
+    globals()["Dummy"] = Dummy
+    plugins = available_plugins()
+    assert {"dummy", "relocalization"} <= set(plugins)
+    assert load_plugin("dummy", option=3).kwargs == {"option": 3}
+    with pytest.raises(ValueError, match="unknown plugin"):
+        load_plugin("nope")
+
+
+def test_bad_input_is_one_line(kidnap_scene, small_map, tmp_path):  # noqa: F811
+    bad = tmp_path / "odo.txt"
+    bad.write_text("0.0 1 2 3 0 0 0 1\nframe-1 1 2 3 0 0 0 1\n")
+    cases = [
+        (("--map", small_map.root, "--odometry", bad), "odo.txt:2: timestamp"),
+        (("--map", tmp_path / "nomap"), "not a slamreloc map"),
+        (("--map", small_map.root, "--split", "nosuch"), "unknown split"),
+    ]
+    for args, message in cases:
+        res = cli("slam", kidnap_scene, *args, "--report", tmp_path / "r.json")
+        assert res.returncode == 2, res.stderr
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], lines
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_odometry_from_a_trajectory_file(kidnap_scene, small_map, tmp_path):  # noqa: F811
+    """`--odometry TRAJ.txt`: another system's TUM file (here the truth in another frame)."""
+    import json
+
+    from slamreloc.slam.trajectory import write_tum
+
+    frames = load_dataset(kidnap_scene).frames("kidnap")
+    offset = Rigid3(axis_angle_to_matrix([0.3, -0.2, 1.0]), np.array([5.0, -2.0, 1.0]))
+    write_tum(tmp_path / "odo.txt", [f.timestamp for f in frames],
+              [offset @ f.world_from_cam for f in frames])
+    res = cli("slam", kidnap_scene, "--map", small_map.root, "--split", "kidnap",
+              "--odometry", tmp_path / "odo.txt", "--report", tmp_path / "r.json")
+    assert res.returncode == 0, res.stderr
+    r = json.loads((tmp_path / "r.json").read_text())
+    assert r["odometry"] == "trajectory" and r["n_tracking_lost"] == 0
+    assert r["ate_rmse_m"] < 0.03, r  # exact odometry: only the anchoring error remains
+    write_tum(tmp_path / "short.txt", [f.timestamp for f in frames[:40]],
+              [f.world_from_cam for f in frames[:40]])
+    res = cli("slam", kidnap_scene, "--map", small_map.root, "--split", "kidnap",
+              "--odometry", tmp_path / "short.txt", "--report", tmp_path / "r2.json")
+    assert res.returncode == 2 and "no pose within" in res.stderr
