@@ -273,20 +273,28 @@ def _save(out: Path, meta: dict, model, db: MapDatabase, provenance: dict) -> Pa
     return out
 
 
-def update_map(map_dir: Path, dataset: Dataset, out: Path, split: str | None = None,
-               config: PseudoLabelConfig = PseudoLabelConfig(), truth: Path | None = None,
-               progress: bool = True) -> tuple[SceneMap, dict]:
-    """Pseudo-label `dataset`'s split against the map at `map_dir`, write NEW_MAP at `out`.
-    Returns (the new map, the report)."""
-    map_dir, out = Path(map_dir), Path(out)
+@dataclass
+class PseudoLabels:
+    """What registration and extension produced, before the regressor update."""
+
+    old: SceneMap
+    map_dir: Path
+    db: MapDatabase  # the map's labels + the new ones
+    weights: np.ndarray  # per database row
+    source: np.ndarray  # per database row: LABELLED, PSEUDO, NEW
+    report: dict
+
+
+def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
+                 config: PseudoLabelConfig = PseudoLabelConfig(), truth: Path | None = None,
+                 progress: bool = True) -> PseudoLabels:
+    """Register `dataset`'s split in the map at `map_dir`, label and extend (no training)."""
+    map_dir = Path(map_dir)
     if config.update not in UPDATES:
         raise InputError(f"unknown update '{config.update}' (known: {', '.join(UPDATES)})")
     if config.rounds < 1:
         raise InputError(f"--rounds must be at least 1, got {config.rounds}")
     old = SceneMap.load(map_dir)
-    if out.resolve() == map_dir.resolve():
-        raise InputError(f"{out}: the new map must not replace the map it updates")
-    check_map_target(out)
     base = old.database
     if split is None:
         split = "unlabelled" if "unlabelled" in dataset.roles.values() else "all"
@@ -338,13 +346,50 @@ def update_map(map_dir: Path, dataset: Dataset, out: Path, split: str | None = N
     base_source, base_quality = _base_provenance(map_dir, len(base.points))
     weights = np.concatenate([base_quality, quality]).astype(np.float32)
     source = np.concatenate([base_source, new_src]).astype(np.int8)
+    timings["pseudo_label_s"] = time.perf_counter() - t_all
 
+    report = {
+        "map": str(map_dir.resolve()),
+        "dataset": {"root": str(Path(dataset.root).resolve()), "split": split},
+        "n_frames": len(frames), "n_frames_registered": len(reg),
+        "registered_fraction": len(reg) / len(frames),
+        "n_pseudo_labels": n_pseudo + n_new_obs,
+        "n_inherited_labels": n_pseudo, "n_triangulated_labels": n_new_obs,
+        "n_new_points": n_new_points,
+        "n_database_before": int(len(base.points)), "n_database_after": int(len(db.points)),
+        "rounds": reg_stats["history"], "timings_s": timings,
+        "registered_via": {v: sum(s.via == v for s in states if s.registered)
+                           for v in ("database", "neighbours", "both")},
+        "poses": {frames[i].name: states[i].world_from_cam.matrix().tolist() for i in reg},
+    }
+    if truth_poses is not None:
+        t0 = time.perf_counter()
+        report.update(score(frames, feats, states, truth_poses, depths, config.labels))
+        report["timings_s"]["scoring_s"] = time.perf_counter() - t0
+    else:
+        report["pseudo_label_precision_10cm"] = None
+        report["note"] = "the dataset has no poses: precision and pose errors not scored"
+    return PseudoLabels(old, map_dir, db, weights, source, report)
+
+
+def write_updated_map(labels: PseudoLabels, out: Path,
+                      config: PseudoLabelConfig = PseudoLabelConfig(),
+                      progress: bool = True) -> tuple[SceneMap, dict]:
+    """Update the regressor (fine-tune or retrain) and write NEW_MAP; returns it and the
+    report (with the update's stats and timing)."""
+    out = Path(out)
+    if out.resolve() == labels.map_dir.resolve():
+        raise InputError(f"{out}: the new map must not replace the map it updates")
+    check_map_target(out)
+    old, db, rep = labels.old, labels.db, dict(labels.report)
+    rep["timings_s"] = dict(rep["timings_s"])
     map_epochs = int(old.meta.get("train", {}).get("epochs", 100))
     t0 = time.perf_counter()
     if config.update == "finetune":
-        model = old.regressor  # loaded fresh from map_dir: the old map's files are not touched
+        # a fresh copy of the old weights: the old map's files and object stay as they were
+        model = SceneMap.load(labels.map_dir).regressor
         epochs = config.epochs or max(1, round(config.finetune_epoch_fraction * map_epochs))
-        train_stats = finetune_regressor(model, db.descriptors, db.points, weights,
+        train_stats = finetune_regressor(model, db.descriptors, db.points, labels.weights,
                                          replace(config.finetune, epochs=epochs), config.device,
                                          progress)
     else:
@@ -355,43 +400,40 @@ def update_map(map_dir: Path, dataset: Dataset, out: Path, split: str | None = N
         tc = replace(tc, epochs=config.epochs or map_epochs)
         train_stats = {"mode": "retrain", **train_regressor(model, db.descriptors, db.points, tc,
                                                             config.device, progress)}
-    timings["update_s"] = time.perf_counter() - t0
-    timings["total_s"] = time.perf_counter() - t_all
-
-    report = {
-        "map": str(map_dir.resolve()), "new_map": str(out.resolve()),
-        "dataset": {"root": str(Path(dataset.root).resolve()), "split": split},
-        "n_frames": len(frames), "n_frames_registered": len(reg),
-        "registered_fraction": len(reg) / len(frames),
-        "n_pseudo_labels": n_pseudo + n_new_obs,
-        "n_inherited_labels": n_pseudo, "n_triangulated_labels": n_new_obs,
-        "n_new_points": n_new_points,
-        "n_database_before": int(len(base.points)), "n_database_after": int(len(db.points)),
-        "rounds": reg_stats["history"], "update": train_stats, "timings_s": timings,
-        "registered_via": {v: sum(s.via == v for s in states if s.registered)
-                           for v in ("database", "neighbours", "both")},
-    }
-    if truth_poses is not None:
-        t0 = time.perf_counter()
-        report.update(score(frames, feats, states, truth_poses, depths, config.labels))
-        report["timings_s"]["scoring_s"] = time.perf_counter() - t0
-    else:
-        report["pseudo_label_precision_10cm"] = None
-        report["note"] = "the dataset has no poses: precision and pose errors not scored"
-
+    rep["timings_s"]["update_s"] = time.perf_counter() - t0
+    rep["timings_s"]["total_s"] = rep["timings_s"]["pseudo_label_s"] + rep["timings_s"]["update_s"]
+    rep["update"] = train_stats
+    rep["new_map"] = str(out.resolve())
     meta = {k: v for k, v in old.meta.items() if k not in ("format", "version", "frame_names")}
     meta["labels"] = {**old.meta.get("labels", {}), "n_labelled": int(len(db.points)),
-                      "n_labelled_map": int(len(base.points)), "n_pseudo": n_pseudo,
-                      "n_triangulated": n_new_obs}
+                      "n_labelled_map": int(len(old.database.points)),
+                      "n_pseudo": rep["n_inherited_labels"],
+                      "n_triangulated": rep["n_triangulated_labels"]}
     meta["train"] = {**old.meta.get("train", {}), "update": train_stats}
     meta["pseudo_label"] = {
-        "source_map": str(map_dir.resolve()), "dataset": report["dataset"],
-        "n_frames": len(frames), "n_frames_registered": len(reg),
-        "n_inherited_labels": n_pseudo, "n_triangulated_labels": n_new_obs,
-        "n_new_points": n_new_points, "update": config.update,
+        "source_map": str(labels.map_dir.resolve()), "dataset": rep["dataset"],
+        "n_frames": rep["n_frames"], "n_frames_registered": rep["n_frames_registered"],
+        "n_inherited_labels": rep["n_inherited_labels"],
+        "n_triangulated_labels": rep["n_triangulated_labels"],
+        "n_new_points": rep["n_new_points"], "update": config.update,
         "provenance": f"{PROVENANCE}: source per database row (0 labelled, 1 inherited "
                       "pseudo-label, 2 triangulated from registered frames), quality weight",
-        "history": old.meta.get("pseudo_label", {}).get("history", []) + [str(map_dir.resolve())],
+        "history": old.meta.get("pseudo_label", {}).get("history", [])
+        + [str(labels.map_dir.resolve())],
     }
-    _save(out, meta, model, db, {"source": source, "quality": weights})
-    return SceneMap.load(out), report
+    _save(out, meta, model, db, {"source": labels.source, "quality": labels.weights})
+    return SceneMap.load(out), rep
+
+
+def update_map(map_dir: Path, dataset: Dataset, out: Path, split: str | None = None,
+               config: PseudoLabelConfig = PseudoLabelConfig(), truth: Path | None = None,
+               progress: bool = True) -> tuple[SceneMap, dict]:
+    """Pseudo-label `dataset`'s split against the map at `map_dir`, write NEW_MAP at `out`.
+    Returns (the new map, the report)."""
+    map_dir, out = Path(map_dir), Path(out)
+    SceneMap.load(map_dir)  # fail early on a bad map or target, before the work
+    if out.resolve() == map_dir.resolve():
+        raise InputError(f"{out}: the new map must not replace the map it updates")
+    check_map_target(out)
+    labels = pseudo_label(map_dir, dataset, split, config, truth, progress)
+    return write_updated_map(labels, out, config, progress)
