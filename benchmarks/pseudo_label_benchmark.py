@@ -37,6 +37,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def build(dataset: Path, out: Path, epochs: int, reuse: bool) -> tuple[SceneMap, float]:
+    marker = out.parent / f".{out.name}.building"  # another process builds it: wait
+    while reuse and marker.exists() and not SceneMap.is_map(out):
+        time.sleep(10)
     if reuse and SceneMap.is_map(out):
         m = SceneMap.load(out)
         return m, float(m.meta["timings_s"]["train_s"])
@@ -62,15 +65,25 @@ def main() -> None:
     ap.add_argument("--epochs", type=int, default=100, help="training epochs of both maps")
     ap.add_argument("--rounds", type=int, default=PseudoLabelConfig().rounds)
     ap.add_argument("--reuse", action="store_true")
+    ap.add_argument("--only-reference", action="store_true",
+                    help="build only the true-pose map (run beside a --reuse run)")
     args = ap.parse_args()
     work = args.workdir
     work.mkdir(parents=True, exist_ok=True)
     split = work / "split"
-    subprocess.run([sys.executable, str(ROOT / "scripts" / "make_redkitchen_update_split.py"),
-                    str(args.source), "--out", str(split)], check=True)
+    if not (split / "queries").is_dir():
+        subprocess.run([sys.executable, str(ROOT / "scripts" / "make_redkitchen_update_split.py"),
+                        str(args.source), "--out", str(split)], check=True)
     t_start = time.perf_counter()
+    if args.only_reference:  # to build the reference map in a parallel process
+        marker = work / ".map_true_poses.building"
+        marker.touch()
+        try:
+            build(split / "full", work / "map_true_poses", args.epochs, False)
+        finally:
+            marker.unlink()
+        return
     labelled, t_lab = build(split / "labelled", work / "map_labelled", args.epochs, args.reuse)
-    reference, t_ref = build(split / "full", work / "map_true_poses", args.epochs, args.reuse)
 
     config = PseudoLabelConfig(rounds=args.rounds)
     labels = pseudo_label(labelled.root, load_dataset(split / "unlabelled"), "all", config,
@@ -83,6 +96,7 @@ def main() -> None:
         rep = {k: v for k, v in reports[update].items() if k != "poses"}
         (work / f"report_{update}.json").write_text(json.dumps(rep, indent=2))
 
+    reference, t_ref = build(split / "full", work / "map_true_poses", args.epochs, args.reuse)
     evals = {}
     for name, m, method in (("labelled map (200 frames), matching", labelled, "matching"),
                             ("labelled map (200 frames)", labelled, "regressor"),

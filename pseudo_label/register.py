@@ -30,6 +30,7 @@ class RegistrationConfig:
     pnp_max_error_px: float = 8.0  # RANSAC threshold
     label_max_error_px: float = 4.0  # an inlier must reproject this well to become a label
     min_inliers: int = 40  # below this the frame stays unregistered
+    max_trials: int = 5000  # RANSAC
     seed_inliers: int = 80  # needed by a frame with no registered neighbour in the window
     window: int = 5  # frames either side that count as neighbours
     neighbours: int = 2  # registered neighbours matched directly, each side
@@ -139,20 +140,39 @@ def neighbour_correspondences(i: int, feats: list[Features], states: list[FrameS
 
 def register_frame(i: int, feats: list[Features], cameras: list[Camera], states: list[FrameState],
                    db: Database, config: RegistrationConfig) -> FrameState | None:
-    """Try to register frame i; returns its new state, or None."""
+    """Try to register frame i; returns its new state, or None.
+
+    The registered neighbours' labels are tried first (cheap); the whole database is matched
+    only when they are missing or not enough."""
     f = feats[i]
-    m = db.match(f.descriptors, config.ratio, config.same_point_m)
     nb_q, nb_pts = neighbour_correspondences(i, feats, states, config)
+    if len(nb_q) >= config.min_inliers:
+        state = _pnp_state(i, f, cameras[i], nb_q, nb_pts.astype(np.float64), config)
+        if state is not None and state.num_inliers >= config.seed_inliers:
+            state.via = "neighbours"
+            return state
+    m = db.match(f.descriptors, config.ratio, config.same_point_m)
     # neighbour matches first: on a keypoint matched both ways, the neighbour's label wins
     q_idx = np.concatenate([nb_q, m[:, 0]])
     pts = np.concatenate([nb_pts, db.points[m[:, 1]]]).astype(np.float64)
     _, first = np.unique(q_idx, return_index=True)
     q_idx, pts = q_idx[first], pts[first]
+    state = _pnp_state(i, f, cameras[i], q_idx, pts, config)
+    if state is None:
+        return None
+    from_nb = np.isin(np.flatnonzero(state.source == PSEUDO), nb_q)
+    state.via = ("both" if from_nb.any() and (~from_nb).any()
+                 else "neighbours" if from_nb.any() else "database")
+    return state
+
+
+def _pnp_state(i, f, camera, q_idx, pts, config) -> FrameState | None:
     if len(q_idx) < config.min_inliers:
         return None
+    cameras = {i: camera}
     est = estimate_pose(f.keypoints[q_idx], pts, cameras[i],
                         PnPConfig(max_error_px=config.pnp_max_error_px,
-                                  min_inliers=config.min_inliers))
+                                  min_inliers=config.min_inliers, max_trials=config.max_trials))
     if not est.success:
         return None
     pose = est.world_from_cam
@@ -166,9 +186,6 @@ def register_frame(i: int, feats: list[Features], cameras: list[Camera], states:
     state.source[q_idx[good]] = PSEUDO
     state.error_px[q_idx[good]] = err[good]
     state.num_inliers = int(good.sum())
-    from_nb = np.isin(q_idx[good], nb_q)
-    state.via = ("both" if from_nb.any() and (~from_nb).any()
-                 else "neighbours" if from_nb.any() else "database")
     return state
 
 
@@ -207,14 +224,32 @@ def pose_deviation(i: int, pose: Rigid3, states: list[FrameState], window: int,
     return dt, dr, gap
 
 
+def typical_step(states: list[FrameState], config: RegistrationConfig) -> tuple[float, float]:
+    """Per-frame motion allowance (m, deg): the configured one, or twice the sequence's median
+    motion per frame between strongly registered frames when that is larger (sparse sequences,
+    fast motion)."""
+    strong = [i for i, s in enumerate(states) if s.registered
+              and s.num_inliers >= config.seed_inliers]
+    steps_t, steps_r = [], []
+    for a, b in zip(strong, strong[1:]):
+        if b - a <= config.window:
+            pa, pb = states[a].world_from_cam, states[b].world_from_cam
+            steps_t.append(np.linalg.norm(pa.translation - pb.translation) / (b - a))
+            steps_r.append(rotation_angle_deg(pa.rotation.T @ pb.rotation) / (b - a))
+    if len(steps_t) < 3:
+        return config.jump_m_per_frame, config.jump_deg_per_frame
+    return (max(config.jump_m_per_frame, 2 * float(np.median(steps_t))),
+            max(config.jump_deg_per_frame, 2 * float(np.median(steps_r))))
+
+
 def consistent(i: int, pose: Rigid3, states: list[FrameState], config: RegistrationConfig,
-               num_inliers: int, exclude: int | None = None) -> bool:
+               num_inliers: int, exclude: int | None = None, step=None) -> bool:
     dev = pose_deviation(i, pose, states, config.window, exclude)
     if dev is None:
         return num_inliers >= config.seed_inliers
     dt, dr, gap = dev
-    return (dt <= config.jump_m + config.jump_m_per_frame * gap
-            and dr <= config.jump_deg + config.jump_deg_per_frame * gap)
+    step_m, step_deg = step or typical_step(states, config)
+    return (dt <= config.jump_m + step_m * gap and dr <= config.jump_deg + step_deg * gap)
 
 
 def continuity_sweep(states: list[FrameState], config: RegistrationConfig) -> list[int]:
@@ -222,6 +257,7 @@ def continuity_sweep(states: list[FrameState], config: RegistrationConfig) -> li
 
     Worst offenders go first, so one wrong frame does not condemn its correct neighbours."""
     dropped = []
+    step_m, step_deg = typical_step(states, config)
     while True:
         worst, worst_score = None, 1.0
         for i, s in enumerate(states):
@@ -235,8 +271,8 @@ def continuity_sweep(states: list[FrameState], config: RegistrationConfig) -> li
                     continue
             else:
                 dt, dr, gap = dev
-                score = max(dt / (config.jump_m + config.jump_m_per_frame * gap),
-                            dr / (config.jump_deg + config.jump_deg_per_frame * gap))
+                score = max(dt / (config.jump_m + step_m * gap),
+                            dr / (config.jump_deg + step_deg * gap))
             if score > worst_score:
                 worst, worst_score = i, score
         if worst is None:

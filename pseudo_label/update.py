@@ -139,6 +139,18 @@ def register_sequence(frames: list[Frame], feats, base: MapDatabase, depths,
     states = [FrameState.empty(len(f)) for f in feats]
     history = []
     extension = {}
+    tried: dict[int, tuple] = {}  # frame -> (database size, registered neighbours) at its last try
+
+    def context(i: int, db_size: int) -> tuple:
+        """A failed frame is tried again when a neighbour registered or the database grew by
+        a quarter since its last try."""
+        lo, hi = max(0, i - rc.window), min(len(states), i + rc.window + 1)
+        nb = tuple(j for j in range(lo, hi) if states[j].registered)
+        last = tried.get(i)
+        if last is not None and last[1] == nb and db_size < 1.25 * last[0]:
+            return last
+        return db_size, nb
+
     for r in range(max(1, config.rounds)):
         db = _database(base, feats, states)
         before = sum(s.registered for s in states)
@@ -147,6 +159,10 @@ def register_sequence(frames: list[Frame], feats, base: MapDatabase, depths,
         for i in track(order, f"registering, round {r + 1}", enabled=progress):
             if states[i].registered:
                 continue
+            ctx = context(i, len(db))
+            if tried.get(i) == ctx:  # nothing it could match has changed since it failed
+                continue
+            tried[i] = ctx
             new = register_frame(i, feats, cameras, states, db, rc)
             if new is not None and consistent(i, new.world_from_cam, states, rc, new.num_inliers):
                 states[i] = new

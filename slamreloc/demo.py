@@ -40,7 +40,7 @@ def pseudo_label_stage(workdir: Path, map_dir: Path, dataset) -> list[dict]:
                   + ("" if prec is None else f", {100 * prec:.1f} % within 10 cm") +
                   f"; regressor {rep['update']['mode']} in {rep['timings_s']['update_s']:.0f} s")
     rows = []
-    for split in ("kidnap", "unlabelled"):  # views that reach beyond the labelled map
+    for split in ("kidnap",):  # held-out views that reach beyond the labelled map
         for tag, root in (("before", map_dir), ("after", new_map.root)):
             s = run_evaluation(root, dataset.root, workdir / f"report_{split}_{tag}.json", split,
                                "regressor")
