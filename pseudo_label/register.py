@@ -224,10 +224,11 @@ def pose_deviation(i: int, pose: Rigid3, states: list[FrameState], window: int,
     return dt, dr, gap
 
 
-def typical_step(states: list[FrameState], config: RegistrationConfig) -> tuple[float, float]:
+def typical_step(states: list[FrameState], config: RegistrationConfig
+                 ) -> tuple[float, float] | None:
     """Per-frame motion allowance (m, deg): the configured one, or twice the sequence's median
     motion per frame between strongly registered frames when that is larger (sparse sequences,
-    fast motion)."""
+    fast motion); None while fewer than 3 such pairs exist."""
     strong = [i for i, s in enumerate(states) if s.registered
               and s.num_inliers >= config.seed_inliers]
     steps_t, steps_r = [], []
@@ -237,7 +238,7 @@ def typical_step(states: list[FrameState], config: RegistrationConfig) -> tuple[
             steps_t.append(np.linalg.norm(pa.translation - pb.translation) / (b - a))
             steps_r.append(rotation_angle_deg(pa.rotation.T @ pb.rotation) / (b - a))
     if len(steps_t) < 3:
-        return config.jump_m_per_frame, config.jump_deg_per_frame
+        return None
     return (max(config.jump_m_per_frame, 2 * float(np.median(steps_t))),
             max(config.jump_deg_per_frame, 2 * float(np.median(steps_r))))
 
@@ -248,7 +249,10 @@ def consistent(i: int, pose: Rigid3, states: list[FrameState], config: Registrat
     if dev is None:
         return num_inliers >= config.seed_inliers
     dt, dr, gap = dev
-    step_m, step_deg = step or typical_step(states, config)
+    step = step or typical_step(states, config)
+    if step is None:  # the sequence's motion is not known yet: the sweep judges it later
+        return True
+    step_m, step_deg = step
     return (dt <= config.jump_m + step_m * gap and dr <= config.jump_deg + step_deg * gap)
 
 
@@ -257,7 +261,8 @@ def continuity_sweep(states: list[FrameState], config: RegistrationConfig) -> li
 
     Worst offenders go first, so one wrong frame does not condemn its correct neighbours."""
     dropped = []
-    step_m, step_deg = typical_step(states, config)
+    step_m, step_deg = typical_step(states, config) or (config.jump_m_per_frame,
+                                                        config.jump_deg_per_frame)
     while True:
         worst, worst_score = None, 1.0
         for i, s in enumerate(states):
