@@ -1,1 +1,5 @@
-"""Semi-supervised map updates from unlabelled sequences. Empty in this release."""
+"""Semi-supervised map updates from unlabelled sequences (pseudo-labelling, map extension)."""
+
+from slamreloc.pseudo_label.update import PseudoLabelConfig, update_map
+
+__all__ = ["PseudoLabelConfig", "update_map"]

@@ -128,6 +128,53 @@ def localize(
         raise typer.Exit(2)
 
 
+class Update(str, Enum):
+    finetune = "finetune"
+    retrain = "retrain"
+
+
+@app.command("pseudo-label")
+def pseudo_label_cmd(
+    map_dir: Annotated[Path, typer.Argument(metavar="MAP", help="map folder to update")],
+    dataset: Annotated[Path, typer.Argument(help="dataset with the unlabelled sequence")],
+    out: Annotated[Path, typer.Option("--out", help="NEW_MAP folder to write (MAP is kept)")],
+    report: Annotated[Path, typer.Option("--report", help="REPORT.json to write")],
+    split: Annotated[Optional[str], typer.Option(
+        help="sequences to use (default: the 'unlabelled' role, else all)")] = None,
+    rounds: Annotated[int, typer.Option(help="registration + map-extension rounds")] = 8,
+    update: Annotated[Update, typer.Option(
+        help="finetune: from the map's weights (fast); retrain: from scratch")] =
+    Update.finetune,
+    epochs: Annotated[Optional[int], typer.Option(
+        help="update epochs (default: a quarter of the map's for finetune, all for retrain)")] =
+    None,
+    truth: Annotated[Optional[Path], typer.Option(
+        help="dataset with the true poses of the same frames, only to score the report")] =
+    None,
+    device: Annotated[Device, typer.Option(help="training device")] = Device.auto,
+) -> None:
+    """Register an unlabelled sequence in MAP, pseudo-label and extend it, update the regressor.
+
+    DATASET's poses are never read except to score the report (as are --truth's)."""
+    from slamreloc.datasets import load_dataset
+    from slamreloc.evaluate import write_json
+    from slamreloc.progress import console
+    from slamreloc.pseudo_label import PseudoLabelConfig, update_map
+
+    config = PseudoLabelConfig(rounds=rounds, update=update.value, epochs=epochs,
+                               device=device.value)
+    new_map, rep = update_map(map_dir, load_dataset(dataset), out, split, config, truth)
+    write_json(report, rep)
+    prec = rep.get("pseudo_label_precision_10cm")
+    console.print(
+        f"[green]map written[/green] to {new_map.root}: {rep['n_frames_registered']}/"
+        f"{rep['n_frames']} frames registered, {rep['n_pseudo_labels']} pseudo-labels "
+        f"({rep['n_new_points']} new points)"
+        + ("" if prec is None else f", precision {100 * prec:.1f} % within 10 cm, median pose "
+           f"error {100 * rep['median_pose_error_m']:.1f} cm / "
+           f"{rep['median_pose_error_deg']:.2f} deg"))
+
+
 @app.command()
 def demo(
     workdir: Annotated[Path, typer.Option(help="where the scene, map and reports go")] =

@@ -134,6 +134,8 @@ def triangulate_tracks(frames, feats, track_of, config, progress=True):
     members = members[np.argsort(track_of[members], kind="stable")]
     bounds = np.flatnonzero(np.diff(track_of[members])) + 1
     for obs in track(np.split(members, bounds), "triangulating tracks", enabled=progress):
+        if len(obs) < 2:  # no tracks at all (np.split of an empty array gives one empty part)
+            continue
         fr = frame_of[obs]
         res = pycolmap.estimate_triangulation(kp_xy[obs], [rigs[k] for k in fr],
                                               [cams[k] for k in fr], opts)

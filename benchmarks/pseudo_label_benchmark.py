@@ -1,0 +1,155 @@
+"""Map update from an unlabelled sequence on 7-Scenes RedKitchen (issue 9's scenario).
+
+    labelled map   = frames 0-199 of seq-01 (true poses)
+    unlabelled     = frames 200-399 of seq-01, pose files left out (scored with the originals)
+    queries        = seq-02
+    reference      = a map trained with the true poses of all 400 frames
+
+Usage:
+    python benchmarks/pseudo_label_benchmark.py ../shared/data/7scenes_redkitchen \
+        --workdir /tmp/rk_bench --out pseudo_bench.md [--epochs 100] [--reuse]
+
+Everything runs in this one process, in a row, so timings share the machine's load. `--reuse`
+keeps maps already in WORKDIR (labelled and reference), to repeat the update alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from slamreloc.datasets import load_dataset
+from slamreloc.mapping import MapConfig, build_map
+from slamreloc.pipeline import evaluate_method
+from slamreloc.pseudo_label import PseudoLabelConfig
+from slamreloc.pseudo_label.update import pseudo_label, write_updated_map
+from slamreloc.scene_map import SceneMap
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def build(dataset: Path, out: Path, epochs: int, reuse: bool) -> tuple[SceneMap, float]:
+    marker = out.parent / f".{out.name}.building"  # another process builds it: wait
+    while reuse and marker.exists() and not SceneMap.is_map(out):
+        time.sleep(10)
+    if reuse and SceneMap.is_map(out):
+        m = SceneMap.load(out)
+        return m, float(m.meta["timings_s"]["train_s"])
+    cfg = MapConfig()
+    cfg = replace(cfg, train=replace(cfg.train, epochs=epochs))
+    m = build_map(load_dataset(dataset), out, "train", cfg)
+    return m, float(m.meta["timings_s"]["train_s"])
+
+
+def row(name: str, s: dict) -> str:
+    r = s["recall"]
+    med = ("inf" if s["median_translation_m"] is None else
+           f"{100 * s['median_translation_m']:.1f} cm / {s['median_rotation_deg']:.2f} deg")
+    return (f"| {name} | {100 * r['5cm5deg']:.1f} % | {100 * r['10cm5deg']:.1f} % | {med} | "
+            f"{s['n_localized']}/{s['n_queries']} |")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("source", type=Path)
+    ap.add_argument("--workdir", type=Path, default=Path("rk_pseudo_bench"))
+    ap.add_argument("--out", type=Path, default=None, help="markdown summary")
+    ap.add_argument("--epochs", type=int, default=100, help="training epochs of both maps")
+    ap.add_argument("--rounds", type=int, default=PseudoLabelConfig().rounds)
+    ap.add_argument("--reuse", action="store_true")
+    ap.add_argument("--only-reference", action="store_true",
+                    help="build only the true-pose map (run beside a --reuse run)")
+    args = ap.parse_args()
+    work = args.workdir
+    work.mkdir(parents=True, exist_ok=True)
+    split = work / "split"
+    if not (split / "queries").is_dir():
+        subprocess.run([sys.executable, str(ROOT / "scripts" / "make_redkitchen_update_split.py"),
+                        str(args.source), "--out", str(split)], check=True)
+    t_start = time.perf_counter()
+    if args.only_reference:  # to build the reference map in a parallel process
+        marker = work / ".map_true_poses.building"
+        marker.touch()
+        try:
+            build(split / "full", work / "map_true_poses", args.epochs, False)
+        finally:
+            marker.unlink()
+        return
+    labelled, t_lab = build(split / "labelled", work / "map_labelled", args.epochs, args.reuse)
+
+    config = PseudoLabelConfig(rounds=args.rounds)
+    labels = pseudo_label(labelled.root, load_dataset(split / "unlabelled"), "all", config,
+                          truth=args.source)
+    maps = {}
+    reports = {}
+    for update in ("finetune", "retrain"):
+        cfg = replace(config, update=update)
+        maps[update], reports[update] = write_updated_map(labels, work / f"map_{update}", cfg)
+        rep = {k: v for k, v in reports[update].items() if k != "poses"}
+        (work / f"report_{update}.json").write_text(json.dumps(rep, indent=2))
+
+    reference, t_ref = build(split / "full", work / "map_true_poses", args.epochs, args.reuse)
+    evals = {}
+    for name, m, method in (("labelled map (200 frames), matching", labelled, "matching"),
+                            ("labelled map (200 frames)", labelled, "regressor"),
+                            ("updated, fine-tuned", maps["finetune"], "regressor"),
+                            ("updated, retrained", maps["retrain"], "regressor"),
+                            ("true poses of all 400 frames", reference, "regressor")):
+        s, _, _ = evaluate_method(m, split / "queries", "test", method)
+        s.pop("per_query", None)
+        evals[name] = s
+    rep = reports["finetune"]
+    before = evals["labelled map (200 frames)"]["recall"]["5cm5deg"]
+    after = evals["updated, fine-tuned"]["recall"]["5cm5deg"]
+    after_rt = evals["updated, retrained"]["recall"]["5cm5deg"]
+    ref = evals["true poses of all 400 frames"]["recall"]["5cm5deg"]
+    t_ft = reports["finetune"]["timings_s"]["update_s"]
+    t_rt = reports["retrain"]["timings_s"]["update_s"]
+    lines = [
+        f"dataset `{args.source}`; machine: {platform.machine()}, {torch.get_num_threads()} "
+        f"torch threads, torch {torch.__version__}; maps: {args.epochs} epochs; "
+        f"whole benchmark {time.perf_counter() - t_start:.0f} s",
+        "",
+        f"- registration: {rep['n_frames_registered']}/{rep['n_frames']} unlabelled frames "
+        f"({100 * rep['registered_fraction']:.1f} %), median pose error "
+        f"{100 * rep['median_pose_error_m']:.2f} cm / {rep['median_pose_error_deg']:.2f} deg, "
+        f"{100 * rep['registered_within_5cm2deg']:.1f} % of them within 5 cm / 2 deg, "
+        f"worst {100 * rep['max_pose_error_m']:.1f} cm",
+        f"- pseudo-labels: {rep['n_pseudo_labels']} ({rep['n_inherited_labels']} inherited, "
+        f"{rep['n_triangulated_labels']} triangulated; {rep['n_new_points']} new points); "
+        f"precision within 10 cm {100 * rep['pseudo_label_precision_10cm']:.1f} % "
+        f"(inherited {100 * (rep['precision_inherited_10cm'] or 0):.1f} %, triangulated "
+        f"{100 * (rep['precision_new_10cm'] or 0):.1f} %; within 5 cm "
+        f"{100 * rep['pseudo_label_precision_5cm']:.1f} %), scored on "
+        f"{100 * rep['scored_fraction']:.0f} % of them",
+        f"- time: pseudo-labelling {rep['timings_s']['pseudo_label_s']:.0f} s; regressor "
+        f"fine-tune {t_ft:.0f} s vs full retraining {t_rt:.0f} s (ratio {t_ft / t_rt:.2f}); "
+        f"training the labelled map {t_lab:.0f} s, the true-pose map {t_ref:.0f} s",
+        "",
+        "| map (queries: seq-02) | 5cm5deg | 10cm5deg | median | localized |",
+        "|---|---|---|---|---|",
+        *[row(k, v) for k, v in evals.items()],
+        "",
+        f"- regressor recall gain (fine-tuned): {100 * (after - before):+.1f} points "
+        f"(retrained: {100 * (after_rt - before):+.1f}); share of the true-pose map's recall: "
+        f"{100 * after / max(ref, 1e-9):.0f} % (retrained {100 * after_rt / max(ref, 1e-9):.0f} %)",
+    ]
+    text = "\n".join(lines)
+    print(text)
+    if args.out:
+        args.out.write_text(text + "\n")
+    (work / "benchmark.json").write_text(json.dumps(
+        {"evaluations": evals, "reports": {k: {kk: vv for kk, vv in v.items() if kk != "poses"}
+                                           for k, v in reports.items()}}, indent=2))
+
+
+if __name__ == "__main__":
+    main()

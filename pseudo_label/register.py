@@ -1,0 +1,286 @@
+"""Registration of unlabelled frames in the map frame, growing outward from the labelled map.
+
+Each frame's descriptors are matched to a correspondence database (the map's labelled
+descriptors plus everything already labelled in the new sequence) by mutual nearest neighbour
+with a ratio test, and to the labelled keypoints of its registered neighbours in the sequence
+(which carries poses through frames that match the database poorly). PnP-RANSAC verifies; a
+registration must agree with its registered neighbours' motion (sequence continuity) or, with
+no registered neighbour yet, have many inliers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from slamreloc.features.matcher import match_mutual
+from slamreloc.geometry import Rigid3, project, rotation_angle_deg
+from slamreloc.pnp import PnPConfig, estimate_pose
+from slamreloc.types import Camera, Features
+
+LABELLED, PSEUDO, NEW = 0, 1, 2  # where a database point came from (provenance.npz `source`)
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    ratio: float = 0.8  # Lowe's ratio, database and neighbour matching
+    same_point_m: float = 0.05  # two nearest database entries this close count as one point
+    pnp_max_error_px: float = 8.0  # RANSAC threshold
+    label_max_error_px: float = 4.0  # an inlier must reproject this well to become a label
+    min_inliers: int = 40  # below this the frame stays unregistered
+    max_trials: int = 5000  # RANSAC
+    seed_inliers: int = 80  # needed by a frame with no registered neighbour in the window
+    window: int = 5  # frames either side that count as neighbours
+    neighbours: int = 2  # registered neighbours matched directly, each side
+    # continuity: deviation from the neighbours' motion allowed, base + per frame of gap
+    jump_m: float = 0.05
+    jump_m_per_frame: float = 0.05
+    jump_deg: float = 3.0
+    jump_deg_per_frame: float = 3.0
+
+
+class Database:
+    """Labelled descriptors (torch, float32) with their world points, appendable."""
+
+    def __init__(self, descriptors: np.ndarray, points: np.ndarray) -> None:
+        self.desc = torch.as_tensor(np.asarray(descriptors, np.float32))
+        self.points = np.asarray(points, np.float32)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def match(self, query: np.ndarray, ratio: float, same_point_m: float) -> np.ndarray:
+        """(M, 2) pairs (query index, database index): mutual nearest neighbours that pass the
+        ratio test (or whose two nearest entries are one 3D point)."""
+        n, m = len(query), len(self.desc)
+        if n < 2 or m < 2:
+            return np.zeros((0, 2), np.int64)
+        q = torch.as_tensor(query, dtype=torch.float32)
+        best_v = torch.full((n, 2), -2.0)
+        best_i = torch.zeros((n, 2), dtype=torch.long)
+        col_arg = torch.empty(m, dtype=torch.long)
+        with torch.inference_mode():
+            for s in range(0, m, 32768):
+                sim = q @ self.desc[s:s + 32768].T
+                col_arg[s:s + sim.shape[1]] = sim.argmax(0)
+                k = min(2, sim.shape[1])
+                val, idx = sim.topk(k, dim=1)
+                cand_v = torch.cat([best_v, val], 1)
+                cand_i = torch.cat([best_i, idx + s], 1)
+                order = cand_v.argsort(dim=1, descending=True)[:, :2]
+                best_v, best_i = cand_v.gather(1, order), cand_i.gather(1, order)
+        dist = (2.0 - 2.0 * best_v).clamp_min(0).sqrt().numpy()
+        idx = best_i.numpy()
+        same = np.linalg.norm(self.points[idx[:, 0]] - self.points[idx[:, 1]], axis=1)
+        qi = np.arange(n)
+        keep = ((dist[:, 0] < ratio * dist[:, 1]) | (same < same_point_m))
+        keep &= col_arg.numpy()[idx[:, 0]] == qi
+        return np.stack([qi[keep], idx[keep, 0]], axis=1)
+
+
+@dataclass
+class FrameState:
+    """Per unlabelled frame: estimated pose and one label per keypoint (NaN: none)."""
+
+    world_from_cam: Rigid3 | None
+    points: np.ndarray  # (N, 3) float32
+    source: np.ndarray  # (N,) int8: -1 none, PSEUDO (inherited by a match), NEW (triangulated)
+    error_px: np.ndarray  # (N,) reprojection error of the label under the estimated pose
+    num_inliers: int = 0
+    via: str = ""  # "database", "neighbours" or "both"
+
+    @staticmethod
+    def empty(n: int) -> FrameState:
+        return FrameState(None, np.full((n, 3), np.nan, np.float32), np.full(n, -1, np.int8),
+                          np.full(n, np.nan, np.float32))
+
+    @property
+    def registered(self) -> bool:
+        return self.world_from_cam is not None
+
+
+def reprojection_errors(world_from_cam: Rigid3, camera: Camera, keypoints: np.ndarray,
+                        points: np.ndarray) -> np.ndarray:
+    """Pixels; inf behind the camera or for NaN points."""
+    cam = world_from_cam.inverse().transform(np.asarray(points, np.float64))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        uv = project(cam, *camera.params())
+        err = np.linalg.norm(uv - keypoints, axis=1)
+    return np.where(cam[:, 2] > 0.05, err, np.inf)
+
+
+def neighbour_correspondences(i: int, feats: list[Features], states: list[FrameState],
+                              config: RegistrationConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(query keypoint indices, world points) from mutual-NN matches to the labelled keypoints
+    of the nearest registered frames on each side within the window."""
+    picked = []
+    for direction in (-1, 1):
+        found = 0
+        for gap in range(1, config.window + 1):
+            j = i + direction * gap
+            if not 0 <= j < len(states) or found >= config.neighbours:
+                break
+            if states[j].registered:
+                picked.append(j)
+                found += 1
+    q_idx, pts = [], []
+    for j in picked:
+        lab = np.flatnonzero(states[j].source >= 0)
+        if len(lab) < 2:
+            continue
+        m = match_mutual(feats[i].descriptors, feats[j].descriptors[lab], config.ratio)
+        q_idx.append(m[:, 0])
+        pts.append(states[j].points[lab[m[:, 1]]])
+    if not q_idx:
+        return np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
+    return np.concatenate(q_idx), np.concatenate(pts)
+
+
+def register_frame(i: int, feats: list[Features], cameras: list[Camera], states: list[FrameState],
+                   db: Database, config: RegistrationConfig) -> FrameState | None:
+    """Try to register frame i; returns its new state, or None.
+
+    The registered neighbours' labels are tried first (cheap); the whole database is matched
+    only when they are missing or not enough."""
+    f = feats[i]
+    nb_q, nb_pts = neighbour_correspondences(i, feats, states, config)
+    if len(nb_q) >= config.min_inliers:
+        state = _pnp_state(i, f, cameras[i], nb_q, nb_pts.astype(np.float64), config)
+        if state is not None and state.num_inliers >= config.seed_inliers:
+            state.via = "neighbours"
+            return state
+    m = db.match(f.descriptors, config.ratio, config.same_point_m)
+    # neighbour matches first: on a keypoint matched both ways, the neighbour's label wins
+    q_idx = np.concatenate([nb_q, m[:, 0]])
+    pts = np.concatenate([nb_pts, db.points[m[:, 1]]]).astype(np.float64)
+    _, first = np.unique(q_idx, return_index=True)
+    q_idx, pts = q_idx[first], pts[first]
+    state = _pnp_state(i, f, cameras[i], q_idx, pts, config)
+    if state is None:
+        return None
+    from_nb = np.isin(np.flatnonzero(state.source == PSEUDO), nb_q)
+    state.via = ("both" if from_nb.any() and (~from_nb).any()
+                 else "neighbours" if from_nb.any() else "database")
+    return state
+
+
+def _pnp_state(i, f, camera, q_idx, pts, config) -> FrameState | None:
+    if len(q_idx) < config.min_inliers:
+        return None
+    cameras = {i: camera}
+    est = estimate_pose(f.keypoints[q_idx], pts, cameras[i],
+                        PnPConfig(max_error_px=config.pnp_max_error_px,
+                                  min_inliers=config.min_inliers, max_trials=config.max_trials))
+    if not est.success:
+        return None
+    pose = est.world_from_cam
+    err = reprojection_errors(pose, cameras[i], f.keypoints[q_idx], pts)
+    good = err <= config.label_max_error_px
+    if good.sum() < config.min_inliers:
+        return None
+    state = FrameState.empty(len(f))
+    state.world_from_cam = pose
+    state.points[q_idx[good]] = pts[good]
+    state.source[q_idx[good]] = PSEUDO
+    state.error_px[q_idx[good]] = err[good]
+    state.num_inliers = int(good.sum())
+    return state
+
+
+def _nearest_registered(i: int, states: list[FrameState], direction: int, window: int,
+                        exclude: int | None = None) -> int | None:
+    for gap in range(1, window + 1):
+        j = i + direction * gap
+        if not 0 <= j < len(states):
+            return None
+        if j != exclude and states[j].registered:
+            return j
+    return None
+
+
+def pose_deviation(i: int, pose: Rigid3, states: list[FrameState], window: int,
+                   exclude: int | None = None) -> tuple[float, float, int] | None:
+    """(translation m, rotation deg, frame gap) of `pose` from what its registered neighbours
+    predict (linear interpolation between the two sides, or the nearer side alone); None when
+    no registered neighbour is within the window."""
+    p = _nearest_registered(i, states, -1, window, exclude)
+    n = _nearest_registered(i, states, 1, window, exclude)
+    if p is None and n is None:
+        return None
+    if p is not None and n is not None:
+        a, b = states[p].world_from_cam, states[n].world_from_cam
+        w = (i - p) / (n - p)
+        centre = (1 - w) * a.translation + w * b.translation
+        ref = a if i - p <= n - i else b
+        gap = min(i - p, n - i)
+        dt = float(np.linalg.norm(pose.translation - centre))
+    else:
+        j = p if p is not None else n
+        ref, gap = states[j].world_from_cam, abs(i - j)
+        dt = float(np.linalg.norm(pose.translation - ref.translation))
+    dr = rotation_angle_deg(ref.rotation.T @ pose.rotation)
+    return dt, dr, gap
+
+
+def typical_step(states: list[FrameState], config: RegistrationConfig
+                 ) -> tuple[float, float] | None:
+    """Per-frame motion allowance (m, deg): the configured one, or twice the sequence's median
+    motion per frame between strongly registered frames when that is larger (sparse sequences,
+    fast motion); None while fewer than 3 such pairs exist."""
+    strong = [i for i, s in enumerate(states) if s.registered
+              and s.num_inliers >= config.seed_inliers]
+    steps_t, steps_r = [], []
+    for a, b in zip(strong, strong[1:]):
+        if b - a <= config.window:
+            pa, pb = states[a].world_from_cam, states[b].world_from_cam
+            steps_t.append(np.linalg.norm(pa.translation - pb.translation) / (b - a))
+            steps_r.append(rotation_angle_deg(pa.rotation.T @ pb.rotation) / (b - a))
+    if len(steps_t) < 3:
+        return None
+    return (max(config.jump_m_per_frame, 2 * float(np.median(steps_t))),
+            max(config.jump_deg_per_frame, 2 * float(np.median(steps_r))))
+
+
+def consistent(i: int, pose: Rigid3, states: list[FrameState], config: RegistrationConfig,
+               num_inliers: int, exclude: int | None = None, step=None) -> bool:
+    dev = pose_deviation(i, pose, states, config.window, exclude)
+    if dev is None:
+        return num_inliers >= config.seed_inliers
+    dt, dr, gap = dev
+    step = step or typical_step(states, config)
+    if step is None:  # the sequence's motion is not known yet: the sweep judges it later
+        return True
+    step_m, step_deg = step
+    return (dt <= config.jump_m + step_m * gap and dr <= config.jump_deg + step_deg * gap)
+
+
+def continuity_sweep(states: list[FrameState], config: RegistrationConfig) -> list[int]:
+    """Unregister frames that disagree with their registered neighbours; returns their indices.
+
+    Worst offenders go first, so one wrong frame does not condemn its correct neighbours."""
+    dropped = []
+    step_m, step_deg = typical_step(states, config) or (config.jump_m_per_frame,
+                                                        config.jump_deg_per_frame)
+    while True:
+        worst, worst_score = None, 1.0
+        for i, s in enumerate(states):
+            if not s.registered:
+                continue
+            dev = pose_deviation(i, s.world_from_cam, states, config.window, exclude=i)
+            if dev is None:
+                if s.num_inliers < config.seed_inliers:  # isolated and weak
+                    score = 2.0
+                else:
+                    continue
+            else:
+                dt, dr, gap = dev
+                score = max(dt / (config.jump_m + step_m * gap),
+                            dr / (config.jump_deg + step_deg * gap))
+            if score > worst_score:
+                worst, worst_score = i, score
+        if worst is None:
+            return dropped
+        states[worst] = FrameState.empty(len(states[worst].source))
+        dropped.append(worst)

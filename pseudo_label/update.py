@@ -1,0 +1,455 @@
+"""`update_map`: a map + an unlabelled sequence -> a better, larger map (pseudo-labelling).
+
+1. Features of the unlabelled frames (the map's extractor). Their poses are stripped here:
+   nothing below reads them; the truth (the dataset's own poses, or --truth) only scores.
+2. Rounds of registration and extension: frames register against the growing correspondence
+   database (register.py); then the core labelling code (`build_labels`) triangulates
+   multi-view tracks among all registered frames with the *estimated* poses, which labels
+   keypoints the map never had (the new area) and joins the database, so the next round can
+   register frames further out. A continuity sweep drops registrations that jump.
+3. A final pass re-registers every frame against the final database (its labels are the inliers
+   of that pass), inherited labels that disagree with their own re-triangulation (or registered
+   depth) are dropped, and the tracks are triangulated once more.
+4. The regressor is fine-tuned from its weights (regions moved onto the new area) or retrained,
+   on labelled + pseudo-labelled data; NEW_MAP is written atomically with per-point provenance.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from slamreloc.datasets import Dataset, load_dataset, read_depth
+from slamreloc.errors import InputError
+from slamreloc.extract import extract_frames
+from slamreloc.features import make_extractor
+from slamreloc.geometry import pose_error
+from slamreloc.labels import LabelConfig, build_labels, depth_points
+from slamreloc.progress import console, track
+from slamreloc.pseudo_label.finetune import FinetuneConfig, finetune_regressor
+from slamreloc.pseudo_label.register import (LABELLED, NEW, PSEUDO, Database, FrameState,
+                                             RegistrationConfig, consistent, continuity_sweep,
+                                             register_frame, reprojection_errors)
+from slamreloc.regressor.model import SceneCoordinateRegressor
+from slamreloc.regressor.train import TrainConfig, train_regressor
+from slamreloc.scene_map import MapDatabase, SceneMap, check_map_target, save_map
+from slamreloc.types import Frame
+
+PROVENANCE = "provenance.npz"
+UPDATES = ("finetune", "retrain")
+
+
+@dataclass(frozen=True)
+class PseudoLabelConfig:
+    rounds: int = 8  # registration + extension rounds (stops early when nothing changes)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    labels: LabelConfig = field(default_factory=LabelConfig)
+    label_agreement_m: float = 0.05  # inherited label vs re-triangulation / depth, + 2 % depth
+    update: str = "finetune"  # or "retrain" (from scratch, the map's own epochs)
+    finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
+    finetune_epoch_fraction: float = 0.25  # of the map's training epochs, when epochs unset
+    epochs: int | None = None  # override for the update (fine-tune or retrain)
+    error_scale_px: float = 2.0  # quality weight 1 / (1 + (err / scale)^2)
+    device: str = "auto"
+
+
+def _frames_for_registration(frames: list[Frame]) -> list[Frame]:
+    return [replace(f, world_from_cam=None) for f in frames]  # the truth is not ours to read
+
+
+def _truth_poses(frames: list[Frame], truth: Path | None) -> list | None:
+    """Ground-truth world_from_cam per frame for scoring: from --truth (matched by frame name)
+    or the dataset's own pose files; None when not every frame has one."""
+    if truth is not None:
+        by_name = {f.name: f.world_from_cam for f in load_dataset(truth).frames("all")}
+        poses = [by_name.get(f.name) for f in frames]
+    else:
+        poses = [f.world_from_cam for f in frames]
+    return poses if all(p is not None for p in poses) else None
+
+
+def _label_frames(frames, feats, states, depths, config: PseudoLabelConfig):
+    """Triangulate tracks among registered frames with their estimated poses (core labels)."""
+    reg = [i for i, s in enumerate(states) if s.registered]
+    if len(reg) < 2:
+        return reg, None
+    posed = [replace(frames[i], world_from_cam=states[i].world_from_cam) for i in reg]
+    labels = build_labels(posed, [feats[i] for i in reg],
+                          None if depths is None else [depths[i] for i in reg],
+                          config.labels, progress=False)
+    return reg, labels
+
+
+def _apply_labels(frames, feats, states, depths, config: PseudoLabelConfig) -> dict:
+    """Merge triangulated labels into the frame states: keypoints without a label get the
+    triangulated point (NEW); inherited labels that disagree with it (or with registered depth)
+    are dropped. Returns counts."""
+    reg, labels = _label_frames(frames, feats, states, depths, config)
+    n_new = n_conflict = 0
+    for k, i in enumerate(reg):
+        s = states[i]
+        cam = frames[i].camera
+        z = None
+        if labels is not None:
+            tri = labels.points[k]
+            has_tri = ~np.isnan(tri[:, 0])
+            inh = s.source == PSEUDO
+            if np.any(has_tri & inh):
+                z = s.world_from_cam.inverse().transform(tri)[:, 2]
+                gap = np.linalg.norm(tri - s.points, axis=1)
+                bad = has_tri & inh & ~(gap < config.label_agreement_m + 0.02 * np.abs(z))
+                n_conflict += int(bad.sum())
+                s.source[bad], s.points[bad], s.error_px[bad] = -1, np.nan, np.nan
+            add = has_tri & (s.source < 0)
+            s.points[add] = tri[add]
+            s.source[add] = NEW
+            s.error_px[add] = reprojection_errors(s.world_from_cam, cam, feats[i].keypoints[add],
+                                                  tri[add])
+            n_new += int(add.sum())
+        if depths is not None:  # registered depth verifies every label
+            dep = depth_points(replace(frames[i], world_from_cam=s.world_from_cam),
+                               feats[i].keypoints, depths[i])
+            z = s.world_from_cam.inverse().transform(dep)[:, 2]
+            has = ~np.isnan(dep[:, 0]) & (s.source >= 0)
+            gap = np.linalg.norm(dep - s.points, axis=1)
+            bad = has & ~(gap < config.label_agreement_m + 0.02 * np.abs(z))
+            n_conflict += int(bad.sum())
+            s.source[bad], s.points[bad], s.error_px[bad] = -1, np.nan, np.nan
+    return {"n_new_labels": n_new, "n_conflicts": n_conflict,
+            "track_ids": None if labels is None else (reg, labels.track_ids)}
+
+
+def _database(base: MapDatabase, feats, states) -> Database:
+    extra_d = [feats[i].descriptors[s.source >= 0] for i, s in enumerate(states) if s.registered]
+    extra_p = [s.points[s.source >= 0] for s in states if s.registered]
+    return Database(np.concatenate([base.descriptors.astype(np.float32), *extra_d]),
+                    np.concatenate([base.points, *extra_p]))
+
+
+def register_sequence(frames: list[Frame], feats, base: MapDatabase, depths,
+                      config: PseudoLabelConfig, progress: bool = True):
+    """Register frames (poses unknown) and label their keypoints. Returns (states, stats)."""
+    rc = config.registration
+    cameras = [f.camera for f in frames]
+    states = [FrameState.empty(len(f)) for f in feats]
+    history = []
+    extension = {}
+    tried: dict[int, tuple] = {}  # frame -> (database size, registered neighbours) at its last try
+
+    def context(i: int, db_size: int) -> tuple:
+        """A failed frame is tried again when a neighbour registered or the database grew by
+        a quarter since its last try."""
+        lo, hi = max(0, i - rc.window), min(len(states), i + rc.window + 1)
+        nb = tuple(j for j in range(lo, hi) if states[j].registered)
+        last = tried.get(i)
+        if last is not None and last[1] == nb and db_size < 1.25 * last[0]:
+            return last
+        return db_size, nb
+
+    for r in range(max(1, config.rounds)):
+        db = _database(base, feats, states)
+        before = sum(s.registered for s in states)
+        # forward then backward through the sequence, so registrations propagate both ways
+        order = list(range(len(frames))) + list(range(len(frames) - 1, -1, -1))
+        for i in track(order, f"registering, round {r + 1}", enabled=progress):
+            if states[i].registered:
+                continue
+            ctx = context(i, len(db))
+            if tried.get(i) == ctx:  # nothing it could match has changed since it failed
+                continue
+            tried[i] = ctx
+            new = register_frame(i, feats, cameras, states, db, rc)
+            if new is not None and consistent(i, new.world_from_cam, states, rc, new.num_inliers):
+                states[i] = new
+        dropped = continuity_sweep(states, rc)
+        extension = _apply_labels(frames, feats, states, depths, config)
+        after = sum(s.registered for s in states)
+        history.append({"round": r + 1, "registered": after, "dropped": len(dropped),
+                        "database": len(db), "new_labels": extension["n_new_labels"]})
+        console.print(f"round {r + 1}: {after}/{len(frames)} frames registered "
+                      f"({len(dropped)} dropped by continuity), database {len(db)} points, "
+                      f"{extension['n_new_labels']} keypoints triangulated")
+        if after == before and r > 0:
+            break
+    # final pass: every registered frame again against the final database and its neighbours
+    db = _database(base, feats, states)
+    for i in track(range(len(frames)), "final registration", enabled=progress):
+        if not states[i].registered:
+            continue
+        new = register_frame(i, feats, cameras, states, db, rc)
+        ok = new is not None and consistent(i, new.world_from_cam, states, rc, new.num_inliers)
+        states[i] = new if ok else FrameState.empty(len(feats[i]))
+    dropped = continuity_sweep(states, rc)
+    extension = _apply_labels(frames, feats, states, depths, config)
+    history.append({"round": "final", "registered": sum(s.registered for s in states),
+                    "dropped": len(dropped), "database": len(db),
+                    "new_labels": extension["n_new_labels"]})
+    return states, {"history": history, "extension": extension}
+
+
+def _count_new_points(states, extension) -> int:
+    """Triangulated tracks none of whose observations inherited a map label."""
+    if not extension or extension.get("track_ids") is None:
+        return 0
+    reg, tids = extension["track_ids"]
+    ids, srcs = [], []
+    for k, i in enumerate(reg):
+        t = tids[k]
+        keep = (t >= 0) & (states[i].source >= 0)
+        ids.append(t[keep])
+        srcs.append(states[i].source[keep])
+    ids, srcs = np.concatenate(ids), np.concatenate(srcs)
+    if len(ids) == 0:
+        return 0
+    has_pseudo = np.zeros(ids.max() + 1, bool)
+    has_pseudo[ids[srcs == PSEUDO]] = True
+    new_ids = np.unique(ids[srcs == NEW])
+    return int((~has_pseudo[new_ids]).sum())
+
+
+def score(frames, feats, states, truth_poses, depths, label_config: LabelConfig) -> dict:
+    """Pseudo-label precision against the same keypoints labelled with the true poses (core
+    labels code: re-triangulated tracks, registered depth where the dataset has it), and the
+    pose errors of registered frames."""
+    gt_frames = [replace(f, world_from_cam=p) for f, p in zip(frames, truth_poses)]
+    gt = build_labels(gt_frames, feats, depths, label_config, progress=False)
+    errs = {PSEUDO: [], NEW: []}
+    n_labels = 0
+    for i, s in enumerate(states):
+        lab = s.source >= 0
+        n_labels += int(lab.sum())
+        ok = lab & ~np.isnan(gt.points[i][:, 0])
+        e = np.linalg.norm(s.points[ok] - gt.points[i][ok], axis=1)
+        for src in (PSEUDO, NEW):
+            errs[src].append(e[s.source[ok] == src])
+    e_all = np.concatenate(errs[PSEUDO] + errs[NEW])
+    per = {src: np.concatenate(v) for src, v in errs.items()}
+    pose_t, pose_r = [], []
+    for s, p in zip(states, truth_poses):
+        if s.registered:
+            dt, dr = pose_error(s.world_from_cam, p)
+            pose_t.append(dt)
+            pose_r.append(dr)
+    pose_t, pose_r = np.array(pose_t), np.array(pose_r)
+    prec = lambda e: float(np.mean(e < 0.10)) if len(e) else None  # noqa: E731
+    return {
+        "pseudo_label_precision_10cm": prec(e_all),
+        "pseudo_label_precision_5cm": float(np.mean(e_all < 0.05)) if len(e_all) else None,
+        "precision_inherited_10cm": prec(per[PSEUDO]),
+        "precision_new_10cm": prec(per[NEW]),
+        "n_pseudo_labels_scored": int(len(e_all)),
+        "scored_fraction": float(len(e_all) / max(n_labels, 1)),
+        "median_label_error_m": float(np.median(e_all)) if len(e_all) else None,
+        "median_pose_error_m": float(np.median(pose_t)) if len(pose_t) else None,
+        "median_pose_error_deg": float(np.median(pose_r)) if len(pose_r) else None,
+        "registered_within_5cm2deg": float(np.mean((pose_t <= 0.05) & (pose_r <= 2.0)))
+        if len(pose_t) else None,
+        "max_pose_error_m": float(pose_t.max()) if len(pose_t) else None,
+    }
+
+
+def _base_provenance(map_dir: Path, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The map's own per-point source and weight (all labelled, weight 1, unless it was itself
+    updated)."""
+    path = map_dir / PROVENANCE
+    if path.is_file():
+        try:
+            with np.load(path) as z:
+                if len(z["source"]) == n and len(z["quality"]) == n:
+                    return z["source"].astype(np.int8), z["quality"].astype(np.float32)
+        except (OSError, KeyError, ValueError):
+            pass
+        raise InputError(f"{path}: unreadable or does not match the map's database")
+    return np.full(n, LABELLED, np.int8), np.ones(n, np.float32)
+
+
+def _save(out: Path, meta: dict, model, db: MapDatabase, provenance: dict) -> Path:
+    """save_map into a staging folder, add provenance.npz, then rename over `out`."""
+    out = Path(out)
+    check_map_target(out)
+    staging = out.parent / f".{out.name}.pl-{os.getpid()}"
+    shutil.rmtree(staging, ignore_errors=True)
+    try:
+        save_map(staging, meta, model, db)
+        np.savez(staging / PROVENANCE, **provenance)
+        if out.exists():
+            old = out.parent / f".{out.name}.old-{os.getpid()}"
+            os.replace(out, old)
+            os.replace(staging, out)
+            shutil.rmtree(old)
+        else:
+            os.replace(staging, out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return out
+
+
+@dataclass
+class PseudoLabels:
+    """What registration and extension produced, before the regressor update."""
+
+    old: SceneMap
+    map_dir: Path
+    db: MapDatabase  # the map's labels + the new ones
+    weights: np.ndarray  # per database row
+    source: np.ndarray  # per database row: LABELLED, PSEUDO, NEW
+    report: dict
+
+
+def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
+                 config: PseudoLabelConfig = PseudoLabelConfig(), truth: Path | None = None,
+                 progress: bool = True) -> PseudoLabels:
+    """Register `dataset`'s split in the map at `map_dir`, label and extend (no training)."""
+    map_dir = Path(map_dir)
+    if config.update not in UPDATES:
+        raise InputError(f"unknown update '{config.update}' (known: {', '.join(UPDATES)})")
+    if config.rounds < 1:
+        raise InputError(f"--rounds must be at least 1, got {config.rounds}")
+    old = SceneMap.load(map_dir)
+    base = old.database
+    if split is None:
+        split = "unlabelled" if "unlabelled" in dataset.roles.values() else "all"
+    frames_in = dataset.frames(split)
+    if len(frames_in) < 2:
+        raise InputError(f"{dataset.root}: split '{split}' has {len(frames_in)} frames; "
+                         "pseudo-labelling needs a sequence")
+    frames = _frames_for_registration(frames_in)
+    truth_poses = _truth_poses(frames_in, truth)
+    timings = {}
+    t_all = time.perf_counter()
+    feat_cfg = dict(old.meta["features"])
+    extractor = make_extractor(feat_cfg.pop("name"), **feat_cfg)
+    t0 = time.perf_counter()
+    feats = extract_frames(frames, extractor, progress)
+    timings["features_s"] = time.perf_counter() - t0
+    depths = None
+    if dataset.depth_registered and config.labels.use_depth:
+        depths = [read_depth(f.depth_path, dataset.depth_units_per_metre) if f.depth_path
+                  else np.zeros((f.camera.height, f.camera.width), np.float32) for f in frames]
+    t0 = time.perf_counter()
+    states, reg_stats = register_sequence(frames, feats, base, depths, config, progress)
+    timings["registration_s"] = time.perf_counter() - t0
+    reg = [i for i, s in enumerate(states) if s.registered]
+    n_pseudo = int(sum((s.source == PSEUDO).sum() for s in states))
+    n_new_obs = int(sum((s.source == NEW).sum() for s in states))
+    n_new_points = _count_new_points(states, reg_stats["extension"])
+
+    # training set: the map's labels + every label of the registered frames, quality-weighted
+    lab_idx = [np.flatnonzero(states[i].source >= 0) for i in reg]
+    new_desc = [feats[i].descriptors[k] for i, k in zip(reg, lab_idx)]
+    new_pts = [states[i].points[k] for i, k in zip(reg, lab_idx)]
+    new_err = np.concatenate([states[i].error_px[k] for i, k in zip(reg, lab_idx)] or [[]])
+    new_src = np.concatenate([states[i].source[k] for i, k in zip(reg, lab_idx)] or [[]])
+    n_old_frames = len(base.frame_names)
+    db = MapDatabase(
+        descriptors=np.concatenate([base.descriptors, *[d.astype(np.float16) for d in new_desc]]),
+        points=np.concatenate([base.points, *new_pts]).astype(np.float32),
+        keypoints=np.concatenate([base.keypoints, *[feats[i].keypoints[k]
+                                                     for i, k in zip(reg, lab_idx)]]),
+        frame_index=np.concatenate([base.frame_index, *[np.full(len(k), n_old_frames + r)
+                                                        for r, k in enumerate(lab_idx)]]),
+        frame_names=[*base.frame_names, *[frames[i].name for i in reg]],
+        world_from_cam=np.concatenate([base.world_from_cam.reshape(-1, 4, 4),
+                                       np.stack([states[i].world_from_cam.matrix() for i in reg])
+                                       if reg else np.zeros((0, 4, 4))]))
+    quality = 1.0 / (1.0 + (np.nan_to_num(new_err, nan=config.registration.label_max_error_px)
+                            / config.error_scale_px) ** 2)
+    base_source, base_quality = _base_provenance(map_dir, len(base.points))
+    weights = np.concatenate([base_quality, quality]).astype(np.float32)
+    source = np.concatenate([base_source, new_src]).astype(np.int8)
+    timings["pseudo_label_s"] = time.perf_counter() - t_all
+
+    report = {
+        "map": str(map_dir.resolve()),
+        "dataset": {"root": str(Path(dataset.root).resolve()), "split": split},
+        "n_frames": len(frames), "n_frames_registered": len(reg),
+        "registered_fraction": len(reg) / len(frames),
+        "n_pseudo_labels": n_pseudo + n_new_obs,
+        "n_inherited_labels": n_pseudo, "n_triangulated_labels": n_new_obs,
+        "n_new_points": n_new_points,
+        "n_database_before": int(len(base.points)), "n_database_after": int(len(db.points)),
+        "rounds": reg_stats["history"], "timings_s": timings,
+        "registered_via": {v: sum(s.via == v for s in states if s.registered)
+                           for v in ("database", "neighbours", "both")},
+        "poses": {frames[i].name: states[i].world_from_cam.matrix().tolist() for i in reg},
+    }
+    if truth_poses is not None:
+        t0 = time.perf_counter()
+        report.update(score(frames, feats, states, truth_poses, depths, config.labels))
+        report["timings_s"]["scoring_s"] = time.perf_counter() - t0
+    else:
+        report["pseudo_label_precision_10cm"] = None
+        report["note"] = "the dataset has no poses: precision and pose errors not scored"
+    return PseudoLabels(old, map_dir, db, weights, source, report)
+
+
+def write_updated_map(labels: PseudoLabels, out: Path,
+                      config: PseudoLabelConfig = PseudoLabelConfig(),
+                      progress: bool = True) -> tuple[SceneMap, dict]:
+    """Update the regressor (fine-tune or retrain) and write NEW_MAP; returns it and the
+    report (with the update's stats and timing)."""
+    out = Path(out)
+    if out.resolve() == labels.map_dir.resolve():
+        raise InputError(f"{out}: the new map must not replace the map it updates")
+    check_map_target(out)
+    old, db, rep = labels.old, labels.db, dict(labels.report)
+    rep["timings_s"] = dict(rep["timings_s"])
+    map_epochs = int(old.meta.get("train", {}).get("epochs", 100))
+    t0 = time.perf_counter()
+    if config.update == "finetune":
+        # a fresh copy of the old weights: the old map's files and object stay as they were
+        model = SceneMap.load(labels.map_dir).regressor
+        epochs = config.epochs or max(1, round(config.finetune_epoch_fraction * map_epochs))
+        train_stats = finetune_regressor(model, db.descriptors, db.points, labels.weights,
+                                         replace(config.finetune, epochs=epochs), config.device,
+                                         progress)
+    else:
+        model = SceneCoordinateRegressor(old.regressor.config)
+        known = set(TrainConfig.__dataclass_fields__)
+        tc = TrainConfig(**{k: v for k, v in old.meta.get("train", {}).items()
+                            if k in known and k not in ("betas",)})
+        tc = replace(tc, epochs=config.epochs or map_epochs)
+        train_stats = {"mode": "retrain", **train_regressor(model, db.descriptors, db.points, tc,
+                                                            config.device, progress)}
+    rep["timings_s"]["update_s"] = time.perf_counter() - t0
+    rep["timings_s"]["total_s"] = rep["timings_s"]["pseudo_label_s"] + rep["timings_s"]["update_s"]
+    rep["update"] = train_stats
+    rep["new_map"] = str(out.resolve())
+    meta = {k: v for k, v in old.meta.items() if k not in ("format", "version", "frame_names")}
+    meta["labels"] = {**old.meta.get("labels", {}), "n_labelled": int(len(db.points)),
+                      "n_labelled_map": int(len(old.database.points)),
+                      "n_pseudo": rep["n_inherited_labels"],
+                      "n_triangulated": rep["n_triangulated_labels"]}
+    meta["train"] = {**old.meta.get("train", {}), "update": train_stats}
+    meta["pseudo_label"] = {
+        "source_map": str(labels.map_dir.resolve()), "dataset": rep["dataset"],
+        "n_frames": rep["n_frames"], "n_frames_registered": rep["n_frames_registered"],
+        "n_inherited_labels": rep["n_inherited_labels"],
+        "n_triangulated_labels": rep["n_triangulated_labels"],
+        "n_new_points": rep["n_new_points"], "update": config.update,
+        "provenance": f"{PROVENANCE}: source per database row (0 labelled, 1 inherited "
+                      "pseudo-label, 2 triangulated from registered frames), quality weight",
+        "history": old.meta.get("pseudo_label", {}).get("history", [])
+        + [str(labels.map_dir.resolve())],
+    }
+    _save(out, meta, model, db, {"source": labels.source, "quality": labels.weights})
+    return SceneMap.load(out), rep
+
+
+def update_map(map_dir: Path, dataset: Dataset, out: Path, split: str | None = None,
+               config: PseudoLabelConfig = PseudoLabelConfig(), truth: Path | None = None,
+               progress: bool = True) -> tuple[SceneMap, dict]:
+    """Pseudo-label `dataset`'s split against the map at `map_dir`, write NEW_MAP at `out`.
+    Returns (the new map, the report)."""
+    map_dir, out = Path(map_dir), Path(out)
+    SceneMap.load(map_dir)  # fail early on a bad map or target, before the work
+    if out.resolve() == map_dir.resolve():
+        raise InputError(f"{out}: the new map must not replace the map it updates")
+    check_map_target(out)
+    labels = pseudo_label(map_dir, dataset, split, config, truth, progress)
+    return write_updated_map(labels, out, config, progress)
