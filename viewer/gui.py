@@ -154,7 +154,7 @@ def overview_pose(g: Geometry) -> tuple[np.ndarray, np.ndarray]:
     """(eye, target) of the initial view: above and to the side of the map, looking at it."""
     side = np.cross(g.up, [1.0, 0.0, 0.0] if abs(g.up[0]) < 0.9 else [0.0, 1.0, 0.0])
     side /= np.linalg.norm(side)
-    return g.center + g.up * g.extent * 0.55 + side * g.extent * 0.75, g.center
+    return g.center + g.up * g.extent * 0.45 + side * g.extent * 0.6, g.center
 
 
 def add_layer_toggles(server, layers: list[Layer], trajectories: list[TrajectoryNodes],

@@ -61,7 +61,7 @@ def scene_geometry(scene_map: MapView, up: np.ndarray) -> Geometry:
     extent = float(max(np.linalg.norm(hi - lo), 0.1))
     center = np.median(ref, axis=0)
     cam = scene_map.camera
-    g = Geometry(center, extent, up, frustum_scale=0.03 * extent, point_size=extent / 400)
+    g = Geometry(center, extent, up, frustum_scale=0.02 * extent, point_size=extent / 400)
     if cam is not None:
         g.fx, g.fy, g.width, g.height = cam.fx, cam.fy, cam.width, cam.height
     return g

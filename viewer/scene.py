@@ -83,17 +83,15 @@ def build_scene(server, data: SceneData) -> SceneHandles:
     server.initial_camera.look_at = tuple(target)
     server.initial_camera.up = tuple(float(v) for v in up)
 
-    selection = h.selection = gui.add_selection(server)
-
     def on_frame_click(frame: FrameView, event) -> None:
-        selection.show(frame.name, frame.image_path, "training camera", frame.thumbnail)
+        h.selection.show(frame.name, frame.image_path, "training camera", frame.thumbnail)
         if event is not None and event.client is not None:
             gui.snap_to(event.client, frame.world_from_cam, g)
 
     def on_query_click(q: QueryView, event) -> None:
         err = ("not localized" if q.failed else
                f"position error {100 * q.translation_error_m:.1f} cm")
-        selection.show(q.name, q.image_path, f"query: {err}; {_query_note(q)}")
+        h.selection.show(q.name, q.image_path, f"query: {err}; {_query_note(q)}")
         if event is not None and event.client is not None and q.estimate is not None:
             gui.snap_to(event.client, q.estimate, g)
 
@@ -157,12 +155,13 @@ def build_scene(server, data: SceneData) -> SceneHandles:
         "/current_frame", fov=g.fov, aspect=g.aspect, scale=g.frustum_scale * 1.3,
         color=palette.CURRENT_FRAME, visible=False, cast_shadow=False, receive_shadow=False)
     h.layers["current frame"] = layers.Layer("current frame", [marker])
-    h.controls.update(gui.add_layer_toggles(server, list(h.layers.values()), h.trajectories,
-                                            point_nodes))
     sources = _sources(data)
     if sources:
         h.playback = gui.Playback(server, g, sources, marker=marker)
         h.controls.update(gui.add_playback(server, h.playback))
+    h.selection = gui.add_selection(server)
+    h.controls.update(gui.add_layer_toggles(server, list(h.layers.values()), h.trajectories,
+                                            point_nodes))
     with_errors = any(t.errors_m is not None for t in data.trajectories) or bool(
         data.evaluations)
     gui.add_legend(server, legend, with_errors)

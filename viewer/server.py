@@ -23,7 +23,7 @@ def make_server(host: str = "127.0.0.1", port: int = 8080):
     with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner; we print the address
         server = viser.ViserServer(host=host, port=port, label=TITLE, verbose=False)
     server.gui.configure_theme(
-        show_share_button=False, control_layout="collapsible", control_width="medium",
+        show_share_button=False, control_width="medium",
         dark_mode=False, show_logo=False)
     if hasattr(server.gui, "set_panel_label"):
         server.gui.set_panel_label(TITLE)
