@@ -122,6 +122,8 @@ def build_scene(server, data: SceneData) -> SceneHandles:
 
     for i, r in enumerate(data.evaluations):
         layer = layers.add_evaluation(server, r, f"{i:02d}", g, on_query_click)
+        if i > 0:  # one report's queries at a time, the others a toggle away
+            layer.set_visible(False)
         h.layers[layer.name] = layer
     if data.evaluations:
         legend += [("query not localized (at its ground truth)", palette.FAILURE)]
