@@ -29,6 +29,7 @@ class PlaybackSource:
     errors_m: list[float | None]
     image_paths: list[Path | None]
     note: list[str] = field(default_factory=list)  # per-frame extra text (e.g. "not localized")
+    thumbnails: list[np.ndarray | None] = field(default_factory=list)  # when no image file
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -108,6 +109,8 @@ class Playback:
             self.text.content = "  \n".join(lines)
         if self.image is not None:
             img = panel_image(src.image_paths[index])
+            if img is None and src.thumbnails:
+                img = src.thumbnails[index]
             self.image.image = img if img is not None else placeholder()
         if self.follow and pose is not None:
             self.follow_pose(pose)

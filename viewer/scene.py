@@ -52,7 +52,8 @@ def _sources(data: SceneData) -> list[gui.PlaybackSource]:
     if frames:
         out.append(gui.PlaybackSource(
             "training cameras", [f.world_from_cam for f in frames], [f.name for f in frames],
-            [None] * len(frames), [f.image_path for f in frames]))
+            [None] * len(frames), [f.image_path for f in frames],
+            thumbnails=[f.thumbnail for f in frames]))
     return out
 
 
