@@ -80,6 +80,7 @@ class Playback:
     playing: bool = False
     fps: float = 5.0
     marker: object = None
+    marker_layer: Layer | None = None  # its toggle decides whether the marker is shown
     slider: object = None
     image: object = None
     text: object = None
@@ -98,7 +99,7 @@ class Playback:
         pose = src.poses[index]
         if pose is not None and self.marker is not None:
             self.marker.wxyz, self.marker.position = wxyz(pose), pose.translation
-            self.marker.visible = True
+            self.marker.visible = self.marker_layer is None or self.marker_layer.visible
         err = src.errors_m[index]
         lines = [f"**{src.names[index] or f'frame {index}'}** ({index + 1}/{len(src)})"]
         if err is not None and np.isfinite(err):

@@ -24,6 +24,14 @@ class SceneHandles:
     selection: gui.Selection | None = None
     report_panels: list = field(default_factory=list)
 
+    def add_layer(self, layer: layers.Layer) -> layers.Layer:
+        """Register a layer under a unique name (its toggle's label)."""
+        base, k = layer.name, 2
+        while layer.name in self.layers:
+            layer.name, k = f"{base} ({k})", k + 1
+        self.layers[layer.name] = layer
+        return layer
+
     def node_names(self) -> list[str]:
         return [n.name for layer in self.layers.values() for n in layer.nodes]
 
@@ -97,19 +105,18 @@ def build_scene(server, data: SceneData) -> SceneHandles:
             gui.snap_to(event.client, q.estimate, g)
 
     points, added = layers.add_map_points(server, data.map, g)
-    h.layers["map points"] = points
+    h.add_layer(points)
     point_nodes = list(points.nodes)
     if added is not None:
-        h.layers[added.name] = added
+        h.add_layer(added)
         point_nodes += added.nodes
-    h.layers["training cameras"] = layers.add_training_cameras(server, data.map, g,
-                                                               on_frame_click)
+    h.add_layer(layers.add_training_cameras(server, data.map, g, on_frame_click))
     legend = [("map points: image colour" if data.map.color_source == "image"
                else "map points: height", (128, 128, 128)),
               ("training camera", palette.TRAINING_CAMERA)]
     pseudo = layers.add_pseudo_frames(server, data.map.pseudo_frames, g, "/map/pseudo_frames")
     if pseudo is not None:
-        h.layers[pseudo.name] = pseudo
+        h.add_layer(pseudo)
     if added is not None or pseudo is not None:
         legend += [("points added by the update", palette.PSEUDO_POINTS),
                    ("pseudo-labelled frame", palette.PSEUDO_FRAMES)]
@@ -117,7 +124,7 @@ def build_scene(server, data: SceneData) -> SceneHandles:
     for i, t in enumerate(data.trajectories):
         nodes = layers.add_trajectory(server, t, f"{i:02d}", g)
         h.trajectories.append(nodes)
-        h.layers[nodes.plain.name] = nodes.plain
+        h.add_layer(nodes.plain)
     if data.trajectories:
         legend += [("ground truth", palette.GROUND_TRUTH), ("estimate", palette.ESTIMATE)]
 
@@ -125,7 +132,7 @@ def build_scene(server, data: SceneData) -> SceneHandles:
         layer = layers.add_evaluation(server, r, f"{i:02d}", g, on_query_click)
         if i > 0:  # one report's queries at a time, the others a toggle away
             layer.set_visible(False)
-        h.layers[layer.name] = layer
+        h.add_layer(layer)
     if data.evaluations:
         legend += [("query not localized (at its ground truth)", palette.FAILURE)]
 
@@ -133,7 +140,7 @@ def build_scene(server, data: SceneData) -> SceneHandles:
         events, edges = layers.add_slam(server, r, f"{i:02d}", g)
         for layer in (events, edges):
             if layer.nodes:
-                h.layers[layer.name] = layer
+                h.add_layer(layer)
         kinds = sorted({(e.type, e.accepted) for e in r.events})
         legend += [(f"{k.replace('_', ' ')} ({'accepted' if ok else 'rejected'})",
                     palette.EVENT_COLORS.get(k, palette.EVENT_COLORS["other"])[0 if ok else 1])
@@ -147,20 +154,20 @@ def build_scene(server, data: SceneData) -> SceneHandles:
         layer = layers.add_pseudo_frames(server, r.frames, g, f"/pseudo_label/{i:02d}/frames")
         if layer is not None:
             layer.name = f"pseudo-labelled frames: {r.path.name}"
-            h.layers[layer.name] = layer
+            h.add_layer(layer)
         if r.points is not None and len(r.points):
             layer = layers.add_points(server, f"/pseudo_label/{i:02d}/points", r.points,
                                       palette.PSEUDO_POINTS, g, f"added points: {r.path.name}")
-            h.layers[layer.name] = layer
+            h.add_layer(layer)
             point_nodes += layer.nodes
 
     marker = server.scene.add_camera_frustum(
         "/current_frame", fov=g.fov, aspect=g.aspect, scale=g.frustum_scale * 1.3,
         color=palette.CURRENT_FRAME, visible=False, cast_shadow=False, receive_shadow=False)
-    h.layers["current frame"] = layers.Layer("current frame", [marker])
+    current = h.add_layer(layers.Layer("current frame", [marker]))
     sources = _sources(data)
     if sources:
-        h.playback = gui.Playback(server, g, sources, marker=marker)
+        h.playback = gui.Playback(server, g, sources, marker=marker, marker_layer=current)
         h.controls.update(gui.add_playback(server, h.playback))
     h.selection = gui.add_selection(server)
     h.controls.update(gui.add_layer_toggles(server, list(h.layers.values()), h.trajectories,
