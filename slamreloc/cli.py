@@ -212,6 +212,30 @@ def slam(
                      trajectory)
 
 
+@app.command()
+def view(
+    map_dir: Annotated[Path, typer.Argument(metavar="MAP", help="map folder")],
+    trajectory: Annotated[Optional[list[Path]], typer.Option(
+        help="TUM trajectory (repeatable); a file named *gt* / *groundtruth* is ground truth")]
+    = None,
+    report: Annotated[Optional[list[Path]], typer.Option(
+        help="REPORT.json of evaluate, slam or pseudo-label (repeatable)")] = None,
+    dataset: Annotated[Optional[Path], typer.Option(
+        help="dataset folder for images and ground truth (default: the one the map records)")]
+    = None,
+    port: Annotated[int, typer.Option(help="port (the next free one if busy)")] = 8080,
+    host: Annotated[str, typer.Option(help="address to bind (0.0.0.0 exposes it)")] =
+    "127.0.0.1",
+    max_points: Annotated[int, typer.Option(help="voxel-downsample the map beyond this")] =
+    500_000,
+) -> None:
+    """Serve a web viewer (viser) of MAP with trajectories and reports, until Ctrl-C."""
+    from slamreloc.viewer import ViewerInputs, serve
+
+    serve(ViewerInputs(map_dir, list(trajectory or []), list(report or []), dataset, host, port,
+                       max_points), echo=lambda line: print(line, flush=True))
+
+
 def _print_map(scene_map) -> None:
     from slamreloc.progress import console
 

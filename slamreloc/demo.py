@@ -83,6 +83,23 @@ def run_demo(workdir: Path, viewer: bool = True, port: int = 8080,
     console.print(f"demo finished in {time.perf_counter() - t0:.0f} s; scene, map and reports "
                   f"are in {workdir}")
     if viewer:
-        console.print("the viewer is not part of this release yet (see README)")
+        serve_demo_viewer(workdir, scene_map.root, scene_dir, port)
     return {"summaries": summaries, "slam": slam, "map": str(scene_map.root),
             "scene": str(scene_dir)}
+
+
+def serve_demo_viewer(workdir: Path, map_dir: Path, scene_dir: Path, port: int = 8080) -> None:
+    """Serve the viewer on everything the demo wrote (reports, trajectories) until Ctrl-C."""
+    from slamreloc.viewer import ViewerInputs, serve
+
+    workdir = Path(workdir)
+    reports, seen = [], set()
+    for path in sorted(workdir.glob("report*.json")):  # report.json repeats report_regressor
+        if path.read_bytes() not in seen:
+            seen.add(path.read_bytes())
+            reports.append(path)
+    trajectories = sorted(p for p in [*workdir.glob("poses_*.txt"), *workdir.glob("traj*.txt")]
+                          if not p.name.endswith(".names.txt"))
+    console.rule("viewer")
+    serve(ViewerInputs(map_dir, trajectories, reports, scene_dir, port=port),
+          echo=console.print)

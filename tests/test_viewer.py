@@ -1,0 +1,274 @@
+"""The viewer's scene, checked on the server side (no browser): node names, point counts and
+colours of the layers, the controls, and bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import socket
+import subprocess
+import sys
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slamreloc.errors import InputError
+from slamreloc.viewer import ViewerInputs, build_scene, load_scene_data, make_server
+from slamreloc.viewer import colors as palette
+from slamreloc.viewer.gui import report_table
+from slamreloc.viewer.loaders import read_trajectory, voxel_downsample
+from tests.test_viewer_support import (BIG_ERROR, FAILED, POINTS_PER_FRAME, build_map_folder,
+                                       viewer_case)  # noqa: F401 - fixture
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextmanager
+def scene(inputs: ViewerInputs):
+    server = make_server("127.0.0.1", free_port())
+    try:
+        handles = build_scene(server, load_scene_data(inputs))
+        yield server, handles
+    finally:
+        if "handles" in locals():
+            handles.stop()
+        server.stop()
+
+
+def nodes(server) -> dict:
+    return dict(server.scene._handle_from_node_name)
+
+
+def full_inputs(case, **kw) -> ViewerInputs:
+    return ViewerInputs(case.map_dir, [case.trajectory], [case.report, case.slam_report], **kw)
+
+
+def test_map_points_take_the_image_colour_at_their_keypoint(viewer_case):
+    with scene(ViewerInputs(viewer_case.map_dir)) as (server, h):
+        points = nodes(server)["/map/points"]
+        assert points.points.shape == (viewer_case.n_points, 3)
+        assert h.data.map.color_source == "image"
+        np.testing.assert_array_equal(points.colors, viewer_case.truth_colors)
+
+
+def test_map_points_coloured_by_height_without_images(viewer_case, tmp_path):
+    moved = tmp_path / "map"
+    shutil.copytree(viewer_case.map_dir, moved)
+    meta = json.loads((moved / "slamreloc_map.json").read_text())
+    meta["dataset"]["root"] = str(tmp_path / "gone")
+    (moved / "slamreloc_map.json").write_text(json.dumps(meta))
+    with scene(ViewerInputs(moved)) as (server, h):
+        pts = nodes(server)["/map/points"]
+        assert h.data.map.color_source == "height"
+        height = pts.points.astype(float) @ h.geometry.up
+        low, high = height < np.percentile(height, 10), height > np.percentile(height, 90)
+        # low points take the ramp's dark purple end, high ones its yellow end
+        assert pts.colors[low].mean(axis=0)[1] < 80 < pts.colors[high].mean(axis=0)[1]
+    # ... and --dataset brings the images back
+    with scene(ViewerInputs(moved, dataset=viewer_case.scene)) as (server, h):
+        np.testing.assert_array_equal(nodes(server)["/map/points"].colors,
+                                      viewer_case.truth_colors)
+
+
+def test_large_maps_are_voxel_downsampled(viewer_case):
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-2, 2, (200_000, 3)).astype(np.float32)
+    keep, voxel = voxel_downsample(pts, 20_000)
+    assert 10_000 < len(keep) <= 20_000 and voxel > 0
+    np.testing.assert_allclose(pts[keep].min(axis=0), -2, atol=0.1)  # still spans the volume
+    np.testing.assert_allclose(pts[keep].max(axis=0), 2, atol=0.1)
+    assert len(voxel_downsample(pts, 300_000)[0]) == 200_000
+    with scene(ViewerInputs(viewer_case.map_dir, max_points=2000)) as (server, h):
+        n = len(nodes(server)["/map/points"].points)
+        assert n <= 2000 and h.data.map.n_points_total == viewer_case.n_points
+
+
+def test_training_cameras_are_frustums_with_images_up_to_the_budget(viewer_case):
+    with scene(ViewerInputs(viewer_case.map_dir)) as (server, h):
+        cams = [k for k in nodes(server) if k.startswith("/map/cameras/")]
+        assert len(cams) == viewer_case.n_train
+        frustum = nodes(server)[cams[0]]
+        assert frustum.image is not None and frustum.image.shape[1] <= 160
+        pose = h.data.map.frames[0].world_from_cam
+        np.testing.assert_allclose(frustum.position, pose.translation, atol=1e-6)
+    with scene(ViewerInputs(viewer_case.map_dir, max_images=10)) as (server, h):
+        cams = [k for k in nodes(server) if k.startswith("/map/cameras/")]
+        assert len(cams) == 10
+        wire = nodes(server)["/map/cameras_wireframe"]
+        assert wire.points.shape == ((viewer_case.n_train - 10) * 8, 2, 3)
+
+
+def test_clicking_a_frustum_shows_its_image_and_name(viewer_case):
+    with scene(ViewerInputs(viewer_case.map_dir)) as (server, h):
+        frustum = nodes(server)["/map/cameras/00007"]
+        before = h.selection.image.image.copy()
+        for entry in frustum._impl.click_cb:
+            entry.callback(type("Event", (), {"client": None})())
+        assert h.data.map.frames[7].name in h.selection.text.content
+        assert h.selection.image.visible and h.selection.image.image.shape != before.shape
+
+
+def test_trajectories_green_truth_red_estimate_and_error_colours(viewer_case):
+    with scene(full_inputs(viewer_case)) as (server, h):
+        n = nodes(server)
+        est, gt = n["/trajectories/00/line"], n["/trajectories/01/line"]
+        n_est = int(np.isfinite(viewer_case.estimate_error_m).sum())
+        assert est.points.shape == (n_est - 1, 2, 3) and gt.points.shape == (n_est - 1, 2, 3)
+        assert tuple(est.colors.reshape(-1, 3)[0]) == palette.ESTIMATE
+        assert tuple(gt.colors.reshape(-1, 3)[0]) == palette.GROUND_TRUTH
+        traj = h.data.trajectories[0]
+        ok = np.isfinite(viewer_case.estimate_error_m)
+        np.testing.assert_allclose(traj.errors_m, viewer_case.estimate_error_m[ok], atol=1e-4)
+        by_err = n["/trajectories/00/by_error"]
+        assert not by_err.visible
+        seg = by_err.colors[:, 0].astype(int)  # segment colours: the 30 cm frame is red
+        big = list(np.flatnonzero(ok)).index(BIG_ERROR)
+        assert seg[big - 1][0] > 200 and seg[big - 1][1] < 80
+        assert seg[0][1] > seg[0][0]  # a 1-3 cm segment is green-ish
+        h.controls["error_colours"].value = True
+        assert by_err.visible and not est.visible
+        h.controls[f"layer:{h.trajectories[0].plain.name}"].value = False
+        assert not by_err.visible and not est.visible
+
+
+def test_evaluation_queries_coloured_by_error_and_failures_at_ground_truth(viewer_case):
+    with scene(full_inputs(viewer_case)) as (server, h):
+        n = nodes(server)
+        n_ok = int(np.isfinite(viewer_case.estimate_error_m).sum())
+        est = n["/evaluate/00/estimates"]
+        assert est.points.shape == (n_ok * 8, 2, 3)
+        colours = est.colors[::8, 0]
+        ok = np.isfinite(viewer_case.estimate_error_m)
+        expected = palette.error_colors(viewer_case.estimate_error_m[ok])
+        np.testing.assert_array_equal(colours, expected)
+        fail = n["/evaluate/00/failures"]
+        assert fail.points.shape == (len(FAILED) * (8 + 3), 2, 3)
+        assert tuple(fail.colors.reshape(-1, 3)[0]) == palette.FAILURE
+        truth = h.data.evaluations[0].queries[FAILED[0]].truth.translation
+        np.testing.assert_allclose(fail.points[0, 0], truth, atol=1e-3)  # frustum apex
+        assert len(n["/evaluate/00/pick"].batched_positions) == n_ok
+
+
+def test_slam_events_and_graph_edges_by_type_and_status(viewer_case):
+    with scene(full_inputs(viewer_case)) as (server, h):
+        n = nodes(server)
+        names = {k for k in n if k.startswith("/slam/00/")}
+        for expected in ("events/kidnap_accepted", "events/recovery_accepted",
+                         "events/loop_closure_accepted", "events/loop_closure_rejected",
+                         "events/relocalization_rejected", "events/tracking_lost_accepted",
+                         "edges/odometry_accepted", "edges/loop_closure_accepted",
+                         "edges/loop_closure_rejected"):
+            assert f"/slam/00/{expected}" in names, expected
+        assert not any("keyframe" in k for k in names)
+        ok, bad = n["/slam/00/events/loop_closure_accepted"], n[
+            "/slam/00/events/loop_closure_rejected"]
+        assert tuple(ok.colors[0]) != tuple(bad.colors[0])
+        assert len(n["/slam/00/edges/odometry_accepted"].points) == 10
+        assert tuple(n["/slam/00/edges/loop_closure_rejected"].colors.reshape(-1, 3)[0]) == \
+            palette.REJECTED_EDGE
+        # the kidnap sits on the estimated trajectory at frame 6 (stamp 6 of the TUM file)
+        traj = read_trajectory(viewer_case.trajectory)
+        k = list(traj.stamps).index(6.0)
+        np.testing.assert_allclose(n["/slam/00/events/kidnap_accepted"].points[0],
+                                   traj.poses[k].translation, atol=2e-3)
+        labels = [v.text for key, v in n.items() if key.startswith("/slam/00/labels/")]
+        assert any(t.startswith("kidnap") for t in labels)
+        assert any(t.startswith("recovery") for t in labels)
+
+
+def test_pseudo_labelled_points_and_frames_in_their_own_colours(viewer_case, tmp_path):
+    out, _, n_train = build_map_folder(viewer_case.scene, tmp_path / "updated", with_pseudo=True)
+    with scene(ViewerInputs(out)) as (server, h):
+        n = nodes(server)
+        added = n["/map/pseudo_points"]
+        assert len(added.points) == POINTS_PER_FRAME
+        assert (added.colors == palette.PSEUDO_POINTS).all()
+        assert len(n["/map/points"].points) == (n_train - 1) * POINTS_PER_FRAME
+        assert len(n["/map/pseudo_frames"].points) == 2 * 8
+        assert "points added by the update" in h.layers
+    with scene(ViewerInputs(viewer_case.map_dir)) as (server, h):  # absent: no such layer
+        assert "/map/pseudo_points" not in nodes(server)
+
+
+def test_frame_slider_moves_marker_image_and_text(viewer_case):
+    with scene(full_inputs(viewer_case)) as (server, h):
+        pb = h.playback
+        assert pb.current.name.startswith("estimate")
+        first = pb.image.image.copy()
+        h.controls["slider"].value = 4
+        traj = h.data.trajectories[0]
+        np.testing.assert_allclose(pb.marker.position, traj.poses[4].translation, atol=1e-6)
+        assert "30.0 cm" in pb.text.content  # frame 4 of the estimate is the 30 cm query
+        assert not np.array_equal(pb.image.image, first)
+        h.controls["next"]._impl.update_cb[0](None)
+        assert h.controls["slider"].value == 5
+        h.controls["source"].value = next(s.name for s in pb.sources
+                                          if s.name.startswith("queries"))
+        h.controls["slider"].value = FAILED[0]
+        assert "not localized" in pb.text.content
+
+
+def test_report_numbers_table(viewer_case):
+    table = report_table(json.loads(viewer_case.report.read_text()))
+    assert "| n_queries | 20 |" in table and "| recall.5cm5deg | 0.85 |" in table
+    assert "| per_query | 20 entries |" in table
+    with scene(full_inputs(viewer_case)) as (server, h):
+        assert len(h.report_panels) == 2
+        assert "ate_rmse_m" in h.report_panels[1].content
+
+
+def test_server_binds_localhost_and_reports_the_port_it_got():
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        server = make_server("127.0.0.1", port)
+        try:
+            assert server.get_host() == "127.0.0.1"
+            assert server.get_port() != port
+        finally:
+            server.stop()
+
+
+def test_bad_input_is_one_line_error(viewer_case, tmp_path):
+    with pytest.raises(InputError, match="trajectory file not found"):
+        load_scene_data(ViewerInputs(viewer_case.map_dir, [tmp_path / "missing.txt"]))
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(InputError, match="not valid JSON"):
+        load_scene_data(ViewerInputs(viewer_case.map_dir, reports=[bad]))
+    bad_traj = tmp_path / "bad.txt"
+    bad_traj.write_text("0 1 2 3 0 0 0\n")
+    with pytest.raises(InputError, match="expected 8 fields"):
+        load_scene_data(ViewerInputs(viewer_case.map_dir, [bad_traj]))
+    with pytest.raises(InputError, match="not a slamreloc map"):
+        load_scene_data(ViewerInputs(tmp_path))
+    run = subprocess.run([sys.executable, "-m", "slamreloc.cli", "view", str(viewer_case.map_dir),
+                          "--report", str(bad)], capture_output=True, text=True, timeout=120,
+                         cwd=ROOT)
+    assert run.returncode == 2
+    assert run.stderr.strip().splitlines() == [
+        f"error: {bad}: not valid JSON (Expecting property name enclosed in double quotes: "
+        "line 1 column 2 (char 1))"]
+
+
+def test_trajectory_first_column_may_be_names(viewer_case, tmp_path):
+    named = tmp_path / "named.txt"
+    lines = viewer_case.trajectory.read_text().splitlines()
+    names = dict(line.split(maxsplit=1) for line in
+                 viewer_case.trajectory.with_suffix(".names.txt").read_text().splitlines())
+    named.write_text("".join(f"{names[line.split()[0]]} {line.split(maxsplit=1)[1]}\n"
+                             for line in lines))
+    with scene(ViewerInputs(viewer_case.map_dir, [named])) as (server, h):
+        traj = h.data.trajectories[0]
+        assert traj.names[0] == viewer_case.query_names[0]
+        ok = np.isfinite(viewer_case.estimate_error_m)
+        np.testing.assert_allclose(traj.errors_m, viewer_case.estimate_error_m[ok], atol=1e-4)

@@ -1,0 +1,141 @@
+"""Viewer benchmark: a map of N points and F camera frustums, served and opened in headless
+Chromium; measures the time from loading the page until the scene is drawn, and the server's
+memory.
+
+    python -m slamreloc.viewer.benchmark [--points 500000] [--frustums 1000] [--out shot.png]
+
+The map is synthetic (a box-shaped room of coloured points, cameras on a loop with textured
+thumbnails), built in memory: what is measured is the viewer, not the map's I/O."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from slamreloc.geometry import look_at
+from slamreloc.types import Camera
+from slamreloc.viewer.data import FrameView, MapView, SceneData, ViewerInputs
+
+FLAGS = ["--no-sandbox", "--disable-gpu", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+         "--disable-background-networking", "--disable-component-update", "--disable-sync",
+         "--no-first-run", "--disable-dev-shm-usage"]
+
+
+def rss_mb() -> float:
+    with open(f"/proc/{os.getpid()}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def synthetic_scene(n_points: int, n_frustums: int, max_images: int = 512,
+                    seed: int = 0) -> SceneData:
+    rng = np.random.default_rng(seed)
+    half = np.array([3.0, 2.5, 1.4])
+    face = rng.integers(0, 5, n_points)  # 4 walls + floor
+    pts = rng.uniform(-half, half, (n_points, 3))
+    axis, sign = np.array([0, 0, 1, 1, 2])[face], np.array([-1, 1, -1, 1, -1])[face]
+    pts[np.arange(n_points), axis] = sign * half[axis]
+    pts[:, 2] += half[2]
+    checker = ((np.floor(pts * 4).astype(int).sum(axis=1)) % 2).astype(np.float64)
+    base = np.array([[200, 80, 60], [60, 140, 200], [90, 180, 90], [220, 200, 80],
+                     [150, 150, 150]], np.float64)[face]
+    colors = np.clip(base * (0.6 + 0.4 * checker[:, None]), 0, 255).astype(np.uint8)
+    camera = Camera(640, 480, 525, 525, 319.5, 239.5)
+    theta = np.linspace(0, 2 * np.pi, n_frustums, endpoint=False)
+    with_image = set(np.linspace(0, n_frustums - 1, min(n_frustums, max_images)).round()
+                     .astype(int).tolist())
+    frames = []
+    for i, t in enumerate(theta):
+        eye = np.array([1.8 * np.cos(t), 1.4 * np.sin(t), 1.3 + 0.2 * np.sin(3 * t)])
+        pose = look_at(eye, np.array([2.5 * np.cos(t + 0.8), 2.0 * np.sin(t + 0.8), 1.0]))
+        thumb = None
+        if i in with_image:
+            thumb = (rng.integers(0, 255, (15, 20, 3)).repeat(8, 0).repeat(8, 1)).astype(np.uint8)
+        frames.append(FrameView(f"frame-{i:06d}", pose, None, thumb))
+    scene_map = MapView(Path("synthetic"), pts.astype(np.float32), colors, n_points, "image",
+                        frames, camera)
+    return SceneData(scene_map, max_images=max_images)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--points", type=int, default=500_000)
+    ap.add_argument("--frustums", type=int, default=1000)
+    ap.add_argument("--port", type=int, default=8090)
+    ap.add_argument("--out", type=Path, default=None, help="screenshot (PNG)")
+    ap.add_argument("--repeat", type=int, default=3, help="page loads to time")
+    ap.add_argument("--max-images", type=int, default=512, help="frustums with a thumbnail")
+    args = ap.parse_args()
+
+    from playwright.sync_api import sync_playwright
+
+    from slamreloc.viewer.server import start
+
+    base = rss_mb()
+    t0 = time.perf_counter()
+    data = synthetic_scene(args.points, args.frustums, args.max_images)
+    t_data = time.perf_counter() - t0
+    data_mb = rss_mb() - base
+    t0 = time.perf_counter()
+    server, handles = start(ViewerInputs(Path("synthetic"), port=args.port), data)
+    t_build = time.perf_counter() - t0
+    url = f"http://127.0.0.1:{server.get_port()}"
+    results = {"points": args.points, "frustums": args.frustums,
+               "frustums_with_image": sum(f.thumbnail is not None for f in data.map.frames),
+               "scene_nodes": len(server.scene._handle_from_node_name),
+               "build_scene_s": round(t_build, 2), "make_data_s": round(t_data, 2),
+               "rss_before_mb": round(base, 1), "rss_data_mb": round(data_mb, 1),
+               "rss_server_mb": round(rss_mb(), 1), "load_s": []}
+    import cv2
+
+    def drawn(page) -> float:
+        png = page.screenshot(clip={"x": 0, "y": 0, "width": 900, "height": 800},
+                              timeout=120_000)
+        img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(int)
+        return float((np.abs(img - 255).max(axis=2) > 40).mean())
+
+    try:
+        with sync_playwright() as p:
+            profile = tempfile.mkdtemp()
+            ctx = p.chromium.launch_persistent_context(
+                profile, executable_path=shutil.which("chromium") or "/usr/bin/chromium",
+                headless=True, args=FLAGS, viewport={"width": 1280, "height": 800})
+            for k in range(args.repeat):
+                page = ctx.new_page()
+                t0 = time.perf_counter()
+                page.goto(url)
+                page.wait_for_selector("canvas", timeout=60000)
+                samples = []
+                while time.perf_counter() - t0 < 120:
+                    samples.append((time.perf_counter() - t0, drawn(page)))
+                    if len(samples) > 4 and samples[-1][1] > 0.05 and all(
+                            abs(s[1] - samples[-1][1]) < 0.002 for s in samples[-4:]):
+                        break
+                final = samples[-1][1]
+                first = next(t for t, f in samples if f >= 0.95 * final)
+                results["load_s"].append(round(first, 2))
+                results.setdefault("drawn_fraction", round(final, 3))
+                if args.out and k == args.repeat - 1:
+                    page.screenshot(path=str(args.out))
+                page.close()
+            ctx.close()
+            shutil.rmtree(profile, ignore_errors=True)
+        results["rss_after_clients_mb"] = round(rss_mb(), 1)
+    finally:
+        handles.stop()
+        server.stop()
+    print(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,73 @@
+"""The viser server: bound to 127.0.0.1 by default, no share button, served until Ctrl-C."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import signal
+import threading
+from collections.abc import Callable
+
+from slamreloc.viewer.data import SceneData, ViewerInputs
+from slamreloc.viewer.loaders import load_scene_data
+from slamreloc.viewer.scene import SceneHandles, build_scene
+
+TITLE = "slamreloc viewer"
+
+
+def make_server(host: str = "127.0.0.1", port: int = 8080):
+    """A ViserServer on host:port (viser moves to the next free port when it is busy: read the
+    real one with `server.get_port()`), with the share-URL button hidden."""
+    import viser
+
+    with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner; we print the address
+        server = viser.ViserServer(host=host, port=port, label=TITLE, verbose=False)
+    server.gui.configure_theme(
+        show_share_button=False, control_width="medium",
+        dark_mode=False, show_logo=False)
+    if hasattr(server.gui, "set_panel_label"):
+        server.gui.set_panel_label(TITLE)
+    return server
+
+
+def address(server, host: str) -> str:
+    shown = "127.0.0.1" if host in ("127.0.0.1", "localhost") else host
+    return f"http://{shown}:{server.get_port()}"
+
+
+def start(inputs: ViewerInputs, data: SceneData | None = None) -> tuple[object, SceneHandles]:
+    """Read the inputs (InputError before any port is bound), start the server, build the
+    scene. Returns (server, handles); stop with `handles.stop(); server.stop()`."""
+    data = data if data is not None else load_scene_data(inputs)
+    server = make_server(inputs.host, inputs.port)
+    try:
+        handles = build_scene(server, data)
+    except BaseException:
+        server.stop()
+        raise
+    return server, handles
+
+
+def serve(inputs: ViewerInputs, data: SceneData | None = None,
+          echo: Callable[[str], None] = print, stop: threading.Event | None = None) -> None:
+    """Serve the viewer until Ctrl-C (or SIGTERM, or `stop` set); prints the address."""
+    server, handles = start(inputs, data)
+    stop = stop or threading.Event()
+    port = server.get_port()
+    moved = f" (port {inputs.port} was busy)" if port != inputs.port else ""
+    echo(f"viewer: {address(server, inputs.host)}{moved}  - press Ctrl-C to stop")
+    old = None
+    if threading.current_thread() is threading.main_thread():
+        old = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        while not stop.wait(0.5):
+            pass
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if old is not None:
+            signal.signal(signal.SIGTERM, old)
+        handles.stop()
+        with contextlib.redirect_stdout(io.StringIO()):
+            server.stop()
+        echo("viewer stopped")
