@@ -19,6 +19,14 @@ class RelocStats:
     n_injected_rejected: int = 0
     n_injected_accepted: int = 0
     accepted_frames: list[int] = field(default_factory=list)
+    # every decision, for the report's event list (the viewer draws them)
+    decisions: list[dict] = field(default_factory=list)
+
+    def _record(self, cands: list[Candidate], kind: str, accepted: bool) -> None:
+        self.decisions += [{"frame": c.frame, "type": kind, "accepted": accepted,
+                            "num_inliers": c.num_inliers,
+                            "position": [round(float(v), 4) for v in c.world_from_cam.translation]}
+                           for c in cands]
 
     def accept(self, cands: list[Candidate], how: str) -> None:
         if how == "loop_closure":
@@ -31,14 +39,17 @@ class RelocStats:
             self.n_injected += c.injected
             self.n_injected_accepted += c.injected
             self.accepted_frames.append(c.frame)
+        self._record(cands, "loop_closure" if how == "loop_closure" else "relocalization", True)
 
     def reject(self, cands: list[Candidate]) -> None:
         for c in cands:
             self.n_rejected += 1
             self.n_injected += c.injected
             self.n_injected_rejected += c.injected
+        self._record(cands, "relocalization", False)
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d.pop("accepted_frames")
+        d.pop("decisions")
         return d

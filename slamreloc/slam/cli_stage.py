@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from rich.table import Table
@@ -22,13 +23,14 @@ def run_slam_command(dataset: Path, map_dir: Path, report: Path, split: str = "t
     config = SlamRunConfig(split=split, odometry=odometry, kidnap_every=kidnap_every,
                            kidnap_skip=kidnap_skip, progress=progress)
     result, backend, frames = run_slam(dataset, map_dir, config)
-    write_json(report, result)
     if trajectory is not None:
         poses = final_trajectory(backend)
         keep = [i for i, p in enumerate(poses) if p is not None]
         write_tum(trajectory, [frames[i].timestamp for i in keep], [poses[i] for i in keep],
                   [f"slamreloc slam {dataset} (split {split}), map frame, camera-to-world",
                    "timestamp tx ty tz qx qy qz qw"])
+        result["trajectory"] = os.path.relpath(trajectory, Path(report).parent)
+    write_json(report, result)
     print_slam_summary(result)
     return result
 

@@ -80,5 +80,22 @@ def build_report(backend, frames, jumps, plugins, config, t_backend_s: float) ->
         "backend_fps": round(n / (core_ms / 1000), 2) if core_ms else None,
         "overall_fps": round(n / t_backend_s, 2) if t_backend_s else None,
         "relocalization_ms_per_call": timing.get("relocalization", {}).get("median_ms"),
+        "events": event_list(backend, plugins, jumps, frames),
     }
     return report
+
+
+def event_list(backend, plugins, jumps: list[int], frames) -> list[dict]:
+    """Kidnaps, tracking lost / recovered, and every relocalization decision (accepted or
+    rejected, with its map-frame position), by processed-frame index (and the frame's
+    timestamp, as in the trajectory file), in order."""
+    events = [{"frame": j, "type": "kidnap"} for j in jumps]
+    events += [{"frame": e.frame, "type": e.kind.value, **(
+        {"position": [round(float(v), 4) for v in e.world_from_cam.translation]}
+        if e.world_from_cam is not None else {})} for e in backend.event_log
+        if e.kind in (EventKind.TRACKING_LOST, EventKind.TRACKING_RECOVERED)]
+    for p in plugins:
+        events += getattr(getattr(p, "stats", None), "decisions", [])
+    for e in events:
+        e["timestamp"] = frames[e["frame"]].timestamp
+    return sorted(events, key=lambda e: e["frame"])
