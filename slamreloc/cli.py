@@ -144,11 +144,12 @@ def _print_map(scene_map) -> None:
 def main() -> None:
     try:
         app()
-    except SlamrelocError as err:
-        print(f"error: {err}", file=sys.stderr)
+    except (SlamrelocError, ValueError, OSError) as err:
+        # one line, whatever the message holds (some libraries' messages span lines)
+        print(f"error: {' '.join(str(err).split()) or type(err).__name__}", file=sys.stderr)
         sys.exit(2)
-    except (ValueError, OSError) as err:
-        print(f"error: {err}", file=sys.stderr)
+    except MemoryError:
+        print("error: out of memory", file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
