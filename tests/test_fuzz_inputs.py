@@ -42,8 +42,8 @@ from tests.fuzzing import (COUNTS, damaged_bytes, damaged_json, damaged_text, fu
                            no_hang)
 
 # cases per test; their sum is the CI suite's fuzzing budget (>= 2000)
-PLANNED = {"sevenscenes": 500, "tum": 350, "pose": 200, "trajectory": 300, "map_json": 300,
-           "map_arrays": 350, "map_arrays_semantic": 150, "legacy_weights": 120, "cli": 60}
+PLANNED = {"sevenscenes": 400, "tum": 300, "pose": 300, "trajectory": 400, "map_json": 250,
+           "map_arrays": 250, "map_arrays_semantic": 100, "legacy_weights": 80, "cli": 40}
 
 
 # SLAMRELOC_FUZZ_SCALE=0.1 for a quick local run; CI runs the full budget
@@ -57,7 +57,10 @@ def test_fuzz_budget_is_at_least_2000_cases():
 
 @pytest.fixture(scope="module", autouse=True)
 def _write_counts(tmp_path_factory):
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # thousands of tiny models: threads only add overhead
     yield
+    torch.set_num_threads(threads)
     path = tmp_path_factory.getbasetemp() / "fuzz_counts.json"
     path.write_text(json.dumps(fuzzing.summary(), indent=1))
 
@@ -272,8 +275,8 @@ def pose_matrices(draw):
         m[:3, :3] = axis_angle_to_matrix(np.array(angles))
         m[:3, 3] = draw(st.lists(st.floats(-1e3, 1e3), min_size=3, max_size=3))
         i, j = draw(st.integers(0, 3)), draw(st.integers(0, 3))
-        m[i, j] = draw(st.one_of(finite_or_not, st.sampled_from([m[i, j] * 1.01, -m[i, j],
-                                                                   m[i, j] + 1e-4])))
+        m[i, j] = draw(st.one_of(finite_or_not, st.sampled_from([
+            m[i, j], m[i, j] + 1e-7, m[i, j] * 1.01, -m[i, j], m[i, j] + 1e-4])))
         return m
     return np.array(draw(st.lists(finite_or_not, min_size=rows * cols,
                                   max_size=rows * cols))).reshape(rows, cols)
@@ -447,7 +450,7 @@ def damaged_arrays(draw, arrays: dict, target: str) -> dict:
     elif kind == "scalar":
         arrays[key] = np.float32(1.0)
     elif kind == "empty":
-        arrays[key] = a[:0]
+        arrays[key] = a[:0] if a.ndim else np.zeros(0, a.dtype)
     elif kind == "index" and a.dtype.kind in "iu":
         arrays[key] = a + draw(st.sampled_from([-5, 2, 10 ** 6]))
     return arrays
