@@ -51,7 +51,14 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
     import sys
 
     fuzzing = sys.modules.get("tests.fuzzing")
-    if fuzzing is None or not fuzzing.total_cases():
+    if fuzzing is None:
+        return
+    for r in fuzzing.KILL_REPORTS:
+        terminalreporter.write_sep("-", f"kill -9 harness: {r['kills']} kills of "
+                                        f"`{r['command']}` in {r['total_s']} s")
+        terminalreporter.write_line("  " + ", ".join(f"{k} {v}" for k, v in r.items()
+                                                     if k not in ("command", "failures")))
+    if not fuzzing.total_cases():
         return
     s = fuzzing.summary()
     terminalreporter.write_sep("-", f"fuzzing: {s['total']} generated bad-input cases")

@@ -16,6 +16,7 @@ from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
 COUNTS: Counter = Counter()  # (format, outcome) -> cases tried
+KILL_REPORTS: list[dict] = []  # kill -9 harness reports (tests/test_crash_safety.py)
 
 # fixed and derandomized: CI runs the same cases every time; no example database on disk
 FUZZ = dict(deadline=None, derandomize=True, database=None, print_blob=True,
