@@ -105,7 +105,7 @@ def _timed_run(argv: list[str], out: Path, kill_at: float | None, after_tmp: boo
     pid = _fork(_run_command(argv))
     tmp = out.parent / f".{out.name}.tmp-{pid}"
     t_tmp = None
-    deadline = None if after_tmp else t0 + kill_at
+    deadline = None if after_tmp or kill_at is None else t0 + kill_at
     while True:
         done, status = os.waitpid(pid, os.WNOHANG)
         now = time.monotonic()
@@ -114,7 +114,7 @@ def _timed_run(argv: list[str], out: Path, kill_at: float | None, after_tmp: boo
             return {"killed": False, "exit": code, "t": now - t0, "t_tmp": t_tmp}
         if t_tmp is None and tmp.exists():
             t_tmp = now - t0
-            if after_tmp:
+            if after_tmp and kill_at is not None:
                 deadline = now + kill_at
         if deadline is not None and now >= deadline:
             os.kill(pid, signal.SIGKILL)
