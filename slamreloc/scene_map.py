@@ -282,7 +282,8 @@ def _check_digest(root: Path, name: str, meta: dict) -> None:
         raise InputError(f"{path}: cannot read ({err.strerror or err})") from None
     if digest != meta["files"][name]:
         raise InputError(f"{path}: contents do not match the checksum in {META} (the file is "
-                         "corrupted, or comes from another map)")
+                         "corrupted, comes from another map, or the map was replaced while in "
+                         "use)")
 
 
 def _read_npz(path: Path, what: str) -> dict[str, np.ndarray]:

@@ -153,8 +153,8 @@ def test_two_writers_at_once_one_wins_never_a_mixed_map(tmp_path, round_):
     assert _tag(out) == winner and _leftovers(out) == []
 
 
-def _small_dataset(scene_dir: Path, root: Path, n: int = 10) -> Path:
-    """The first n frames of the synthetic scene's mapping sequence (a ~1 s `map` run)."""
+def _small_dataset(scene_dir: Path, root: Path, n: int = 6) -> Path:
+    """The first n frames of the synthetic scene's mapping sequence (a <1 s `map` run)."""
     (root / "seq-01").mkdir(parents=True)
     stems = sorted({p.name.split(".")[0] for p in (scene_dir / "seq-01").iterdir()})[:n]
     for stem in stems:
@@ -192,9 +192,9 @@ def test_kill_9_at_random_moments_of_map_never_loses_the_map(scene_dir, tmp_path
     ds = _small_dataset(scene_dir, tmp_path / "ds")
     out = tmp_path / "maps" / "map"
     build_map(load_dataset(ds), out, "train",
-              MapConfig(arch="tiny", train=TrainConfig(epochs=2)), progress=False)
+              MapConfig(arch="tiny", train=TrainConfig(epochs=1)), progress=False)
     report = run_kill_harness({
-        "argv": ["map", str(ds), "--out", str(out), "--arch", "tiny", "--epochs", "2",
+        "argv": ["map", str(ds), "--out", str(out), "--arch", "tiny", "--epochs", "1",
                  "--device", "cpu"],
         "map": str(out), "kills": KILLS, "seed": 11, "time_limit_s": 600,
         "tail_fraction": 0.5}, tmp_path)
