@@ -18,7 +18,7 @@ refused with a message naming both versions.
 Writing is crash-safe: the new map is written into `.NAME.tmp-PID` beside MAP and swapped in
 with one atomic `renameat2(RENAME_EXCHANGE)` (two renames where the file system lacks it; a
 crash between them is rolled back at the next start). A writer holds an exclusive lock on
-`.NAME.lock`; a second writer fails at once. Leftovers of a killed writer are removed at the
+`.NAME.lock` (removed when it is done); a second writer fails at once. Leftovers of a killed writer are removed at the
 next save or load of that map.
 """
 
@@ -458,14 +458,25 @@ def map_write_lock(out: str | Path) -> Iterator[None]:
         return
     out.parent.mkdir(parents=True, exist_ok=True)
     lock = _lock_path(out)
-    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            os.close(fd)
             raise InputError(f"{out}: another process (pid {holder}) is writing this map; "
                              "try again when it has finished") from None
+        # the holder before us removes the lock file on release: make sure ours is the
+        # file at the path, not one it has just unlinked
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(lock))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         _HELD.add(key)
@@ -474,7 +485,7 @@ def map_write_lock(out: str | Path) -> Iterator[None]:
             yield
         finally:
             _HELD.discard(key)
-            os.ftruncate(fd, 0)
+            lock.unlink(missing_ok=True)  # while still holding it (see above)
     finally:
         os.close(fd)  # releases the lock
 

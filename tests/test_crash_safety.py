@@ -86,6 +86,12 @@ def test_next_save_cleans_a_killed_writers_leftovers(tmp_path):
     assert _tag(out) == "next" and _leftovers(out) == []
 
 
+def test_a_clean_save_leaves_nothing_beside_the_map(tmp_path):
+    out = make_map(tmp_path / "m", tag="old")
+    make_map(out, tag="new")
+    assert _tag(out) == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["m"]
+
+
 def test_rename_exchange_swaps_atomically_here(tmp_path):
     """Where the file system has renameat2(RENAME_EXCHANGE), the swap has no gap at all."""
     a, b = tmp_path / "a", tmp_path / "b"
