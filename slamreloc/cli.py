@@ -256,11 +256,12 @@ def main() -> None:
     except Interrupted as err:
         print(f"interrupted: {err}", file=sys.stderr)
         sys.exit(130)
-    except SlamrelocError as err:
-        print(f"error: {err}", file=sys.stderr)
+    except (SlamrelocError, ValueError, OSError) as err:
+        # one line, whatever the message holds (some libraries' messages span lines)
+        print(f"error: {' '.join(str(err).split()) or type(err).__name__}", file=sys.stderr)
         sys.exit(2)
-    except (ValueError, OSError) as err:
-        print(f"error: {err}", file=sys.stderr)
+    except MemoryError:
+        print("error: out of memory", file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

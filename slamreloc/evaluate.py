@@ -34,11 +34,18 @@ class QueryResult:
 
 def evaluate_frames(localizer: Localizer, frames: list[Frame],
                     progress: bool = True) -> list[QueryResult]:
+    if not frames:
+        raise InputError("no query frames to evaluate")
+    unposed = next((f for f in frames if f.world_from_cam is None), None)
+    if unposed is not None:  # before the work, not after it
+        raise InputError(f"{unposed.image_path}: query frame has no ground-truth pose")
     results = []
     for frame in track(frames, f"localizing ({localizer.method})", enabled=progress):
-        if frame.world_from_cam is None:
-            raise InputError(f"{frame.image_path}: query frame has no ground-truth pose")
-        loc = localizer.localize(read_image(frame.image_path), frame.camera)
+        image = read_image(frame.image_path)
+        if image.shape[:2] != (frame.camera.height, frame.camera.width):
+            raise InputError(f"{frame.image_path}: image is {image.shape[1]}x{image.shape[0]}, "
+                             f"its camera is {frame.camera.width}x{frame.camera.height}")
+        loc = localizer.localize(image, frame.camera)
         est = loc.estimate.world_from_cam
         dt, dr = pose_error(est, frame.world_from_cam) if est else (np.inf, np.inf)
         results.append(QueryResult(frame.name, est, loc.estimate.num_inliers, dt, dr,

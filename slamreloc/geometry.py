@@ -158,17 +158,54 @@ def tum_line(name: str, world_from_cam: Rigid3) -> str:
     return name + " " + " ".join(f"{v:.6f}" for v in vals)
 
 
-def parse_tum_line(line: str, source: str = "trajectory") -> tuple[str, Rigid3]:
+def parse_tum_line(line: str, source: str = "trajectory",
+                   numeric_stamp: bool = False) -> tuple[str, Rigid3]:
+    """`name tx ty tz qx qy qz qw` (camera-to-world) -> (name, world_from_cam).
+
+    `numeric_stamp`: the first field must be a finite number (a timestamp or frame index).
+    The quaternion needs not be unit length but must be finite and non-zero."""
     parts = line.split()
     if len(parts) != 8:
         raise InputError(f"{source}: expected 8 fields 'name tx ty tz qx qy qz qw', got {len(parts)}")
+    if numeric_stamp:
+        try:
+            stamp = float(parts[0])
+        except ValueError:
+            stamp = float("nan")
+        if not np.isfinite(stamp):
+            raise InputError(f"{source}: timestamp {parts[0][:40]!r} is not a finite number")
     try:
         vals = np.array([float(p) for p in parts[1:]])
     except ValueError as err:
         raise InputError(f"{source}: non-numeric pose value ({err})") from None
-    if not np.all(np.isfinite(vals)) or np.linalg.norm(vals[3:]) < 1e-9:
-        raise InputError(f"{source}: invalid pose values in line '{line.strip()}'")
-    return parts[0], Rigid3.from_qt(vals[3:], vals[:3])
+    quat = vals[3:]
+    scale = np.abs(quat).max() if np.all(np.isfinite(quat)) else 0.0
+    if not np.all(np.isfinite(vals)) or scale < 1e-12:
+        raise InputError(f"{source}: invalid pose values in line {line.strip()[:120]!r}")
+    quat = quat / scale  # no overflow in the norm of huge values
+    return parts[0], Rigid3.from_qt(quat / np.linalg.norm(quat), vals[:3])
+
+
+def read_tum_trajectory(path, numeric_stamps: bool = False) -> list[tuple[str, Rigid3]]:
+    """A TUM trajectory file: one `name tx ty tz qx qy qz qw` per line (camera-to-world);
+    blank lines and `#` comments are skipped. Errors name the file and line."""
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: trajectory file not found")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: trajectory is not a text file (not UTF-8)") from None
+    except OSError as err:
+        raise InputError(f"{path}: cannot read trajectory ({err.strerror or err})") from None
+    poses = []
+    for i, line in enumerate(text.splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        poses.append(parse_tum_line(line, f"{path}:{i}", numeric_stamps))
+    return poses
 
 
 def project(points_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:

@@ -17,6 +17,8 @@ def evaluate_method(scene_map: SceneMap, dataset_dir: Path, split: str = "test",
                     method: str = "regressor", device: str = "cpu", progress: bool = True):
     """Localize a split with one method. Returns (report dict, per-query results, frames)."""
     frames = load_dataset(dataset_dir).frames(split)
+    if not frames:
+        raise InputError(f"{dataset_dir}: split '{split}' has no frames to evaluate")
     localizer = make_localizer(scene_map, method, device=device)
     results = evaluate_frames(localizer, frames, progress)
     summary = summarize(results, method)

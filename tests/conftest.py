@@ -44,3 +44,24 @@ def small_map(scene_dir, tmp_path_factory):
 
 def small_map_config(**train) -> MapConfig:
     return replace(SMALL_MAP, train=replace(SMALL_MAP.train, **train))
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """Print how many fuzz cases ran (tests/fuzzing.py counts them), when any did."""
+    import sys
+
+    fuzzing = sys.modules.get("tests.fuzzing")
+    if fuzzing is None:
+        return
+    for r in fuzzing.KILL_REPORTS:
+        terminalreporter.write_sep("-", f"kill -9 harness: {r['kills']} kills of "
+                                        f"`{r['command']}` in {r['total_s']} s")
+        terminalreporter.write_line("  " + ", ".join(f"{k} {v}" for k, v in r.items()
+                                                     if k not in ("command", "failures")))
+    if not fuzzing.total_cases():
+        return
+    s = fuzzing.summary()
+    terminalreporter.write_sep("-", f"fuzzing: {s['total']} generated bad-input cases")
+    for fmt, outcomes in s["by_format"].items():
+        terminalreporter.write_line(f"  {fmt}: " + ", ".join(f"{k} {v}" for k, v in
+                                                             outcomes.items()))

@@ -20,6 +20,7 @@ class Dataset:
     depth_registered: bool = False
     depth_units_per_metre: float = 1000.0
     roles: dict[str, str] = field(default_factory=dict)  # synthetic: sequence -> role
+    split_files: dict[str, Path] = field(default_factory=dict)  # split -> file that names it
 
     def frames(self, split: str = "all") -> list[Frame]:
         """Frames of a split: "train", "test", "all", a role, or comma-separated sequences."""
@@ -29,11 +30,25 @@ class Dataset:
         if split == "all":
             return list(self.sequences)
         if split in self.splits:
-            return self.splits[split]
+            names = self.splits[split]
+            where = self.split_files.get(split, self.root)
+            missing = [s for s in names if s not in self.sequences]
+            if missing:
+                raise InputError(f"{where}: split '{split}' names sequence '{missing[0]}', which "
+                                 f"has no frames in {self.root}")
+            if not names:
+                raise InputError(f"{where}: split '{split}' names no sequences")
+            return names
         by_role = [s for s, r in self.roles.items() if r == split]
         if by_role:
+            missing = [s for s in by_role if s not in self.sequences]
+            if missing:
+                raise InputError(f"{self.root}: role '{split}' names sequence '{missing[0]}', "
+                                 "which has no frames")
             return by_role
         names = [s.strip() for s in split.split(",")]
+        if not all(names):
+            raise InputError(f"{self.root}: empty sequence name in split '{split}'")
         missing = [s for s in names if s not in self.sequences]
         if missing:
             known = ", ".join(["train", "test", "all", *self.roles.values(), *self.sequences])

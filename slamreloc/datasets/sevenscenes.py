@@ -12,11 +12,13 @@ import re
 from pathlib import Path
 
 from slamreloc.datasets.base import Dataset
-from slamreloc.datasets.io import image_size, read_intrinsics, read_pose
+from slamreloc.datasets.io import (check_frame_files, image_size, read_intrinsics, read_pose,
+                                   read_text)
 from slamreloc.errors import InputError
 from slamreloc.types import Camera, Frame
 
 DEFAULT_K = (525.0, 525.0, 320.0, 240.0)
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 _SEQ = re.compile(r"^seq-?(\d+)$")
 
 
@@ -27,21 +29,23 @@ def is_sevenscenes(root: Path) -> bool:
 def load_sevenscenes(root: Path) -> Dataset:
     root = Path(root)
     scene = _read_scene_json(root)
+    registered = bool(scene.get("depth_registered", False))
     camera = _camera(root)
     sequences = {}
     for seq_dir in sorted(p for p in root.iterdir() if p.is_dir() and _SEQ.match(p.name)):
-        frames = _sequence(seq_dir, camera)
+        frames = _sequence(seq_dir, camera, registered)
         if frames:
             sequences[seq_dir.name] = frames
     if not sequences:
         raise InputError(f"{root}: 7-Scenes layout but no frame-XXXXXX.color.* files found")
-    splits = {}
+    splits, split_files = {}, {}
     for split, fname in (("train", "TrainSplit.txt"), ("test", "TestSplit.txt")):
         if (root / fname).is_file():
-            splits[split] = _read_split(root / fname, sequences)
+            splits[split] = _read_split(root / fname)
+            split_files[split] = root / fname
     return Dataset(root, "synthetic" if scene else "7scenes", sequences, splits,
-                   depth_registered=bool(scene.get("depth_registered", False)),
-                   roles=scene.get("sequences", {}))
+                   depth_registered=registered, roles=scene.get("sequences", {}),
+                   split_files=split_files)
 
 
 def _read_scene_json(root: Path) -> dict:
@@ -49,13 +53,23 @@ def _read_scene_json(root: Path) -> dict:
     if not path.is_file():
         return {}
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as err:
+        scene = json.loads(read_text(path, "scene description", 1 << 24))
+    except (ValueError, RecursionError) as err:
         raise InputError(f"{path}: not valid JSON ({err})") from None
+    if not isinstance(scene, dict):
+        raise InputError(f"{path}: expected a JSON object, got {type(scene).__name__}")
+    if not isinstance(scene.get("depth_registered", False), bool):
+        raise InputError(f"{path}: 'depth_registered' must be true or false")
+    roles = scene.get("sequences", {})
+    if not isinstance(roles, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                              for k, v in roles.items()):
+        raise InputError(f"{path}: 'sequences' must map sequence names to role names")
+    return scene
 
 
 def _camera(root: Path) -> Camera:
-    first = next(iter(sorted(root.glob("seq*/frame-*.color.*"))), None)
+    first = next(iter(sorted(p for p in root.glob("seq*/frame-*.color.*") if _is_image(p))),
+                 None)
     if first is None:
         raise InputError(f"{root}: no seq-XX/frame-XXXXXX.color.* images found")
     width, height = image_size(first)
@@ -66,12 +80,18 @@ def _camera(root: Path) -> Camera:
     return Camera(640, 480, fx, fy, cx, cy).scaled_to(width, height)
 
 
-def _sequence(seq_dir: Path, camera: Camera) -> list[Frame]:
+def _is_image(path: Path) -> bool:
+    return path.suffix.lower() in IMAGE_SUFFIXES and path.is_file()
+
+
+def _sequence(seq_dir: Path, camera: Camera, registered: bool) -> list[Frame]:
     frames = []
-    for color in sorted(seq_dir.glob("frame-*.color.*")):
+    for color in sorted(p for p in seq_dir.glob("frame-*.color.*") if _is_image(p)):
         stem = color.name.split(".")[0]
         depth = seq_dir / f"{stem}.depth.png"
         pose_path = seq_dir / f"{stem}.pose.txt"
+        check_frame_files(color, (camera.width, camera.height),
+                          depth if depth.is_file() else None, check_depth=registered)
         frames.append(Frame(
             name=f"{seq_dir.name}/{stem}", image_path=color, camera=camera,
             depth_path=depth if depth.is_file() else None,
@@ -80,13 +100,14 @@ def _sequence(seq_dir: Path, camera: Camera) -> list[Frame]:
     return frames
 
 
-def _read_split(path: Path, sequences: dict) -> list[str]:
+def _read_split(path: Path) -> list[str]:
+    """Sequence names of a split file; whether they exist is checked when the split is used."""
     names = []
-    for line in path.read_text().split():
-        m = re.match(r"^sequence(\d+)$", line.strip())
+    for word in read_text(path, "split", 1 << 20).split():
+        m = re.match(r"^sequence(\d{1,6})$", word)
         if not m:
-            raise InputError(f"{path}: expected lines like 'sequence1', got '{line}'")
+            raise InputError(f"{path}: expected lines like 'sequence1', got {word[:40]!r}")
         name = f"seq-{int(m.group(1)):02d}"
-        if name in sequences:
+        if name not in names:
             names.append(name)
     return names

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.datasets.base import Dataset
-from slamreloc.datasets.io import image_size, read_intrinsics
+from slamreloc.datasets.io import check_frame_files, image_size, read_intrinsics, read_text
 from slamreloc.errors import InputError
-from slamreloc.geometry import Rigid3
+from slamreloc.geometry import read_tum_trajectory
 from slamreloc.types import Camera, Frame
 
 MAX_DT = 0.02  # seconds
@@ -27,12 +27,18 @@ def is_tum(root: Path) -> bool:
 
 def _read_list(path: Path, n_fields: int) -> list[list[str]]:
     rows = []
-    for i, line in enumerate(path.read_text().splitlines(), 1):
-        if not line.strip() or line.startswith("#"):
+    for i, line in enumerate(read_text(path, "list").splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
             continue
         parts = line.split()
         if len(parts) != n_fields:
             raise InputError(f"{path}:{i}: expected {n_fields} fields, got {len(parts)}")
+        try:
+            stamp = float(parts[0])
+        except ValueError:
+            stamp = float("nan")
+        if not np.isfinite(stamp):
+            raise InputError(f"{path}:{i}: timestamp {parts[0][:40]!r} is not a finite number")
         rows.append(parts)
     return rows
 
@@ -50,12 +56,10 @@ def load_tum(root: Path) -> Dataset:
     if not rgb:
         raise InputError(f"{root / 'rgb.txt'}: no images listed")
     depth = _read_list(root / "depth.txt", 2) if (root / "depth.txt").is_file() else []
-    gt = _read_list(root / "groundtruth.txt", 8) if (root / "groundtruth.txt").is_file() else []
-    try:
-        depth_t = np.array([float(r[0]) for r in depth])
-        gt_vals = np.array([[float(v) for v in r] for r in gt]).reshape(-1, 8)
-    except ValueError as err:
-        raise InputError(f"{root}: non-numeric value in depth.txt/groundtruth.txt ({err})") from None
+    gt = (read_tum_trajectory(root / "groundtruth.txt", numeric_stamps=True)
+          if (root / "groundtruth.txt").is_file() else [])
+    depth_t = np.array([float(r[0]) for r in depth])
+    gt_t = np.array([float(stamp) for stamp, _ in gt])
     width, height = image_size(root / rgb[0][1])
     if (root / "intrinsics.txt").is_file():
         k = read_intrinsics(root / "intrinsics.txt")
@@ -65,12 +69,12 @@ def load_tum(root: Path) -> Dataset:
     frames = []
     for stamp, rel in rgb:
         t = float(stamp)
-        di, gi = _nearest(depth_t, t), _nearest(gt_vals[:, 0], t)
-        world_from_cam = None
-        if gi is not None:
-            world_from_cam = Rigid3.from_qt(gt_vals[gi, 4:8], gt_vals[gi, 1:4])
+        di, gi = _nearest(depth_t, t), _nearest(gt_t, t)
+        depth_path = root / depth[di][1] if di is not None else None
+        check_frame_files(root / rel, (width, height), depth_path, check_depth=True)
         frames.append(Frame(name=Path(rel).stem, image_path=root / rel, camera=camera,
-                            depth_path=root / depth[di][1] if di is not None else None,
-                            world_from_cam=world_from_cam, sequence=root.name, timestamp=t))
+                            depth_path=depth_path,
+                            world_from_cam=gt[gi][1] if gi is not None else None,
+                            sequence=root.name, timestamp=t))
     return Dataset(root, "tum", {root.name: frames}, depth_registered=True,
                    depth_units_per_metre=5000.0)

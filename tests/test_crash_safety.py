@@ -1,0 +1,213 @@
+"""Crash safety of map writing: kill -9 at random moments and at every step of the swap, and
+two writers at once. The previous map must always load; no leftovers survive the next start.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from slamreloc.errors import InputError
+from slamreloc.scene_map import _exchange, map_write_lock, SceneMap
+from tests import fuzzing
+from tests.test_map_format import make_map
+
+REPO = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+WRITE_NEW = ("import sys; from pathlib import Path; from tests.test_map_format import make_map; "
+             "make_map(Path(sys.argv[1]), tag='new')")
+
+
+def _leftovers(out: Path) -> list[str]:
+    return sorted(p.name for p in out.parent.glob(f".{out.name}.*") if not p.name.endswith(".lock"))
+
+
+def _tag(out: Path) -> str:
+    m = SceneMap.load(out)
+    m.database  # noqa: B018 - the whole map loads
+    return m.meta["tag"]
+
+
+def _python(code: str, *args: str, env: dict | None = None) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", code, *args], cwd=REPO, env=env or ENV,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+# (crash point, rename-exchange used?, map at its path right after the crash, debris left?)
+CRASH_POINTS = [("files-written", True, "old", True), ("before-swap", True, "old", True),
+                ("between-renames", False, None, True),
+                ("after-swap", True, "new", True),  # the old map, swapped out, awaits removal
+                ("after-swap", False, "new", False)]
+
+
+def test_kill_at_every_step_of_the_swap(tmp_path):
+    """A deterministic kill -9 at each step of save_map (hook SLAMRELOC_TEST_CRASH_AT), including
+    the instant of the two-rename fallback where the map is not at its path: the next start
+    always finds a complete map, the old or the new one, and removes every leftover."""
+    probe = tmp_path / "probe"
+    (probe / "a").mkdir(parents=True)
+    (probe / "b").mkdir()
+    has_exchange = _exchange(probe / "a", probe / "b")
+    procs = []
+    for i, (point, exchange, _, _) in enumerate(CRASH_POINTS):
+        out = make_map(tmp_path / f"case{i}" / "map", tag="old")
+        env = {**ENV, "SLAMRELOC_TEST_CRASH_AT": point}
+        if not exchange:
+            env["SLAMRELOC_NO_RENAME_EXCHANGE"] = "1"
+        procs.append((out, _python(WRITE_NEW, str(out), env=env)))
+    for (out, proc), (point, exchange, at_path, debris) in zip(procs, CRASH_POINTS):
+        _, err = proc.communicate(timeout=300)
+        assert proc.returncode == -signal.SIGKILL, (point, err)
+        if at_path is None:  # the window: map moved aside, new one not yet in place
+            assert not out.exists() and any(".old-" in n for n in _leftovers(out))
+        else:
+            assert json.loads((out / "slamreloc_map.json").read_text())["tag"] == at_path
+        assert bool(_leftovers(out)) == (debris and (has_exchange or not exchange)), point
+        # the next start (a load) recovers and cleans up
+        assert _tag(out) == (at_path or "old"), point
+        assert _leftovers(out) == []
+
+
+def test_next_save_cleans_a_killed_writers_leftovers(tmp_path):
+    out = make_map(tmp_path / "map", tag="old")
+    env = {**ENV, "SLAMRELOC_TEST_CRASH_AT": "between-renames",
+           "SLAMRELOC_NO_RENAME_EXCHANGE": "1"}
+    proc = _python(WRITE_NEW, str(out), env=env)
+    proc.communicate(timeout=300)
+    assert proc.returncode == -signal.SIGKILL and not out.exists()
+    make_map(out, tag="next")  # the next run's save puts the old map back, then replaces it
+    assert _tag(out) == "next" and _leftovers(out) == []
+
+
+def test_a_clean_save_leaves_nothing_beside_the_map(tmp_path):
+    out = make_map(tmp_path / "m", tag="old")
+    make_map(out, tag="new")
+    assert _tag(out) == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["m"]
+
+
+def test_rename_exchange_swaps_atomically_here(tmp_path):
+    """Where the file system has renameat2(RENAME_EXCHANGE), the swap has no gap at all."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir()
+    b.mkdir()
+    (a / "x").write_text("a")
+    (b / "x").write_text("b")
+    if not _exchange(a, b):
+        pytest.skip("renameat2(RENAME_EXCHANGE) not supported here; the fallback is tested")
+    assert (a / "x").read_text() == "b" and (b / "x").read_text() == "a"
+
+
+HOLD_LOCK = ("import sys, time; from slamreloc.scene_map import map_write_lock\n"
+             "with map_write_lock(sys.argv[1]):\n"
+             "    print('locked', flush=True); time.sleep(float(sys.argv[2]))\n")
+
+
+def test_second_writer_fails_cleanly_while_one_writes(tmp_path):
+    out = make_map(tmp_path / "map", tag="first")
+    holder = _python(HOLD_LOCK, str(out), "120")
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        with pytest.raises(InputError, match=f"another process \\(pid {holder.pid}\\) is "
+                                             "writing this map") as err:
+            make_map(out, tag="second")
+        assert "\n" not in str(err.value)
+        assert _tag(out) == "first"  # untouched
+    finally:
+        holder.kill()
+        holder.communicate()
+    make_map(out, tag="second")  # the lock dies with its holder
+    assert _tag(out) == "second"
+
+
+RACE = ("import sys, time; from pathlib import Path\n"
+        "from slamreloc.errors import InputError\n"
+        "from slamreloc.scene_map import map_write_lock\n"
+        "from tests.test_map_format import make_map\n"
+        "out, tag, sync = Path(sys.argv[1]), sys.argv[2], Path(sys.argv[3])\n"
+        "(sync / tag).touch()  # imports done: wait for the other writer, then go together\n"
+        "while len(list(sync.iterdir())) < 2: time.sleep(0.001)\n"
+        "try:\n"
+        "    with map_write_lock(out):\n"
+        "        time.sleep(1.0)\n"
+        "        make_map(out, tag=tag)\n"
+        "except InputError as err:\n"
+        "    print(f'error: {err}', file=sys.stderr); sys.exit(2)\n")
+
+
+@pytest.mark.parametrize("round_", range(3))
+def test_two_writers_at_once_one_wins_never_a_mixed_map(tmp_path, round_):
+    """Two processes write the same map at the same instant (a writer holds the lock for its
+    whole run, as `map` does): one wins, the other fails with one line; the map is entirely
+    the winner's (its checksums bind the three files)."""
+    out = make_map(tmp_path / "map", tag="old")
+    sync = tmp_path / "sync"
+    sync.mkdir()
+    procs = {tag: _python(RACE, str(out), tag, str(sync)) for tag in ("A", "B")}
+    results = {tag: (p.communicate(timeout=300), p.returncode) for tag, p in procs.items()}
+    codes = sorted(code for _, code in results.values())
+    assert codes == [0, 2], results
+    winner = next(tag for tag, (_, code) in results.items() if code == 0)
+    loser_err = next(err for tag, ((_, err), code) in results.items() if code == 2)
+    assert loser_err.strip().count("\n") == 0 and "another process" in loser_err
+    assert _tag(out) == winner and _leftovers(out) == []
+
+
+def _small_dataset(scene_dir: Path, root: Path, n: int = 6) -> Path:
+    """The first n frames of the synthetic scene's mapping sequence (a <1 s `map` run)."""
+    (root / "seq-01").mkdir(parents=True)
+    stems = sorted({p.name.split(".")[0] for p in (scene_dir / "seq-01").iterdir()})[:n]
+    for stem in stems:
+        for p in (scene_dir / "seq-01").glob(f"{stem}.*"):
+            shutil.copy(p, root / "seq-01" / p.name)
+    for name in ("intrinsics.txt", "scene.json"):
+        shutil.copy(scene_dir / name, root / name)
+    (root / "TrainSplit.txt").write_text("sequence1\n")
+    return root
+
+
+def run_kill_harness(spec: dict, tmp_path: Path, timeout: float = 900) -> dict:
+    """Run tests/kill_harness.py on `spec`; returns its report (see that module)."""
+    path = tmp_path / "kill_spec.json"
+    path.write_text(json.dumps(spec))
+    proc = subprocess.run([sys.executable, "-m", "tests.kill_harness", str(path)], cwd=REPO,
+                          env=ENV, capture_output=True, text=True, timeout=timeout)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    fuzzing.KILL_REPORTS.append({"command": spec["argv"][0], **{
+        k: v for k, v in report.items() if k != "kill_times"}})
+    return report
+
+
+KILLS = int(os.environ.get("SLAMRELOC_KILLS", "50"))
+
+
+def test_kill_9_at_random_moments_of_map_never_loses_the_map(scene_dir, tmp_path):
+    """`slamreloc map DATASET --out MAP` over an existing MAP, killed -9 at random moments
+    (half uniform over the run, half aimed at its write phase) 50 times."""
+    from slamreloc.datasets import load_dataset
+    from slamreloc.mapping import MapConfig, build_map
+    from slamreloc.regressor.train import TrainConfig
+
+    ds = _small_dataset(scene_dir, tmp_path / "ds")
+    out = tmp_path / "maps" / "map"
+    build_map(load_dataset(ds), out, "train",
+              MapConfig(arch="tiny", train=TrainConfig(epochs=1)), progress=False)
+    report = run_kill_harness({
+        "argv": ["map", str(ds), "--out", str(out), "--arch", "tiny", "--epochs", "1",
+                 "--device", "cpu"],
+        "map": str(out), "kills": KILLS, "seed": 11, "time_limit_s": 600,
+        "tail_fraction": 0.5}, tmp_path)
+    assert report["failures"] == []
+    assert report["kills"] >= KILLS
+    assert report["kept_previous_map"] + report["replaced_by_complete_map"] == report["kills"]
+    # the interesting moments were really hit: kills while the new map was being written
+    assert report["kills_in_write_phase"] >= KILLS // 4
+    assert report["leftovers_seen_after_kill"] > 0
+    assert _leftovers(out) == [] and SceneMap.load(out).database is not None
