@@ -16,8 +16,6 @@
 
 from __future__ import annotations
 
-import os
-import shutil
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -269,24 +267,8 @@ def _base_provenance(map_dir: Path, n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _save(out: Path, meta: dict, model, db: MapDatabase, provenance: dict) -> Path:
-    """save_map into a staging folder, add provenance.npz, then rename over `out`."""
-    out = Path(out)
-    check_map_target(out)
-    staging = out.parent / f".{out.name}.pl-{os.getpid()}"
-    shutil.rmtree(staging, ignore_errors=True)
-    try:
-        save_map(staging, meta, model, db)
-        np.savez(staging / PROVENANCE, **provenance)
-        if out.exists():
-            old = out.parent / f".{out.name}.old-{os.getpid()}"
-            os.replace(out, old)
-            os.replace(staging, out)
-            shutil.rmtree(old)
-        else:
-            os.replace(staging, out)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-    return out
+    """The map's own atomic, locked write, with provenance.npz inside it."""
+    return save_map(out, meta, model, db, extra={PROVENANCE: provenance})
 
 
 @dataclass

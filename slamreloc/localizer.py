@@ -75,10 +75,12 @@ class RegressorLocalizer(Localizer):
         """(N, D) descriptors -> world points (N, 3), metres, and confidences (N,) or None."""
         with torch.inference_mode(), autocast(self.device.type, self.precision):
             x = torch.as_tensor(descriptors, dtype=torch.float32, device=self.device)
-            # pad the batch to a multiple of 256 rows: oneDNN compiles a kernel per batch
-            # shape, which costs ~20 ms per query when every image has its own keypoint count
+            # bf16: pad the batch to a multiple of 256 rows; oneDNN compiles a kernel per batch
+            # shape, ~20 ms per query when every image has its own keypoint count. fp32 has
+            # no such cost and padding only adds rows (BENCHMARKS.md, precision)
             n = len(x)
-            x = torch.cat([x, x.new_zeros((-n) % 256, x.shape[1])])
+            if self.precision == "bf16":
+                x = torch.cat([x, x.new_zeros((-n) % 256, x.shape[1])])
             points, confidence = self.model.predict(x)
             return (points[:n].float().cpu().numpy(),
                     None if confidence is None else confidence[:n].float().cpu().numpy())

@@ -597,8 +597,10 @@ def _swap_in(tmp: Path, out: Path) -> None:
     _fsync_dir(out.parent)
 
 
-def save_map(out: str | Path, meta: dict, model: SceneCoordinateRegressor, db: MapDatabase) -> Path:
+def save_map(out: str | Path, meta: dict, model: SceneCoordinateRegressor, db: MapDatabase,
+             extra: dict[str, dict[str, np.ndarray]] | None = None) -> Path:
     """Write a map atomically: into a temporary sibling folder, then swap it in for `out`.
+    `extra`: more array files (name -> arrays, no pickle) written into the map with it.
 
     Refuses to replace an existing non-empty folder that is not a slamreloc map, and fails at
     once if another process is writing `out`."""
@@ -618,6 +620,8 @@ def save_map(out: str | Path, meta: dict, model: SceneCoordinateRegressor, db: M
                     "frame_index": db.frame_index.astype(np.int32),
                     "world_from_cam": np.asarray(db.world_from_cam, np.float64)}),
             }
+            for name, arrays in (extra or {}).items():
+                files[name] = _write_npz(tmp / name, arrays)
             _crash_point("files-written")
             body = {k: v for k, v in meta.items() if k not in (
                 "format", "version", "format_version", "slamreloc_version", "files",

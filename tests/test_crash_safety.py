@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from slamreloc.errors import InputError
-from slamreloc.scene_map import _exchange, map_write_lock, SceneMap
+from slamreloc.scene_map import _exchange, SceneMap
 from tests import fuzzing
 from tests.test_map_format import make_map
 
