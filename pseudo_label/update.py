@@ -22,12 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from slamreloc.datasets import Dataset, load_dataset, read_depth
+from slamreloc.datasets import Dataset, load_dataset
 from slamreloc.errors import InputError
 from slamreloc.extract import extract_frames
 from slamreloc.features import make_extractor
 from slamreloc.geometry import pose_error
 from slamreloc.labels import LabelConfig, build_labels, depth_points
+from slamreloc.mapping import registered_depths
 from slamreloc.progress import console, track
 from slamreloc.pseudo_label.finetune import FinetuneConfig, finetune_regressor
 from slamreloc.pseudo_label.register import (LABELLED, NEW, PSEUDO, Database, FrameState,
@@ -309,10 +310,7 @@ def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
     t0 = time.perf_counter()
     feats = extract_frames(frames, extractor, progress)
     timings["features_s"] = time.perf_counter() - t0
-    depths = None
-    if dataset.depth_registered and config.labels.use_depth:
-        depths = [read_depth(f.depth_path, dataset.depth_units_per_metre) if f.depth_path
-                  else np.zeros((f.camera.height, f.camera.width), np.float32) for f in frames]
+    depths = registered_depths(dataset, frames) if config.labels.use_depth else None
     t0 = time.perf_counter()
     states, reg_stats = register_sequence(frames, feats, base, depths, config, progress)
     timings["registration_s"] = time.perf_counter() - t0

@@ -42,6 +42,15 @@ def labelled_database(frames: list[Frame], feats: list[Features], labels: LabelS
         world_from_cam=np.stack([f.world_from_cam.matrix() for f in frames]))
 
 
+def registered_depths(dataset: Dataset, frames: list[Frame]) -> list[np.ndarray] | None:
+    """Depth maps (metres, 0 = invalid) of `frames` where the dataset's depth is registered to
+    the images, else None (7-Scenes: depth from another camera)."""
+    if not dataset.depth_registered:
+        return None
+    return [read_depth(f.depth_path, dataset.depth_units_per_metre) if f.depth_path
+            else np.zeros((f.camera.height, f.camera.width), np.float32) for f in frames]
+
+
 def build_map(dataset: Dataset, out: Path, split: str = "train", config: MapConfig = MapConfig(),
               progress: bool = True, resume: bool = False) -> SceneMap:
     """Map a split of `dataset` into the folder `out` (written atomically). Training state is
@@ -61,10 +70,7 @@ def build_map(dataset: Dataset, out: Path, split: str = "train", config: MapConf
     t0 = time.perf_counter()
     feats = extract_frames(frames, extractor, progress)
     timings["features_s"] = time.perf_counter() - t0
-    depths = None
-    if dataset.depth_registered and config.labels.use_depth:
-        depths = [read_depth(f.depth_path, dataset.depth_units_per_metre) if f.depth_path
-                  else np.zeros((f.camera.height, f.camera.width), np.float32) for f in frames]
+    depths = registered_depths(dataset, frames) if config.labels.use_depth else None
     t0 = time.perf_counter()
     labels = build_labels(frames, feats, depths, config.labels, progress)
     timings["labels_s"] = time.perf_counter() - t0
