@@ -158,6 +158,17 @@ def tum_line(name: str, world_from_cam: Rigid3) -> str:
     return name + " " + " ".join(f"{v:.6f}" for v in vals)
 
 
+def parse_stamp(text: str, source: str) -> float:
+    """A timestamp (or frame index) field: a finite number, else InputError naming `source`."""
+    try:
+        stamp = float(text)
+    except ValueError:
+        raise InputError(f"{source}: timestamp {text[:40]!r} is not a number") from None
+    if not np.isfinite(stamp):
+        raise InputError(f"{source}: timestamp {text[:40]!r} is not finite")
+    return stamp
+
+
 def parse_tum_line(line: str, source: str = "trajectory",
                    numeric_stamp: bool = False) -> tuple[str, Rigid3]:
     """`name tx ty tz qx qy qz qw` (camera-to-world) -> (name, world_from_cam).
@@ -168,12 +179,7 @@ def parse_tum_line(line: str, source: str = "trajectory",
     if len(parts) != 8:
         raise InputError(f"{source}: expected 8 fields 'name tx ty tz qx qy qz qw', got {len(parts)}")
     if numeric_stamp:
-        try:
-            stamp = float(parts[0])
-        except ValueError:
-            stamp = float("nan")
-        if not np.isfinite(stamp):
-            raise InputError(f"{source}: timestamp {parts[0][:40]!r} is not a finite number")
+        parse_stamp(parts[0], source)
     try:
         vals = np.array([float(p) for p in parts[1:]])
     except ValueError as err:

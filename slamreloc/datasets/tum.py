@@ -15,7 +15,7 @@ import numpy as np
 from slamreloc.datasets.base import Dataset
 from slamreloc.datasets.io import check_frame_files, image_size, read_intrinsics, read_text
 from slamreloc.errors import InputError
-from slamreloc.geometry import read_tum_trajectory
+from slamreloc.geometry import parse_stamp, read_tum_trajectory
 from slamreloc.types import Camera, Frame
 
 MAX_DT = 0.02  # seconds
@@ -33,12 +33,7 @@ def _read_list(path: Path, n_fields: int) -> list[list[str]]:
         parts = line.split()
         if len(parts) != n_fields:
             raise InputError(f"{path}:{i}: expected {n_fields} fields, got {len(parts)}")
-        try:
-            stamp = float(parts[0])
-        except ValueError:
-            stamp = float("nan")
-        if not np.isfinite(stamp):
-            raise InputError(f"{path}:{i}: timestamp {parts[0][:40]!r} is not a finite number")
+        parse_stamp(parts[0], f"{path}:{i}")
         rows.append(parts)
     return rows
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.fileio import atomic_file
-from slamreloc.geometry import Rigid3, parse_tum_line, tum_line
+from slamreloc.geometry import Rigid3, read_tum_trajectory, tum_line
 
 
 def write_tum(path: Path, timestamps: list[float], world_from_cam: list[Rigid3],
@@ -22,22 +22,10 @@ def write_tum(path: Path, timestamps: list[float], world_from_cam: list[Rigid3],
 
 def read_tum(path: Path) -> tuple[np.ndarray, list[Rigid3]]:
     """(timestamps (N,), world_from_cam poses); InputError on a malformed line."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: trajectory file not found")
-    stamps, poses = [], []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        name, pose = parse_tum_line(line, source=f"{path}:{n}")
-        try:
-            stamps.append(float(name))
-        except ValueError:
-            raise InputError(f"{path}:{n}: timestamp '{name}' is not a number") from None
-        poses.append(pose)
-    if not poses:
+    rows = read_tum_trajectory(path, numeric_stamps=True)
+    if not rows:
         raise InputError(f"{path}: no poses in the trajectory file")
-    return np.array(stamps), poses
+    return np.array([float(stamp) for stamp, _ in rows]), [pose for _, pose in rows]
 
 
 def associate(stamps: np.ndarray, queries: np.ndarray, max_dt: float = 0.01) -> np.ndarray:
