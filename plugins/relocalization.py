@@ -1,11 +1,11 @@
 """The relocalization plugin: the core's regressor + PnP inside the SLAM backend.
 
 (a) Kidnapped recovery: while the backend is lost (or not yet started) every incoming frame is
-    relocalized; once two relocalizations agree through odometry the backend is anchored.
+    relocalized; once `votes` (3) relocalizations agree through odometry the backend is anchored.
 (b) Loop closure: every `loop_closure_every` keyframes the keyframe is relocalized; a result
     that fits the track becomes a robust prior in the graph. One that does not fit is held
-    and the next frames are relocalized: if a later one agrees with it the track was wrong
-    (re-anchor), if none does within the window it is rejected.
+    and the next frames are relocalized: if later ones agree with it the track was wrong
+    (re-anchor), if not enough do within the window it is rejected.
 Inputs to every decision: the PnP inlier count and the regressor's confidence (gating.py).
 """
 
@@ -29,7 +29,7 @@ from slamreloc.slam.events import Event, EventKind, FrameData
 class RelocalizationConfig:
     gate: GateConfig = field(default_factory=GateConfig)
     loop_closure_every: int = 3  # keyframes between loop-closure relocalizations
-    keep_fraction: float = 0.5  # PnP on this share of the most confident predictions
+    keep_fraction: float = 0.5  # PnP on this share of the most confident predictions (localizer)
     inject_wrong_fraction: float = 0.0  # test hook: replace results by poses >= 0.5 m / 20 deg off
     inject_seed: int = 0
 
@@ -43,7 +43,8 @@ class RelocalizationPlugin:
             from slamreloc.localizer import RegressorLocalizer
             from slamreloc.scene_map import SceneMap
 
-            localizer = RegressorLocalizer(SceneMap.load(map_dir), device=device)
+            localizer = RegressorLocalizer(SceneMap.load(map_dir), device=device,
+                                           keep_fraction=config.keep_fraction)
         self.localizer, self.config = localizer, config
         self.stats = RelocStats()
         self.pending: list[Candidate] = []  # tracking: candidates that do not fit the track
@@ -73,7 +74,7 @@ class RelocalizationPlugin:
         if c is None:
             return
         agreeing = find_agreeing(c, self.lost, self.backend, self.config.gate)
-        if agreeing:
+        if len(agreeing) + 1 >= self.config.gate.votes:
             self.backend.anchor(c.frame, c.world_from_cam,
                                 [(a.frame, a.world_from_cam) for a in agreeing])
             self.stats.accept([c, *agreeing], "anchor")
@@ -93,7 +94,7 @@ class RelocalizationPlugin:
             self._reject(self.pending)
             return
         agreeing = find_agreeing(c, self.pending, self.backend, self.config.gate)
-        if agreeing:  # consistent with each other, not with the track: the track is wrong
+        if len(agreeing) + 1 >= self.config.gate.votes:  # consistent with each other, not with the track: the track is wrong
             self.backend.reanchor(c.frame, c.world_from_cam,
                                   [(a.frame, a.world_from_cam) for a in agreeing],
                                   reason="relocalizations agree with each other, not the track")
@@ -116,18 +117,13 @@ class RelocalizationPlugin:
         """Regressor + PnP on the frame's image; None when PnP fails or quality is too low."""
         loc = self.localizer
         with self.backend.timer("relocalization"):
-            feats = loc.extractor(frame.image)
-            points, conf = loc.predict(feats.descriptors)
-            keep = np.arange(len(points))
-            if conf is not None and len(points):
-                n_keep = max(round(self.config.keep_fraction * len(points)), min(len(points), 50))
-                keep = np.argsort(-conf, kind="stable")[:n_keep]
-            est = estimate_pose(feats.keypoints[keep], points[keep], frame.camera, loc.pnp)
+            keypoints, points, conf = loc.confident_correspondences(loc.extractor(frame.image))
+            est = estimate_pose(keypoints, points, frame.camera, loc.pnp)
         self.stats.n_attempts += 1
         if not est.success:
             self.stats.n_failed += 1
             return None
-        confidence = float(np.median(conf[keep][est.inlier_mask])) if conf is not None else 1.0
+        confidence = float(np.median(conf[est.inlier_mask])) if conf is not None else 1.0
         c = Candidate(frame.index, est.world_from_cam, est.num_inliers, confidence)
         if self._rng.random() < self.config.inject_wrong_fraction:
             c.world_from_cam, c.injected = self._wrong(c.world_from_cam), True

@@ -24,7 +24,7 @@ class RelocStats:
 
     def _record(self, cands: list[Candidate], kind: str, accepted: bool) -> None:
         self.decisions += [{"frame": c.frame, "type": kind, "accepted": accepted,
-                            "num_inliers": c.num_inliers,
+                            "num_inliers": c.num_inliers, "confidence": round(c.confidence, 3),
                             "position": [round(float(v), 4) for v in c.world_from_cam.translation]}
                            for c in cands]
 

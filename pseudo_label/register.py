@@ -32,6 +32,7 @@ class RegistrationConfig:
     min_inliers: int = 40  # below this the frame stays unregistered
     max_trials: int = 5000  # RANSAC
     seed_inliers: int = 80  # needed by a frame with no registered neighbour in the window
+    anchor_inliers: int = 40  # inliers on the map's own labels that make a registration a prior
     window: int = 5  # frames either side that count as neighbours
     neighbours: int = 2  # registered neighbours matched directly, each side
     # continuity: deviation from the neighbours' motion allowed, base + per frame of gap
@@ -42,11 +43,14 @@ class RegistrationConfig:
 
 
 class Database:
-    """Labelled descriptors (torch, float32) with their world points, appendable."""
+    """Labelled descriptors (torch, float32) with their world points. `rows`: per entry, the
+    map database row its point comes from (-1: triangulated in the new sequence)."""
 
-    def __init__(self, descriptors: np.ndarray, points: np.ndarray) -> None:
+    def __init__(self, descriptors: np.ndarray, points: np.ndarray,
+                 rows: np.ndarray | None = None) -> None:
         self.desc = torch.as_tensor(np.asarray(descriptors, np.float32))
         self.points = np.asarray(points, np.float32)
+        self.rows = np.arange(len(points)) if rows is None else np.asarray(rows, np.int64)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -88,13 +92,24 @@ class FrameState:
     points: np.ndarray  # (N, 3) float32
     source: np.ndarray  # (N,) int8: -1 none, PSEUDO (inherited by a match), NEW (triangulated)
     error_px: np.ndarray  # (N,) reprojection error of the label under the estimated pose
+    row: np.ndarray  # (N,) int64: map database row an inherited label comes from, else -1
     num_inliers: int = 0
-    via: str = ""  # "database", "neighbours" or "both"
+    via: str = ""  # "database", "neighbours", "both" or "odometry"
 
     @staticmethod
     def empty(n: int) -> FrameState:
         return FrameState(None, np.full((n, 3), np.nan, np.float32), np.full(n, -1, np.int8),
-                          np.full(n, np.nan, np.float32))
+                          np.full(n, np.nan, np.float32), np.full(n, -1, np.int64))
+
+    def drop(self, mask: np.ndarray) -> None:
+        """Remove the labels of the keypoints in `mask`."""
+        self.source[mask], self.points[mask], self.error_px[mask], self.row[mask] = (
+            -1, np.nan, np.nan, -1)
+
+    def n_anchored(self, anchored: np.ndarray) -> int:
+        """Labels inherited from the map's own (true-pose) labels: `anchored` flags map rows."""
+        r = self.row[(self.row >= 0) & (self.source == PSEUDO)]
+        return int(anchored[r[r < len(anchored)]].sum())
 
     @property
     def registered(self) -> bool:
@@ -112,9 +127,10 @@ def reprojection_errors(world_from_cam: Rigid3, camera: Camera, keypoints: np.nd
 
 
 def neighbour_correspondences(i: int, feats: list[Features], states: list[FrameState],
-                              config: RegistrationConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(query keypoint indices, world points) from mutual-NN matches to the labelled keypoints
-    of the nearest registered frames on each side within the window."""
+                              config: RegistrationConfig
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(query keypoint indices, world points, map rows) from mutual-NN matches to the labelled
+    keypoints of the nearest registered frames on each side within the window."""
     picked = []
     for direction in (-1, 1):
         found = 0
@@ -125,7 +141,7 @@ def neighbour_correspondences(i: int, feats: list[Features], states: list[FrameS
             if states[j].registered:
                 picked.append(j)
                 found += 1
-    q_idx, pts = [], []
+    q_idx, pts, rows = [], [], []
     for j in picked:
         lab = np.flatnonzero(states[j].source >= 0)
         if len(lab) < 2:
@@ -133,9 +149,10 @@ def neighbour_correspondences(i: int, feats: list[Features], states: list[FrameS
         m = match_mutual(feats[i].descriptors, feats[j].descriptors[lab], config.ratio)
         q_idx.append(m[:, 0])
         pts.append(states[j].points[lab[m[:, 1]]])
+        rows.append(states[j].row[lab[m[:, 1]]])
     if not q_idx:
-        return np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
-    return np.concatenate(q_idx), np.concatenate(pts)
+        return np.zeros(0, np.int64), np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
+    return np.concatenate(q_idx), np.concatenate(pts), np.concatenate(rows)
 
 
 def register_frame(i: int, feats: list[Features], cameras: list[Camera], states: list[FrameState],
@@ -145,9 +162,9 @@ def register_frame(i: int, feats: list[Features], cameras: list[Camera], states:
     The registered neighbours' labels are tried first (cheap); the whole database is matched
     only when they are missing or not enough."""
     f = feats[i]
-    nb_q, nb_pts = neighbour_correspondences(i, feats, states, config)
+    nb_q, nb_pts, nb_rows = neighbour_correspondences(i, feats, states, config)
     if len(nb_q) >= config.min_inliers:
-        state = _pnp_state(i, f, cameras[i], nb_q, nb_pts.astype(np.float64), config)
+        state = _pnp_state(i, f, cameras[i], nb_q, nb_pts.astype(np.float64), nb_rows, config)
         if state is not None and state.num_inliers >= config.seed_inliers:
             state.via = "neighbours"
             return state
@@ -155,9 +172,10 @@ def register_frame(i: int, feats: list[Features], cameras: list[Camera], states:
     # neighbour matches first: on a keypoint matched both ways, the neighbour's label wins
     q_idx = np.concatenate([nb_q, m[:, 0]])
     pts = np.concatenate([nb_pts, db.points[m[:, 1]]]).astype(np.float64)
+    rows = np.concatenate([nb_rows, db.rows[m[:, 1]]])
     _, first = np.unique(q_idx, return_index=True)
-    q_idx, pts = q_idx[first], pts[first]
-    state = _pnp_state(i, f, cameras[i], q_idx, pts, config)
+    q_idx, pts, rows = q_idx[first], pts[first], rows[first]
+    state = _pnp_state(i, f, cameras[i], q_idx, pts, rows, config)
     if state is None:
         return None
     from_nb = np.isin(np.flatnonzero(state.source == PSEUDO), nb_q)
@@ -166,27 +184,41 @@ def register_frame(i: int, feats: list[Features], cameras: list[Camera], states:
     return state
 
 
-def _pnp_state(i, f, camera, q_idx, pts, config) -> FrameState | None:
+def _pnp_state(i, f, camera, q_idx, pts, rows, config) -> FrameState | None:
     if len(q_idx) < config.min_inliers:
         return None
-    cameras = {i: camera}
-    est = estimate_pose(f.keypoints[q_idx], pts, cameras[i],
+    est = estimate_pose(f.keypoints[q_idx], pts, camera,
                         PnPConfig(max_error_px=config.pnp_max_error_px,
                                   min_inliers=config.min_inliers, max_trials=config.max_trials))
     if not est.success:
         return None
-    pose = est.world_from_cam
-    err = reprojection_errors(pose, cameras[i], f.keypoints[q_idx], pts)
+    state = inherit_labels(est.world_from_cam, f, camera, q_idx, pts, rows, config)
+    return state if state.num_inliers >= config.min_inliers else None
+
+
+def inherit_labels(world_from_cam: Rigid3, f: Features, camera: Camera, q_idx: np.ndarray,
+                   pts: np.ndarray, rows: np.ndarray, config: RegistrationConfig) -> FrameState:
+    """The frame at this pose, labelled with the matched points that reproject within
+    `label_max_error_px`."""
+    err = reprojection_errors(world_from_cam, camera, f.keypoints[q_idx], pts)
     good = err <= config.label_max_error_px
-    if good.sum() < config.min_inliers:
-        return None
     state = FrameState.empty(len(f))
-    state.world_from_cam = pose
+    state.world_from_cam = world_from_cam
     state.points[q_idx[good]] = pts[good]
     state.source[q_idx[good]] = PSEUDO
     state.error_px[q_idx[good]] = err[good]
+    state.row[q_idx[good]] = rows[good]
     state.num_inliers = int(good.sum())
     return state
+
+
+def label_at_pose(f: Features, camera: Camera, world_from_cam: Rigid3, db: Database,
+                  config: RegistrationConfig) -> FrameState:
+    """A frame whose pose is known (smoothed): inherit the database points it matches that
+    reproject within `label_max_error_px` under that pose (no PnP)."""
+    m = db.match(f.descriptors, config.ratio, config.same_point_m)
+    return inherit_labels(world_from_cam, f, camera, m[:, 0], db.points[m[:, 1]].astype(
+        np.float64), db.rows[m[:, 1]], config)
 
 
 def _nearest_registered(i: int, states: list[FrameState], direction: int, window: int,

@@ -7,9 +7,14 @@
    multi-view tracks among all registered frames with the *estimated* poses, which labels
    keypoints the map never had (the new area) and joins the database, so the next round can
    register frames further out. A continuity sweep drops registrations that jump.
-3. A final pass re-registers every frame against the final database (its labels are the inliers
-   of that pass), inherited labels that disagree with their own re-triangulation (or registered
-   depth) are dropped, and the tracks are triangulated once more.
+3. Where the frames have depth, registrations that rest on the map's own labels become robust
+   priors in the SLAM backend's odometry pose graph (smooth.py): the chain of registrations
+   through the sequence's own pseudo-labels drifts (centimetres per frame beyond the map), depth
+   odometry much less; every frame takes the fused pose (frames no registration reached
+   included) and inherits only map labels that fit it. Without depth, a final pass
+   re-registers every frame against the final database instead. Inherited labels that disagree
+   with their own re-triangulation (or registered depth) are dropped, and the tracks are
+   triangulated once more with the final poses.
 4. The regressor is fine-tuned from its weights (regions moved onto the new area) or retrained,
    on labelled + pseudo-labelled data; NEW_MAP is written atomically with per-point provenance.
 """
@@ -26,18 +31,20 @@ from slamreloc.datasets import Dataset, load_dataset
 from slamreloc.errors import InputError
 from slamreloc.extract import extract_frames
 from slamreloc.features import make_extractor
-from slamreloc.geometry import pose_error
+from slamreloc.geometry import Rigid3, pose_error
 from slamreloc.labels import LabelConfig, build_labels, depth_points
 from slamreloc.mapping import registered_depths
 from slamreloc.progress import console, track
 from slamreloc.pseudo_label.finetune import FinetuneConfig, finetune_regressor
 from slamreloc.pseudo_label.register import (LABELLED, NEW, PSEUDO, Database, FrameState,
                                              RegistrationConfig, consistent, continuity_sweep,
-                                             register_frame, reprojection_errors)
+                                             label_at_pose, register_frame,
+                                             reprojection_errors)
+from slamreloc.pseudo_label.smooth import smooth_poses
 from slamreloc.regressor.model import SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
 from slamreloc.scene_map import MapDatabase, SceneMap, check_map_target, save_map
-from slamreloc.types import Frame
+from slamreloc.types import Features, Frame
 
 PROVENANCE = "provenance.npz"
 UPDATES = ("finetune", "retrain")
@@ -54,6 +61,7 @@ class PseudoLabelConfig:
     finetune_epoch_fraction: float = 0.25  # of the map's training epochs, when epochs unset
     epochs: int | None = None  # override for the update (fine-tune or retrain)
     error_scale_px: float = 2.0  # quality weight 1 / (1 + (err / scale)^2)
+    smooth: bool = True  # fuse registrations with depth odometry (where frames have depth)
     device: str = "auto"
 
 
@@ -103,7 +111,7 @@ def _apply_labels(frames, feats, states, depths, config: PseudoLabelConfig) -> d
                 gap = np.linalg.norm(tri - s.points, axis=1)
                 bad = has_tri & inh & ~(gap < config.label_agreement_m + 0.02 * np.abs(z))
                 n_conflict += int(bad.sum())
-                s.source[bad], s.points[bad], s.error_px[bad] = -1, np.nan, np.nan
+                s.drop(bad)
             add = has_tri & (s.source < 0)
             s.points[add] = tri[add]
             s.source[add] = NEW
@@ -118,7 +126,7 @@ def _apply_labels(frames, feats, states, depths, config: PseudoLabelConfig) -> d
             gap = np.linalg.norm(dep - s.points, axis=1)
             bad = has & ~(gap < config.label_agreement_m + 0.02 * np.abs(z))
             n_conflict += int(bad.sum())
-            s.source[bad], s.points[bad], s.error_px[bad] = -1, np.nan, np.nan
+            s.drop(bad)
     return {"n_new_labels": n_new, "n_conflicts": n_conflict,
             "track_ids": None if labels is None else (reg, labels.track_ids)}
 
@@ -126,13 +134,21 @@ def _apply_labels(frames, feats, states, depths, config: PseudoLabelConfig) -> d
 def _database(base: MapDatabase, feats, states) -> Database:
     extra_d = [feats[i].descriptors[s.source >= 0] for i, s in enumerate(states) if s.registered]
     extra_p = [s.points[s.source >= 0] for s in states if s.registered]
+    extra_r = [s.row[s.source >= 0] for s in states if s.registered]
     return Database(np.concatenate([base.descriptors.astype(np.float32), *extra_d]),
-                    np.concatenate([base.points, *extra_p]))
+                    np.concatenate([base.points, *extra_p]),
+                    np.concatenate([np.arange(len(base.points)), *extra_r]))
 
 
 def register_sequence(frames: list[Frame], feats, base: MapDatabase, depths,
-                      config: PseudoLabelConfig, progress: bool = True):
-    """Register frames (poses unknown) and label their keypoints. Returns (states, stats)."""
+                      config: PseudoLabelConfig, progress: bool = True,
+                      anchored: np.ndarray | None = None, smoother=None):
+    """Register frames (poses unknown) and label their keypoints. Returns (states, stats).
+
+    anchored: per map database row, whether it is one of the map's own (true-pose) labels
+    (default: all). smoother: `priors -> poses` (per frame world_from_cam or None), the
+    odometry + pose-graph fusion of smooth.py; without it every frame is re-registered alone."""
+    anchored = np.ones(len(base.points), bool) if anchored is None else anchored
     rc = config.registration
     cameras = [f.camera for f in frames]
     states = [FrameState.empty(len(f)) for f in feats]
@@ -175,6 +191,14 @@ def register_sequence(frames: list[Frame], feats, base: MapDatabase, depths,
                       f"{extension['n_new_labels']} keypoints triangulated")
         if after == before and r > 0:
             break
+    smoothed = _smooth(frames, feats, states, base, anchored, smoother, config)
+    if smoothed is not None:
+        states, n_priors = smoothed
+        extension = _apply_labels(frames, feats, states, depths, config)
+        history.append({"round": "smoothed", "registered": sum(s.registered for s in states),
+                        "priors": n_priors, "dropped": 0, "database": len(base.points),
+                        "new_labels": extension["n_new_labels"]})
+        return states, {"history": history, "extension": extension}
     # final pass: every registered frame again against the final database and its neighbours
     db = _database(base, feats, states)
     for i in track(range(len(frames)), "final registration", enabled=progress):
@@ -189,6 +213,35 @@ def register_sequence(frames: list[Frame], feats, base: MapDatabase, depths,
                     "dropped": len(dropped), "database": len(db),
                     "new_labels": extension["n_new_labels"]})
     return states, {"history": history, "extension": extension}
+
+
+def _smooth(frames, feats, states, base: MapDatabase, anchored: np.ndarray, smoother,
+            config: PseudoLabelConfig):
+    """Registrations resting on the map's own labels become priors of the odometry pose graph
+    (registrations through the sequence's own pseudo-labels drift with the chain that made
+    them); every frame then takes the graph's pose and inherits only map labels that fit it.
+    Returns (states, number of priors), or None without a smoother (no depth)."""
+    rc = config.registration
+    if smoother is None:
+        return None
+    priors = [s.world_from_cam if s.registered and s.n_anchored(anchored) >= rc.anchor_inliers
+              else None for s in states]
+    n_priors = sum(p is not None for p in priors)
+    poses = smoother(priors) if n_priors else None
+    if poses is None:
+        return None
+    rows = np.flatnonzero(anchored)
+    db = Database(base.descriptors[rows].astype(np.float32), base.points[rows], rows)
+    out = []
+    for f, s, pose, frame in zip(feats, states, poses, frames):
+        pose = pose if pose is not None else s.world_from_cam  # off the graph: keep the chain's
+        if pose is None:
+            out.append(FrameState.empty(len(f)))
+            continue
+        new = label_at_pose(f, frame.camera, pose, db, rc)
+        new.via = s.via if s.registered else "odometry"
+        out.append(new)
+    return out, n_priors
 
 
 def _count_new_points(states, extension) -> int:
@@ -211,12 +264,33 @@ def _count_new_points(states, extension) -> int:
     return int((~has_pseudo[new_ids]).sum())
 
 
-def score(frames, feats, states, truth_poses, depths, label_config: LabelConfig) -> dict:
+def map_views(base: MapDatabase, camera, rows: np.ndarray) -> tuple[list[Frame], list[Features]]:
+    """The map's labelled frames as posed frames with their labelled keypoints (database rows
+    `rows` only): views the truth can be triangulated with."""
+    frames, feats = [], []
+    fi = base.frame_index[rows]
+    for k in np.unique(fi):
+        sel = rows[fi == k]
+        frames.append(Frame(base.frame_names[k], Path(""), camera,
+                            world_from_cam=Rigid3.from_matrix(base.world_from_cam[k])))
+        feats.append(Features(base.keypoints[sel].astype(np.float32),
+                              base.descriptors[sel].astype(np.float32)))
+    return frames, feats
+
+
+def score(frames, feats, states, truth_poses, depths, label_config: LabelConfig,
+          views: tuple[list[Frame], list[Features]] = ([], [])) -> dict:
     """Pseudo-label precision against the same keypoints labelled with the true poses (core
-    labels code: re-triangulated tracks, registered depth where the dataset has it), and the
-    pose errors of registered frames."""
+    labels code: tracks triangulated with the true poses of these frames and of the map's
+    labelled `views`, whose wide baselines pin the points down; registered depth where the
+    dataset has it), and the pose errors of registered frames."""
     gt_frames = [replace(f, world_from_cam=p) for f, p in zip(frames, truth_poses)]
-    gt = build_labels(gt_frames, feats, depths, label_config, progress=False)
+    v_frames, v_feats = views
+    gt_depths = None if depths is None else [
+        *[np.zeros((f.camera.height, f.camera.width), np.float32) for f in v_frames], *depths]
+    gt = build_labels([*v_frames, *gt_frames], [*v_feats, *feats], gt_depths, label_config,
+                      progress=False)
+    gt.points = gt.points[len(v_frames):]
     errs = {PSEUDO: [], NEW: []}
     n_labels = 0
     for i, s in enumerate(states):
@@ -311,8 +385,15 @@ def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
     feats = extract_frames(frames, extractor, progress)
     timings["features_s"] = time.perf_counter() - t0
     depths = registered_depths(dataset, frames) if config.labels.use_depth else None
+    base_source, base_quality = _base_provenance(map_dir, len(base.points))
+
+    def smoother(priors):
+        res = smooth_poses(dataset, frames, priors, progress) if config.smooth else None
+        return None if res is None else res.world_from_cam
+
     t0 = time.perf_counter()
-    states, reg_stats = register_sequence(frames, feats, base, depths, config, progress)
+    states, reg_stats = register_sequence(frames, feats, base, depths, config, progress,
+                                          base_source == LABELLED, smoother)
     timings["registration_s"] = time.perf_counter() - t0
     reg = [i for i, s in enumerate(states) if s.registered]
     n_pseudo = int(sum((s.source == PSEUDO).sum() for s in states))
@@ -339,7 +420,6 @@ def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
                                        if reg else np.zeros((0, 4, 4))]))
     quality = 1.0 / (1.0 + (np.nan_to_num(new_err, nan=config.registration.label_max_error_px)
                             / config.error_scale_px) ** 2)
-    base_source, base_quality = _base_provenance(map_dir, len(base.points))
     weights = np.concatenate([base_quality, quality]).astype(np.float32)
     source = np.concatenate([base_source, new_src]).astype(np.int8)
     timings["pseudo_label_s"] = time.perf_counter() - t_all
@@ -355,12 +435,14 @@ def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
         "n_database_before": int(len(base.points)), "n_database_after": int(len(db.points)),
         "rounds": reg_stats["history"], "timings_s": timings,
         "registered_via": {v: sum(s.via == v for s in states if s.registered)
-                           for v in ("database", "neighbours", "both")},
+                           for v in ("database", "neighbours", "both", "odometry")},
         "poses": {frames[i].name: states[i].world_from_cam.matrix().tolist() for i in reg},
     }
     if truth_poses is not None:
         t0 = time.perf_counter()
-        report.update(score(frames, feats, states, truth_poses, depths, config.labels))
+        labelled_rows = np.flatnonzero(base_source == LABELLED)
+        report.update(score(frames, feats, states, truth_poses, depths, config.labels,
+                            map_views(base, old.camera, labelled_rows)))
         report["timings_s"]["scoring_s"] = time.perf_counter() - t0
     else:
         report["pseudo_label_precision_10cm"] = None
@@ -394,8 +476,9 @@ def write_updated_map(labels: PseudoLabels, out: Path,
         tc = TrainConfig(**{k: v for k, v in old.meta.get("train", {}).items()
                             if k in known and k not in ("betas",)})
         tc = replace(tc, epochs=config.epochs or map_epochs)
-        train_stats = {"mode": "retrain", **train_regressor(model, db.descriptors, db.points, tc,
-                                                            config.device, progress)}
+        train_stats = {"mode": "retrain", **train_regressor(
+            model, db.descriptors, db.points, tc, config.device, progress,
+            weights=labels.weights)}
     rep["timings_s"]["update_s"] = time.perf_counter() - t0
     rep["timings_s"]["total_s"] = rep["timings_s"]["pseudo_label_s"] + rep["timings_s"]["update_s"]
     rep["update"] = train_stats

@@ -86,12 +86,17 @@ class RegressorLocalizer(Localizer):
                     None if confidence is None else confidence[:n].float().cpu().numpy())
 
     def correspondences(self, feats):
+        keypoints, points, _ = self.confident_correspondences(feats)
+        return keypoints, points
+
+    def confident_correspondences(self, feats):
+        """(keypoints, world points, confidences or None) of the predictions PnP uses."""
         points, confidence = self.predict(feats.descriptors)
         if confidence is None or self.keep_fraction >= 1 or len(points) == 0:
-            return feats.keypoints, points
+            return feats.keypoints, points, confidence
         n_keep = max(round(self.keep_fraction * len(points)), min(len(points), 50))
         keep = np.argsort(-confidence, kind="stable")[:n_keep]
-        return feats.keypoints[keep], points[keep]
+        return feats.keypoints[keep], points[keep], confidence[keep]
 
 
 class MatchingLocalizer(Localizer):

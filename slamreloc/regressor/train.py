@@ -50,29 +50,39 @@ def resolve_device(device: str) -> torch.device:
 def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, points: np.ndarray,
                     config: TrainConfig = TrainConfig(), device: str = "auto",
                     progress: bool = True, checkpoint: Path | None = None,
-                    resume: bool = False) -> dict:
+                    resume: bool = False, weights: np.ndarray | None = None,
+                    fine_tune: bool = False) -> dict:
     """Fit `model` to (N, D) descriptors -> (N, 3) world points (metres). Returns training stats.
 
     checkpoint: a file to save training state to every `config.checkpoint_every_s` seconds
-    and on Ctrl-C (which then raises `Interrupted`); resume: continue from it."""
+    and on Ctrl-C (which then raises `Interrupted`); resume: continue from it.
+    weights: per-sample loss weights (label quality); fine_tune: continue from the model's
+    weights, normalisation and regions instead of initialising them from the data."""
+    t_cpu = time.process_time()
     dev = resolve_device(device)
     precision = resolve_precision(config.precision, dev.type)
     fp = fingerprint(descriptors, points, {**config.to_dict(), "precision": None,
                                            "checkpoint_every_s": None,
+                                           "weighted": weights is not None,
+                                           "fine_tune": fine_tune,
                                            "model": model.config.to_dict()})
     state = load_checkpoint(checkpoint, fp) if resume and checkpoint else None
     torch.manual_seed(config.seed)
     x = torch.as_tensor(descriptors, dtype=torch.float32, device=dev)
     y = torch.as_tensor(points, dtype=torch.float32, device=dev)
-    model.to(dev).set_normalisation(x, y)
+    w = (torch.ones(len(x), device=dev) if weights is None else
+         torch.as_tensor(weights, dtype=torch.float32, device=dev))
+    model.to(dev)
+    if not fine_tune:
+        model.set_normalisation(x, y)
     x = model.normalise_input(x)
     y_n = (y - model.out_mean) / model.out_scale
     gen = torch.Generator(device=dev).manual_seed(config.seed)
-    if model.config.prototype_init and state is None:
+    if model.config.prototype_init and state is None and not fine_tune:
         model.init_prototypes(x, gen)
     cluster = None
     if model.config.head == "clusters" and state is None:
-        cluster = model.set_clusters(y_n, gen)
+        cluster = model.assign_clusters(y_n) if fine_tune else model.set_clusters(y_n, gen)
     opt = torch.optim.AdamW(model.parameters(), lr=config.lr, betas=config.betas,
                             weight_decay=config.weight_decay)
     steps_per_epoch = max(1, len(x) // config.batch_size)
@@ -102,7 +112,7 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
             epoch_loss = torch.zeros((), device=dev)
             for s in range(steps_per_epoch):
                 idx = perm[s * config.batch_size:(s + 1) * config.batch_size]
-                dist = _step(model, opt, x[idx], y_n[idx],
+                dist = _step(model, opt, x[idx], y_n[idx], w[idx],
                              None if cluster is None else cluster[idx], noise, config, gen,
                              precision)
                 sched.step()
@@ -122,12 +132,13 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
     model.eval().cpu()
     return {"final_loss_m": losses[-1] if losses else None, "epochs": config.epochs,
             "resumed_at_epoch": start if state is not None else None,
-            "n_samples": len(x), "device": dev.type, "precision": precision}
+            "n_samples": len(x), "device": dev.type, "precision": precision,
+            "cpu_s": time.process_time() - t_cpu}  # CPU time of this process (all threads)
 
 
-def _step(model, opt, xb, yb, target, noise, config, gen, precision) -> torch.Tensor:
-    """One optimisation step on a batch (augmented here); returns the mean distance (detached,
-    normalised frame)."""
+def _step(model, opt, xb, yb, wb, target, noise, config, gen, precision) -> torch.Tensor:
+    """One optimisation step on a batch (augmented here) with per-sample weights `wb`; returns
+    the mean distance (detached, normalised frame)."""
     dev = xb.device
     if noise > 0:
         xb = xb + noise * torch.randn(xb.shape, device=dev, generator=gen)
@@ -137,11 +148,13 @@ def _step(model, opt, xb, yb, target, noise, config, gen, precision) -> torch.Te
     with autocast(dev.type, precision):
         hidden = model.hidden(xb)
     pred, logits = model.head_outputs(hidden, target)
-    dist = (pred - yb).norm(dim=1).mean()
-    loss = dist
+    dist = (pred - yb).norm(dim=1)
+    per = dist
     if logits is not None:  # region classification + offset within the true region
-        loss = dist / model.offset_scale + nn.functional.cross_entropy(logits, target)
+        per = dist / model.offset_scale + nn.functional.cross_entropy(logits, target,
+                                                                       reduction="none")
+    loss = (per * wb).sum() / wb.sum().clamp_min(1e-6)
     opt.zero_grad(set_to_none=True)
     loss.backward()
     opt.step()
-    return dist.detach()
+    return dist.mean().detach()

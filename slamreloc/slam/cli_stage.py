@@ -17,11 +17,14 @@ from slamreloc.slam.trajectory import write_tum
 
 def run_slam_command(dataset: Path, map_dir: Path, report: Path, split: str = "test",
                      kidnap_every: int = 0, kidnap_skip: int = 20, odometry: str = "auto",
-                     trajectory: Path | None = None, progress: bool = True) -> dict:
+                     trajectory: Path | None = None, progress: bool = True,
+                     plugin_options: dict | None = None) -> dict:
+    """plugin_options: keyword arguments of the relocalization plugin (benchmarks, tests)."""
     if kidnap_every < 0 or kidnap_skip < 0:
         raise InputError("--kidnap-every and --kidnap-skip must be >= 0")
     config = SlamRunConfig(split=split, odometry=odometry, kidnap_every=kidnap_every,
-                           kidnap_skip=kidnap_skip, progress=progress)
+                           kidnap_skip=kidnap_skip, progress=progress,
+                           plugin_options=plugin_options or {})
     result, backend, frames = run_slam(dataset, map_dir, config)
     if trajectory is not None:
         poses = final_trajectory(backend)

@@ -43,14 +43,20 @@ class Open3dOdometry(Odometry):
         rgbd = o3d.t.geometry.RGBDImage(o3d.t.geometry.Image(color), o3d.t.geometry.Image(d))
         fitness = None
         if self._prev is not None:
-            res = o3o.rgbd_odometry_multi_scale(
-                rgbd, self._prev, o3d.core.Tensor(cam.K), o3d.core.Tensor(self._delta),
-                1.0, self.config.depth_max_m,
-                [o3o.OdometryConvergenceCriteria(n) for n in self.config.iterations],
-                o3o.Method.Hybrid if hybrid else o3o.Method.PointToPlane)
-            self._delta = res.transformation.numpy()  # prev_from_cur
-            self._pose = self._pose @ self._delta
-            fitness = float(res.fitness)
+            try:
+                res = o3o.rgbd_odometry_multi_scale(
+                    rgbd, self._prev, o3d.core.Tensor(cam.K), o3d.core.Tensor(self._delta),
+                    1.0, self.config.depth_max_m,
+                    [o3o.OdometryConvergenceCriteria(n) for n in self.config.iterations],
+                    o3o.Method.Hybrid if hybrid else o3o.Method.PointToPlane)
+            except RuntimeError:  # open3d: "Singular 6x6 linear system ... tracking failed"
+                res = None
+            if res is None:  # no overlap to register on: the health check reports the loss
+                self._delta, fitness = np.eye(4), 0.0
+            else:
+                self._delta = res.transformation.numpy()  # prev_from_cur
+                self._pose = self._pose @ self._delta
+                fitness = float(res.fitness)
         self._prev = rgbd
         return OdometryStep(Rigid3(self._pose[:3, :3].copy(), self._pose[:3, 3].copy()), fitness,
                             int(np.count_nonzero(depth)))
