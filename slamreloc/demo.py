@@ -7,6 +7,7 @@ from pathlib import Path
 
 from slamreloc.datasets import load_dataset
 from slamreloc.evaluate import print_summary, write_json
+from slamreloc.geometry import NAMES_SUFFIX
 from slamreloc.mapping import MapConfig, build_map
 from slamreloc.pipeline import run_evaluation
 from slamreloc.progress import console, make_progress
@@ -99,7 +100,7 @@ def serve_demo_viewer(workdir: Path, map_dir: Path, scene_dir: Path, port: int =
             seen.add(path.read_bytes())
             reports.append(path)
     trajectories = sorted(p for p in [*workdir.glob("poses_*.txt"), *workdir.glob("traj*.txt")]
-                          if not p.name.endswith(".names.txt"))
+                          if not p.name.endswith(NAMES_SUFFIX))
     console.rule("viewer")
     serve(ViewerInputs(map_dir, trajectories, reports, scene_dir, port=port),
           echo=console.print)

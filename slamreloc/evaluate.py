@@ -12,7 +12,7 @@ from rich.table import Table
 from slamreloc.datasets import read_image
 from slamreloc.errors import InputError
 from slamreloc.fileio import atomic_file
-from slamreloc.geometry import Rigid3, pose_error, tum_line
+from slamreloc.geometry import Rigid3, names_sidecar, pose_error, tum_line
 from slamreloc.localizer import Localizer
 from slamreloc.progress import console, track
 from slamreloc.types import Frame
@@ -87,7 +87,7 @@ def write_tum(path: Path, results: list[QueryResult]) -> None:
     done = [(f"{t:.6f}", q) for t, q in zip(stamps, results) if q.world_from_cam is not None]
     with atomic_file(path) as tmp:
         tmp.write_text("".join(tum_line(t, q.world_from_cam) + "\n" for t, q in done))
-    with atomic_file(Path(path).with_suffix(".names.txt")) as tmp:
+    with atomic_file(names_sidecar(path)) as tmp:
         tmp.write_text("".join(f"{t} {q.name}\n" for t, q in done))
 
 

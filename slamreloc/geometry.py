@@ -9,6 +9,7 @@ Units are metres; quaternions are Hamilton, scalar-last (x, y, z, w) as in TUM f
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -195,8 +196,6 @@ def parse_tum_line(line: str, source: str = "trajectory",
 def read_tum_trajectory(path, numeric_stamps: bool = False) -> list[tuple[str, Rigid3]]:
     """A TUM trajectory file: one `name tx ty tz qx qy qz qw` per line (camera-to-world);
     blank lines and `#` comments are skipped. Errors name the file and line."""
-    from pathlib import Path
-
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: trajectory file not found")
@@ -212,6 +211,64 @@ def read_tum_trajectory(path, numeric_stamps: bool = False) -> list[tuple[str, R
             continue
         poses.append(parse_tum_line(line, f"{path}:{i}", numeric_stamps))
     return poses
+
+
+NAMES_SUFFIX = ".names.txt"  # `evaluate --poses P.txt` names P's stamps in P.names.txt
+
+
+def names_sidecar(path) -> Path:
+    """The sidecar `<stem>.names.txt` (`stamp name` per line) beside a TUM file."""
+    return Path(path).with_suffix(NAMES_SUFFIX)
+
+
+@dataclass
+class TumTrajectory:
+    """A TUM file with its frame names. `stamps` is the first column, or the row's index
+    where that column holds a frame name; `names` is None where no name is known."""
+
+    stamps: np.ndarray  # (N,) float64
+    names: list[str | None]
+    poses: list[Rigid3]  # world_from_cam
+
+
+def read_names_sidecar(path) -> dict[str, str]:
+    """`stamp name` lines -> {stamp formatted as '%.6f': name}; InputError on a bad line."""
+    path = Path(path)
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: frame names are not a text file (not UTF-8)") from None
+    except OSError as err:
+        raise InputError(f"{path}: cannot read frame names ({err.strerror or err})") from None
+    table = {}
+    for i, line in enumerate(text.splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        parts = line.split(maxsplit=1)
+        if len(parts) != 2:
+            raise InputError(f"{path}:{i}: expected 'stamp name', got {line.strip()[:80]!r}")
+        table[f"{parse_stamp(parts[0], f'{path}:{i}'):.6f}"] = parts[1].strip()
+    return table
+
+
+def read_named_trajectory(path) -> TumTrajectory:
+    """A TUM file whose first column is a timestamp (or index) or a frame name, row by row.
+    When every row is numeric, names come from the `names_sidecar` if there is one (what
+    `evaluate --poses` writes). Errors name the file and line."""
+    rows = read_tum_trajectory(path)
+    stamps, names = [], []
+    for i, (first, _) in enumerate(rows):
+        try:
+            stamps.append(parse_stamp(first, str(path)))
+            names.append(None)
+        except InputError:  # a frame name (older `evaluate --poses` files)
+            stamps.append(float(i))
+            names.append(first)
+    sidecar = names_sidecar(path)
+    if rows and all(n is None for n in names) and sidecar.is_file():
+        table = read_names_sidecar(sidecar)
+        names = [table.get(f"{s:.6f}") for s in stamps]
+    return TumTrajectory(np.array(stamps, dtype=np.float64), names, [p for _, p in rows])
 
 
 def project(points_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:

@@ -33,7 +33,7 @@ from hypothesis import strategies as st
 
 from slamreloc.datasets import load_dataset, read_depth, read_image, read_pose
 from slamreloc.errors import InputError
-from slamreloc.geometry import look_at, read_tum_trajectory, tum_line
+from slamreloc.geometry import look_at, names_sidecar, read_tum_trajectory, tum_line
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.scene_map import (DATABASE, META, WEIGHTS, MapDatabase, SceneMap, _sha256,
                                  save_map)
@@ -42,8 +42,9 @@ from tests.fuzzing import (COUNTS, damaged_bytes, damaged_json, damaged_text, fu
                            no_hang)
 
 # cases per test; their sum is the CI suite's fuzzing budget (>= 2000)
-PLANNED = {"sevenscenes": 400, "tum": 300, "pose": 300, "trajectory": 400, "map_json": 250,
-           "map_arrays": 250, "map_arrays_semantic": 100, "legacy_weights": 80, "cli": 40}
+PLANNED = {"sevenscenes": 400, "tum": 300, "pose": 300, "trajectory": 400,
+           "view_trajectory": 200, "map_json": 250, "map_arrays": 250, "map_arrays_semantic": 100,
+           "legacy_weights": 80, "cli": 40}
 
 
 # SLAMRELOC_FUZZ_SCALE=0.1 for a quick local run; CI runs the full budget
@@ -323,6 +324,34 @@ def test_fuzz_tum_trajectory(work, content, numeric):
 
 def test_fuzz_trajectory_ran():
     _assert_ran("trajectory")
+
+
+NAMES = "".join(f"{1.0 + i / 30:.6f} seq-02/frame-{i:06d}\n" for i in range(4))
+
+
+@fuzz_settings(PLANNED["view_trajectory"])
+@given(content=st.one_of(st.just(TRAJECTORY.encode()), damaged_text(TRAJECTORY)),
+       names=st.one_of(st.none(), damaged_text(NAMES)))
+def test_fuzz_view_trajectory(work, content, names):
+    """`slamreloc view --trajectory T.txt`: the file and its `evaluate --poses` names sidecar."""
+    from slamreloc.viewer.loaders import read_trajectory
+
+    path = Path(tempfile.mkdtemp(dir=work)) / "poses.txt"
+    path.write_bytes(content)
+    if names is not None:
+        names_sidecar(path).write_bytes(names)
+
+    def check():
+        traj = read_trajectory(path)
+        assert len(traj.stamps) == len(traj.names) == len(traj) > 0
+        assert np.isfinite(traj.stamps).all() and np.isfinite(traj.positions).all()
+
+    _run("view_trajectory", check)
+    shutil.rmtree(path.parent)
+
+
+def test_fuzz_view_trajectory_ran():
+    _assert_ran("view_trajectory")
 
 
 # --- map files -------------------------------------------------------------------------------

@@ -7,7 +7,8 @@ from hypothesis import strategies as st
 
 from slamreloc.errors import InputError
 from slamreloc.geometry import (Rigid3, axis_angle_to_matrix, look_at, matrix_to_quat,
-                                parse_tum_line, pose_error, quat_to_matrix, tum_line)
+                                names_sidecar, parse_tum_line, pose_error, quat_to_matrix,
+                                read_named_trajectory, tum_line)
 
 vec3 = st.lists(st.floats(-10, 10, allow_nan=False), min_size=3, max_size=3).map(np.array)
 rotvec = st.lists(st.floats(-3.1, 3.1, allow_nan=False), min_size=3, max_size=3).map(np.array)
@@ -78,3 +79,39 @@ def test_bad_tum_lines_are_rejected():
         parse_tum_line("a 1 2 3")
     with pytest.raises(InputError, match="non-numeric"):
         parse_tum_line("a 1 2 3 x 0 0 1")
+
+
+def _pose(i: int) -> Rigid3:
+    return look_at(np.array([0.1 * i, 0, 1.0]), np.array([0, 2.0, 1]))
+
+
+def test_named_trajectory_takes_names_from_the_first_column_or_the_sidecar(tmp_path):
+    numeric = tmp_path / "poses.txt"  # what `evaluate --poses` writes
+    numeric.write_text("# estimate\n" + "".join(tum_line(f"{t:.6f}", _pose(i)) + "\n"
+                                                for i, t in enumerate([1.5, 2.5, 4.0])))
+    tum = read_named_trajectory(numeric)
+    np.testing.assert_array_equal(tum.stamps, [1.5, 2.5, 4.0])
+    assert tum.names == [None, None, None]
+    np.testing.assert_allclose(tum.poses[2].translation, [0.2, 0, 1.0], atol=1e-6)
+    names_sidecar(numeric).write_text("1.500000 seq-02/frame-000001\n4.000000 frame 9\n")
+    assert read_named_trajectory(numeric).names == ["seq-02/frame-000001", None, "frame 9"]
+
+    named = tmp_path / "named.txt"  # older files: names first, stamps are the row index
+    named.write_text(tum_line("a/1.png", _pose(0)) + "\n" + tum_line("7.0", _pose(1)) + "\n")
+    names_sidecar(named).write_text("0.000000 ignored\n")
+    tum = read_named_trajectory(named)
+    assert tum.names == ["a/1.png", None] and list(tum.stamps) == [0.0, 7.0]
+
+
+@pytest.mark.parametrize("sidecar, message", [
+    (b"1.000000\n", "expected 'stamp name'"),
+    (b"x1 frame\n", "timestamp 'x1' is not a number"),
+    (b"\xff\xfe frame\n", "not UTF-8"),
+])
+def test_bad_names_sidecar_is_a_one_line_error(tmp_path, sidecar, message):
+    path = tmp_path / "poses.txt"
+    path.write_text(tum_line("1.000000", _pose(0)) + "\n")
+    names_sidecar(path).write_bytes(sidecar)
+    with pytest.raises(InputError, match=message) as err:
+        read_named_trajectory(path)
+    assert str(err.value).startswith(str(names_sidecar(path))) and "\n" not in str(err.value)

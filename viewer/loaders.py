@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.geometry import Rigid3, parse_tum_line
+from slamreloc.geometry import Rigid3, read_named_trajectory
 from slamreloc.viewer import colors as palette
 from slamreloc.viewer.data import (EvalReport, FrameView, MapView, PseudoLabelReport, QueryView,
                                    SceneData, Trajectory, ViewerInputs)
@@ -210,44 +210,17 @@ def nearest(stamps: np.ndarray, queries: np.ndarray, max_dt: float) -> np.ndarra
 
 
 def read_trajectory(path: str | Path, kind: str | None = None) -> Trajectory:
-    """A TUM file `stamp tx ty tz qx qy qz qw` (camera-to-world). The first column may also be a
-    frame name (older `evaluate --poses`); a sidecar `<stem>.names.txt` (`stamp name`) names
+    """A TUM file `stamp tx ty tz qx qy qz qw` (camera-to-world), read by the core's
+    `read_named_trajectory`: the first column may also be a frame name (older `evaluate
+    --poses`), and the sidecar `<stem>.names.txt` that `evaluate --poses` writes names
     numeric stamps."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: trajectory file not found")
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"{path}: cannot read ({err})") from None
-    stamps, names, poses = [], [], []
-    for n, line in enumerate(text.splitlines(), 1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        first, pose = parse_tum_line(line, source=f"{path}:{n}")
-        try:
-            stamps.append(float(first))
-            names.append(None)
-        except ValueError:
-            stamps.append(float(len(stamps)))
-            names.append(first)
-        poses.append(pose)
-    if not poses:
+    tum = read_named_trajectory(path)
+    if not tum.poses:
         raise InputError(f"{path}: no poses in the trajectory file")
-    sidecar = path.with_suffix(".names.txt")
-    if sidecar.is_file() and all(n is None for n in names):
-        table = {}
-        for line in sidecar.read_text().splitlines():
-            parts = line.split(maxsplit=1)
-            if len(parts) == 2:
-                try:
-                    table[round(float(parts[0]), 6)] = parts[1].strip()
-                except ValueError:
-                    pass
-        names = [table.get(round(s, 6)) for s in stamps]
     if kind is None:
         kind = "groundtruth" if GT_NAME.search(path.stem) else "estimate"
-    return Trajectory(path.stem, path, np.array(stamps), names, poses, kind)
+    return Trajectory(path.stem, path, tum.stamps, tum.names, tum.poses, kind)
 
 
 def attach_truth(traj: Trajectory, dataset) -> None:
