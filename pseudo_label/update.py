@@ -34,6 +34,7 @@ from slamreloc.features import make_extractor
 from slamreloc.geometry import Rigid3, pose_error
 from slamreloc.labels import LabelConfig, build_labels, depth_points
 from slamreloc.mapping import registered_depths
+from slamreloc.scene_map import map_write_lock
 from slamreloc.progress import console, track
 from slamreloc.pseudo_label.finetune import FinetuneConfig, finetune_regressor
 from slamreloc.pseudo_label.register import (LABELLED, NEW, PSEUDO, Database, FrameState,
@@ -508,11 +509,13 @@ def update_map(map_dir: Path, dataset: Dataset, out: Path, split: str | None = N
                config: PseudoLabelConfig = PseudoLabelConfig(), truth: Path | None = None,
                progress: bool = True) -> tuple[SceneMap, dict]:
     """Pseudo-label `dataset`'s split against the map at `map_dir`, write NEW_MAP at `out`.
-    Returns (the new map, the report)."""
+    Returns (the new map, the report). NEW_MAP's write lock is held from the start: a second
+    writer of it fails at once, not after the work."""
     map_dir, out = Path(map_dir), Path(out)
     SceneMap.load(map_dir)  # fail early on a bad map or target, before the work
     if out.resolve() == map_dir.resolve():
         raise InputError(f"{out}: the new map must not replace the map it updates")
-    check_map_target(out)
-    labels = pseudo_label(map_dir, dataset, split, config, truth, progress)
-    return write_updated_map(labels, out, config, progress)
+    with map_write_lock(out):
+        check_map_target(out)
+        labels = pseudo_label(map_dir, dataset, split, config, truth, progress)
+        return write_updated_map(labels, out, config, progress)

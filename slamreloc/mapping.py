@@ -17,7 +17,8 @@ from slamreloc.progress import console
 from slamreloc.regressor.checkpoint import checkpoint_path
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
-from slamreloc.scene_map import MapDatabase, SceneMap, check_map_target, save_map
+from slamreloc.scene_map import (MapDatabase, SceneMap, check_map_target, map_write_lock,
+                                 save_map)
 from slamreloc.types import Features, Frame
 
 
@@ -54,7 +55,16 @@ def registered_depths(dataset: Dataset, frames: list[Frame]) -> list[np.ndarray]
 def build_map(dataset: Dataset, out: Path, split: str = "train", config: MapConfig = MapConfig(),
               progress: bool = True, resume: bool = False) -> SceneMap:
     """Map a split of `dataset` into the folder `out` (written atomically). Training state is
-    checkpointed beside `out`; `resume` continues an interrupted run from it."""
+    checkpointed beside `out`; `resume` continues an interrupted run from it.
+
+    The write lock of `out` is held for the whole run, not only while saving: a second writer
+    of the same map (and its checkpoint) fails at once instead of after its work."""
+    with map_write_lock(out):
+        return _build_map(dataset, Path(out), split, config, progress, resume)
+
+
+def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progress: bool,
+               resume: bool) -> SceneMap:
     check_map_target(out)  # fail before the work, not after it
     ckpt = checkpoint_path(out)
     if resume and not ckpt.is_file():

@@ -18,7 +18,8 @@ refused with a message naming both versions.
 Writing is crash-safe: the new map is written into `.NAME.tmp-PID` beside MAP and swapped in
 with one atomic `renameat2(RENAME_EXCHANGE)` (two renames where the file system lacks it; a
 crash between them is rolled back at the next start). A writer holds an exclusive lock on
-`.NAME.lock` (removed when it is done); a second writer fails at once. Leftovers of a killed writer are removed at the
+`.NAME.lock` (removed when it is done; `build_map` and `update_map` take it at their start);
+a second writer fails at once. Leftovers of a killed writer are removed at the
 next save or load of that map.
 """
 

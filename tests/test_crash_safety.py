@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -159,17 +161,35 @@ def test_two_writers_at_once_one_wins_never_a_mixed_map(tmp_path, round_):
     assert _tag(out) == winner and _leftovers(out) == []
 
 
-def _small_dataset(scene_dir: Path, root: Path, n: int = 6) -> Path:
-    """The first n frames of the synthetic scene's mapping sequence (a <1 s `map` run)."""
+def _small_dataset(scene_dir: Path, root: Path, frames: slice = slice(0, 6),
+                   poses: bool = True) -> Path:
+    """Frames of the synthetic scene's mapping sequence (6 frames: a <1 s `map` run); without
+    pose files when `poses` is False (an unlabelled sequence for `pseudo-label`)."""
     (root / "seq-01").mkdir(parents=True)
-    stems = sorted({p.name.split(".")[0] for p in (scene_dir / "seq-01").iterdir()})[:n]
+    stems = sorted({p.name.split(".")[0] for p in (scene_dir / "seq-01").iterdir()})[frames]
     for stem in stems:
         for p in (scene_dir / "seq-01").glob(f"{stem}.*"):
-            shutil.copy(p, root / "seq-01" / p.name)
+            if poses or not p.name.endswith(".pose.txt"):
+                shutil.copy(p, root / "seq-01" / p.name)
     for name in ("intrinsics.txt", "scene.json"):
         shutil.copy(scene_dir / name, root / name)
     (root / "TrainSplit.txt").write_text("sequence1\n")
     return root
+
+
+def _tiny_map(ds: Path, out: Path) -> SceneMap:
+    from slamreloc.datasets import load_dataset
+    from slamreloc.mapping import MapConfig, build_map
+    from slamreloc.regressor.train import TrainConfig
+
+    return build_map(load_dataset(ds), out, "train",
+                     MapConfig(arch="tiny", train=TrainConfig(epochs=1)), progress=False)
+
+
+def _digests(folder: Path) -> dict[str, str]:
+    import hashlib
+
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in folder.iterdir()}
 
 
 def run_kill_harness(spec: dict, tmp_path: Path, timeout: float = 900) -> dict:
@@ -185,25 +205,11 @@ def run_kill_harness(spec: dict, tmp_path: Path, timeout: float = 900) -> dict:
     return report
 
 
-KILLS = int(os.environ.get("SLAMRELOC_KILLS", "50"))
+# kills per command; `map` and `pseudo-label` together: 2 x 30 = 60 (the issue asks >= 50)
+KILLS = int(os.environ.get("SLAMRELOC_KILLS", "30"))
 
 
-def test_kill_9_at_random_moments_of_map_never_loses_the_map(scene_dir, tmp_path):
-    """`slamreloc map DATASET --out MAP` over an existing MAP, killed -9 at random moments
-    (half uniform over the run, half aimed at its write phase) 50 times."""
-    from slamreloc.datasets import load_dataset
-    from slamreloc.mapping import MapConfig, build_map
-    from slamreloc.regressor.train import TrainConfig
-
-    ds = _small_dataset(scene_dir, tmp_path / "ds")
-    out = tmp_path / "maps" / "map"
-    build_map(load_dataset(ds), out, "train",
-              MapConfig(arch="tiny", train=TrainConfig(epochs=1)), progress=False)
-    report = run_kill_harness({
-        "argv": ["map", str(ds), "--out", str(out), "--arch", "tiny", "--epochs", "1",
-                 "--device", "cpu"],
-        "map": str(out), "kills": KILLS, "seed": 11, "time_limit_s": 600,
-        "tail_fraction": 0.5}, tmp_path)
+def _check_kill_report(report: dict, out: Path) -> None:
     assert report["failures"] == []
     assert report["kills"] >= KILLS
     assert report["kept_previous_map"] + report["replaced_by_complete_map"] == report["kills"]
@@ -211,3 +217,110 @@ def test_kill_9_at_random_moments_of_map_never_loses_the_map(scene_dir, tmp_path
     assert report["kills_in_write_phase"] >= KILLS // 4
     assert report["leftovers_seen_after_kill"] > 0
     assert _leftovers(out) == [] and SceneMap.load(out).database is not None
+
+
+def test_kill_9_at_random_moments_of_map_never_loses_the_map(scene_dir, tmp_path):
+    """`slamreloc map DATASET --out MAP` over an existing MAP, killed -9 at random moments
+    (half uniform over the run, half aimed at its write phase) KILLS times."""
+    ds = _small_dataset(scene_dir, tmp_path / "ds")
+    out = tmp_path / "maps" / "map"
+    _tiny_map(ds, out)
+    report = run_kill_harness({
+        "argv": ["map", str(ds), "--out", str(out), "--arch", "tiny", "--epochs", "1",
+                 "--device", "cpu"],
+        "map": str(out), "kills": KILLS, "seed": 11, "time_limit_s": 600,
+        "tail_fraction": 0.5}, tmp_path)
+    _check_kill_report(report, out)
+
+
+def test_kill_9_at_random_moments_of_pseudo_label_never_loses_the_map(scene_dir, tmp_path):
+    """`slamreloc pseudo-label MAP DATASET --out NEW_MAP` over an existing NEW_MAP (the next
+    six frames of the mapping sequence, poses withheld, registered against a 6-frame map and
+    fine-tuned for an epoch), killed -9 at random moments KILLS times: NEW_MAP is always the
+    previous or a complete new map, and MAP is never touched."""
+    from slamreloc.datasets import load_dataset
+    from slamreloc.pseudo_label import PseudoLabelConfig, update_map
+
+    base = _tiny_map(_small_dataset(scene_dir, tmp_path / "ds"), tmp_path / "maps" / "map")
+    unlabelled = _small_dataset(scene_dir, tmp_path / "unlabelled", slice(6, 12), poses=False)
+    out = tmp_path / "maps" / "new"
+    _, rep = update_map(base.root, load_dataset(unlabelled), out, "seq-01",
+                        PseudoLabelConfig(rounds=1, epochs=1, device="cpu"), progress=False)
+    assert rep["n_frames_registered"] >= 3  # real registration work happens in every run
+    before = _digests(base.root)
+    report = run_kill_harness({
+        "argv": ["pseudo-label", str(base.root), str(unlabelled), "--out", str(out),
+                 "--report", str(tmp_path / "report.json"), "--split", "seq-01",
+                 "--rounds", "1", "--epochs", "1", "--device", "cpu"],
+        "map": str(out), "kills": KILLS, "seed": 12, "time_limit_s": 600,
+        "tail_fraction": 0.5}, tmp_path)
+    _check_kill_report(report, out)
+    assert _digests(base.root) == before
+
+
+def test_map_and_pseudo_label_take_the_write_lock_before_their_work(scene_dir, tmp_path,
+                                                                    monkeypatch):
+    """While another process writes MAP, `build_map(..., MAP)` and `update_map(..., MAP)` fail
+    at once with one line naming it: no feature is extracted, nothing is trained."""
+    from slamreloc import mapping
+    from slamreloc.datasets import load_dataset
+    from slamreloc.pseudo_label import PseudoLabelConfig, update, update_map
+
+    ds = _small_dataset(scene_dir, tmp_path / "ds")
+    base = _tiny_map(ds, tmp_path / "base")
+    out = make_map(tmp_path / "map", tag="first")
+    def no_work(*args, **kwargs):
+        raise AssertionError("work started while another process writes the map")
+
+    for module in (mapping, update):
+        monkeypatch.setattr(module, "extract_frames", no_work)
+    holder = _python(HOLD_LOCK, str(out), "120")
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        lock_error = re.escape(f"{out}: another process (pid {holder.pid}) is writing this map")
+        with pytest.raises(InputError, match=lock_error) as err:
+            _tiny_map(ds, out)
+        assert "\n" not in str(err.value)
+        with pytest.raises(InputError, match=lock_error):
+            update_map(base.root, load_dataset(ds), out, "seq-01",
+                       PseudoLabelConfig(rounds=1, epochs=1), progress=False)
+        assert _tag(out) == "first"
+    finally:
+        holder.kill()
+        holder.communicate()
+
+
+def _cli(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "slamreloc.cli", *args], cwd=REPO, env=ENV,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_second_writer_command_fails_at_its_start_while_map_works(scene_dir, tmp_path):
+    """While `slamreloc map ... --out MAP` works (its lock is held from its start), a second
+    `map` and a `pseudo-label --out MAP` each end at once with one line and exit 2, before
+    any work of theirs, and the first run goes on."""
+    ds = _small_dataset(scene_dir, tmp_path / "ds")
+    base = _tiny_map(ds, tmp_path / "base")
+    out = tmp_path / "maps" / "map"
+    lock = out.parent / f".{out.name}.lock"
+    args = [str(ds), "--out", str(out), "--arch", "tiny", "--device", "cpu"]
+    first = _cli("map", *args, "--epochs", "100000")  # still training when the others start
+    try:
+        deadline = time.monotonic() + 120  # its start-up; its training would take an hour
+        while not (lock.is_file() and lock.read_text().strip() == str(first.pid)):
+            assert first.poll() is None and time.monotonic() < deadline, \
+                "the first run does not hold the lock while it works"
+            time.sleep(0.02)
+        expected = (f"error: {out}: another process (pid {first.pid}) is writing this map; "
+                    "try again when it has finished")
+        for argv in (["map", *args, "--epochs", "1"],
+                     ["pseudo-label", str(base.root), str(ds), "--out", str(out), "--report",
+                      str(tmp_path / "r.json"), "--split", "seq-01", "--epochs", "1"]):
+            second = _cli(*argv)
+            stdout, stderr = second.communicate(timeout=300)
+            assert second.returncode == 2, stderr
+            assert stdout == "" and stderr.strip() == expected  # nothing else: no work done
+            assert first.poll() is None  # the first run is still working
+    finally:
+        first.kill()
+        first.communicate(timeout=300)

@@ -3,7 +3,8 @@ in every CI run).
 
 Each test damages valid files (truncation, bit flips, garbage, NaN and huge numbers,
 non-rigid and wrong-shape matrices, images of the wrong size or depth type, JSON of the wrong
-type, missing keys, split files naming missing sequences, bad timestamps, ...) and runs the
+type, missing keys, split files naming missing sequences, bad timestamps, COLMAP models
+with truncated files, trusted counts, unknown camera models and missing images, ...) and runs the
 public loaders on them. A case passes when the loader either works or raises InputError (the
 CLI's one-line `error: <file>: <problem>`, exit 2); any other exception is a traceback for the
 user and fails the test, as does a case that runs longer than the hang limit. The CLI itself
@@ -19,6 +20,7 @@ import io
 import json
 import os
 import shutil
+import struct
 import sys
 import tempfile
 from contextlib import redirect_stderr, redirect_stdout
@@ -38,13 +40,14 @@ from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.scene_map import (DATABASE, META, WEIGHTS, MapDatabase, SceneMap, _sha256,
                                  save_map)
 from tests import fuzzing
+from tests.colmap_project import write_colmap_project
 from tests.fuzzing import (COUNTS, damaged_bytes, damaged_json, damaged_text, fuzz_settings,
                            no_hang)
 
 # cases per test; their sum is the CI suite's fuzzing budget (>= 2000)
-PLANNED = {"sevenscenes": 400, "tum": 300, "pose": 300, "trajectory": 400,
+PLANNED = {"sevenscenes": 400, "tum": 300, "colmap": 400, "pose": 300, "trajectory": 400,
            "view_trajectory": 200, "map_json": 250, "map_arrays": 250, "map_arrays_semantic": 100,
-           "legacy_weights": 80, "cli": 40}
+           "legacy_weights": 80, "cli": 40, "cli_colmap": 40}
 
 
 # SLAMRELOC_FUZZ_SCALE=0.1 for a quick local run; CI runs the full budget
@@ -259,6 +262,88 @@ def test_fuzz_tum_dataset(tum_base, work, data):
 
 def test_fuzz_tum_ran():
     _assert_ran("tum")
+
+
+COLMAP_BASES = {"bin": ("bin", False), "bin_legacy": ("bin", True), "txt": ("txt", False),
+                "txt_legacy": ("txt", True)}
+
+
+@pytest.fixture(scope="module")
+def colmap_bases(work, seven_base) -> dict[str, Path]:
+    """The 7-Scenes base's frames as COLMAP projects: binary and text models, with rigs and
+    frames files (COLMAP >= 3.12) and without (older COLMAP)."""
+    frames = load_dataset(seven_base).frames("all")
+    bases = {key: write_colmap_project(frames, work / f"basecolmap_{key}" / "project", ext,
+                                       legacy) for key, (ext, legacy) in COLMAP_BASES.items()}
+    for root in bases.values():
+        assert len(load_dataset(root).frames("train")) == len(frames)
+    return bases
+
+
+COLMAP_MODEL_NAMES = ["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "OPENCV", "OPENCV_FISHEYE",
+                      "FOV", "EQUIRECTANGULAR", "FOO", "pinhole", "PINHOLE PINHOLE", "1"]
+HUGE_COUNTS = [0, 1, 2, 3, 255, 2 ** 31, 2 ** 32, 2 ** 40, 2 ** 63, 2 ** 64 - 1]
+
+
+@st.composite
+def damaged_colmap(draw, root: Path) -> list[tuple[str, object]]:
+    """Changes to a COLMAP project: a damaged model file (bytes or text, removed), a count
+    that pycolmap would trust, an unknown or distorted camera model, missing or damaged
+    images, split files naming unknown sequences."""
+    files = _files(root)
+    model = [f for f in files if f.startswith("sparse/") and "points3D" not in f]  # unread
+    images = [f for f in files if f.startswith("images/")]
+    kind = draw(st.sampled_from(["model"] * 5 + ["count", "count", "camera_model",
+                                                 "missing_image", "image", "split"]))
+    if kind == "missing_image":
+        return [(rel, "remove") for rel in draw(st.lists(st.sampled_from(images), min_size=1,
+                                                         max_size=2, unique=True))]
+    if kind == "image":
+        return [draw(damaged_file(root, images))]
+    if kind == "split":
+        name = draw(st.sampled_from(["TrainSplit.txt", "TestSplit.txt"]))
+        lines = draw(st.lists(st.sampled_from(["seq-01", "seq-02", "seq-03", "images", "", "#",
+                                               "../seq-01", "seq-01,seq-02"]) | st.text(
+                                                   max_size=10), max_size=4))
+        return [(name, ("\n".join(lines) + "\n").encode("utf-8", "surrogatepass"))]
+    rel = draw(st.sampled_from(model))
+    data = (root / rel).read_bytes()
+    binary = rel.endswith(".bin")
+    if kind == "camera_model":
+        rel = rel.rsplit("/", 1)[0] + ("/cameras.bin" if binary else "/cameras.txt")
+        data = (root / rel).read_bytes()
+        if binary:
+            model_id = draw(st.sampled_from([-1, 2, 4, 5, 7, 17, 18, 19, 255, 2 ** 31 - 1]))
+            return [(rel, data[:12] + struct.pack("<i", model_id) + data[16:])]
+        words = data.decode().splitlines()[-1].split()
+        words[1] = draw(st.sampled_from(COLMAP_MODEL_NAMES))
+        return [(rel, (data.decode() + " ".join(words) + "\n").encode()
+                 if draw(st.booleans()) else " ".join(words).encode())]
+    if kind == "count" and binary and len(data) >= 8:
+        # the file's own count, or an 8-byte field anywhere (points2D counts, ids, names)
+        pos = 0 if draw(st.booleans()) else draw(st.integers(0, len(data) - 8))
+        return [(rel, data[:pos] + struct.pack("<Q", draw(st.sampled_from(HUGE_COUNTS)))
+                 + data[pos + 8:])]
+    if draw(st.integers(0, 9)) == 0:
+        return [(rel, draw(st.sampled_from(["remove", "dir"])))]
+    return [(rel, draw(damaged_bytes(data)) if binary else draw(damaged_text(data.decode())))]
+
+
+@fuzz_settings(PLANNED["colmap"])
+@given(data=st.data(), base=st.sampled_from(sorted(COLMAP_BASES)))
+def test_fuzz_colmap_project(colmap_bases, work, data, base):
+    root = _case_dir(work, colmap_bases[base])
+    for rel, change in data.draw(damaged_colmap(colmap_bases[base])):
+        if (root / rel).is_file():
+            _apply(root, rel, change)
+        elif change not in ("remove", "dir"):
+            (root / rel).write_bytes(change)
+    _run("colmap", lambda: _exercise_dataset(root))
+    shutil.rmtree(root.parent)
+
+
+def test_fuzz_colmap_ran():
+    _assert_ran("colmap")
 
 
 finite_or_not = st.floats(allow_nan=True, allow_infinity=True, width=64)
@@ -596,3 +681,26 @@ def test_fuzz_cli_evaluate(map_base, seven_base, work, data, target):
 
 def test_fuzz_cli_ran():
     _assert_ran("cli")
+
+
+@fuzz_settings(PLANNED["cli_colmap"])
+@given(data=st.data(), base=st.sampled_from(sorted(COLMAP_BASES)))
+def test_fuzz_cli_evaluate_colmap(map_base, colmap_bases, work, data, base):
+    """`slamreloc evaluate MAP COLMAP_PROJECT` on a damaged COLMAP project."""
+    case = Path(tempfile.mkdtemp(dir=work))
+    map_dir, ds = case / "map", case / "project"
+    shutil.copytree(map_base, map_dir, copy_function=os.link)
+    shutil.copytree(colmap_bases[base], ds, copy_function=os.link)
+    for rel, change in data.draw(damaged_colmap(colmap_bases[base])):
+        if (ds / rel).is_file():
+            _apply(ds, rel, change)
+        elif change not in ("remove", "dir"):
+            (ds / rel).write_bytes(change)
+    code, stderr = _cli(["evaluate", str(map_dir), str(ds), "--split", "train", "--report",
+                         str(case / "r.json")])
+    check_cli_outcome(code, stderr, "cli_colmap")
+    shutil.rmtree(case)
+
+
+def test_fuzz_cli_colmap_ran():
+    _assert_ran("cli_colmap")

@@ -122,3 +122,39 @@ def test_odometry_from_a_trajectory_file(kidnap_scene, small_map, tmp_path):  # 
     res = cli("slam", kidnap_scene, "--map", small_map.root, "--split", "kidnap",
               "--odometry", tmp_path / "short.txt", "--report", tmp_path / "r2.json")
     assert res.returncode == 2 and "no pose within" in res.stderr
+
+
+def test_backend_keeps_no_per_frame_events_or_images():
+    """A long run must not grow with every frame's event or hold any image: the per-frame
+    events reach plugins and StepResult only; the log holds state changes."""
+    from dataclasses import fields
+
+    from slamreloc.types import Camera
+
+    class Recorder:
+        name = "recorder"
+
+        def __init__(self):
+            self.kinds = []
+
+        def attach(self, backend):
+            self.backend = backend
+
+        def on_event(self, event, frame):
+            self.kinds.append(event.kind)
+            if event.kind == EventKind.FRAME and event.frame == 30:
+                self.backend.anchor(event.frame, Rigid3.identity())
+
+    camera = Camera(64, 48, 60.0, 60.0, 32.0, 24.0)
+    recorder = Recorder()
+    backend = SlamBackend(plugins=[recorder])
+    image = np.zeros((48, 64, 3), np.uint8)
+    for i in range(60):
+        step = Rigid3(np.eye(3), np.array([0.01 * i, 0.0, 0.0]))
+        result = backend.process(image, None, camera, odometry_world_from_cam=step)
+        assert EventKind.FRAME in [e.kind for e in result.events]
+    assert recorder.kinds.count(EventKind.FRAME) == 60
+    assert recorder.kinds.count(EventKind.NEW_KEYFRAME) >= 10
+    assert [e.kind for e in backend.event_log] == [EventKind.TRACKING_RECOVERED]
+    held = [getattr(f, field.name) for f in backend.frames for field in fields(f)]
+    assert not any(isinstance(v, np.ndarray) and v.shape[:2] == (48, 64) for v in held)

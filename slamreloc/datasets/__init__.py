@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from slamreloc.datasets.base import Dataset
+from slamreloc.datasets.colmap import is_colmap, load_colmap
 from slamreloc.datasets.io import read_depth, read_image, read_intrinsics, read_pose, write_pose
 from slamreloc.datasets.sevenscenes import is_sevenscenes, load_sevenscenes
 from slamreloc.datasets.tum import is_tum, load_tum
@@ -15,13 +16,16 @@ __all__ = ["Dataset", "load_dataset", "read_depth", "read_image", "read_intrinsi
 
 
 def load_dataset(root: str | Path) -> Dataset:
-    """7-Scenes (and the synthetic scene, which uses its layout) or TUM RGB-D."""
+    """7-Scenes (and the synthetic scene, which uses its layout), TUM RGB-D or a COLMAP project
+    (sparse model + images/)."""
     root = Path(root)
     if not root.is_dir():
         raise InputError(f"{root}: dataset folder not found")
     if is_tum(root):
         return load_tum(root)
+    if is_colmap(root):
+        return load_colmap(root)
     if is_sevenscenes(root):
         return load_sevenscenes(root)
     raise InputError(f"{root}: not a known dataset layout (expected 7-Scenes seq-XX/ folders, "
-                     "a synthetic scene, or TUM rgb.txt)")
+                     "a synthetic scene, TUM rgb.txt, or a COLMAP sparse/ model with images/)")

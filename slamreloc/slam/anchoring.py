@@ -57,7 +57,7 @@ class AnchoringMixin:
                also: list[tuple[int, Rigid3]] = ()) -> None:
         """Tracking was lost (or never started): place the current odometry epoch in the map
         frame so that frame i has `world_from_cam_i`; `also` adds the agreeing relocalizations."""
-        first = next(r.index for r in self.frames if r.epoch == self.frames[-1].epoch)
+        first = self.epoch_first  # not a scan of every frame of the run
         cur = self._new_segment(first, world_from_cam_i, i, list(also))
         self._emit(Event(EventKind.TRACKING_RECOVERED, cur, self.pose_of(cur),
                                   {"relocalized_frame": i}))

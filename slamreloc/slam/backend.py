@@ -23,6 +23,10 @@ from slamreloc.slam.odometry import Odometry, OdometryStep
 from slamreloc.slam.timing import Timer
 
 
+LOGGED_EVENTS = frozenset({EventKind.TRACKING_LOST, EventKind.TRACKING_RECOVERED,
+                           EventKind.MAP_UPDATED})
+
+
 class TrackState(str, Enum):
     INITIALIZING = "initializing"  # no map-frame pose yet
     TRACKING = "tracking"
@@ -36,8 +40,10 @@ class BackendConfig:
     graph: GraphConfig = field(default_factory=GraphConfig)
 
 
-@dataclass
+@dataclass(slots=True)
 class FrameRecord:
+    """What the backend keeps of a processed frame (never its image or depth)."""
+
     index: int
     timestamp: float
     epoch: int  # odometry epoch
@@ -67,11 +73,14 @@ class SlamBackend(AnchoringMixin):
         self.frames: list[FrameRecord] = []
         self.state = TrackState.INITIALIZING
         self.epoch, self.segment, self._next_key = 0, -1, 0
+        self.epoch_first = 0  # index of the first frame of the current odometry epoch
         self.seg_keys: dict[int, list[int]] = {}  # segment -> its keyframes' frame indices
         self.n_segments = 0
         self.timer = Timer()
         self._events: list[Event] = []
-        self.event_log: list[Event] = []  # every event of the run, in order
+        # the run's state changes, in order (not the per-frame and keyframe events: those go
+        # to the plugins and into StepResult.events only, so the log does not grow per frame)
+        self.event_log: list[Event] = []
         self.plugins = list(plugins)
         for plugin in self.plugins:
             plugin.attach(self)
@@ -159,6 +168,7 @@ class SlamBackend(AnchoringMixin):
             self._emit(Event(EventKind.TRACKING_LOST, index, None, {"reason": reason}))
             self.state = TrackState.LOST
         self.epoch += 1
+        self.epoch_first = index
         self.segment = -1
         if self.odometry is not None:
             self.odometry.reset()
@@ -166,7 +176,8 @@ class SlamBackend(AnchoringMixin):
     def _emit(self, event: Event) -> None:
         """Record an event and hand it to every plugin (with the frame being processed)."""
         self._events.append(event)
-        self.event_log.append(event)
+        if event.kind in LOGGED_EVENTS:
+            self.event_log.append(event)
         for plugin in self.plugins:
             plugin.on_event(event, self._data)
 
