@@ -1,11 +1,11 @@
 """The relocalization plugin: the core's regressor + PnP inside the SLAM backend.
 
 (a) Kidnapped recovery: while the backend is lost (or not yet started) every incoming frame is
-    relocalized; once `votes` (3) relocalizations agree through odometry the backend is anchored.
+    relocalized; once `votes` (2) relocalizations agree through odometry the backend is anchored.
 (b) Loop closure: every `loop_closure_every` keyframes the keyframe is relocalized; a result
     that fits the track becomes a robust prior in the graph. One that does not fit is held
-    and the next frames are relocalized: if later ones agree with it the track was wrong
-    (re-anchor), if not enough do within the window it is rejected.
+    and the next frames are relocalized: if a later one agrees with it the track was wrong
+    (re-anchor), if none does within the window it is rejected (`votes` in all).
 Inputs to every decision: the PnP inlier count and the regressor's confidence (gating.py).
 """
 
