@@ -2,6 +2,7 @@
 with and without 20 % of the relocalizations replaced by wrong poses (the plugin's test hook).
 
     python benchmarks/slam_targets.py ../shared/data/7scenes_redkitchen --map M [--out T.md]
+        [--votes V] [--loop-closure-every K]
 
 Each run is what `slamreloc slam ... --report R --trajectory T` runs, with the default backend
 and plugin settings; each run's report and TUM trajectory are written beside --out (for evo).
@@ -12,7 +13,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from slamreloc.plugins.gating import GateConfig
 from slamreloc.plugins.relocalization import RelocalizationConfig
+
 from slamreloc.slam.cli_stage import run_slam_command
 
 RUNS = {"no kidnapping": (0, 0.0), "--kidnap-every 40": (40, 0.0),
@@ -29,7 +32,13 @@ def main() -> None:
     ap.add_argument("dataset", type=Path)
     ap.add_argument("--map", type=Path, required=True)
     ap.add_argument("--out", type=Path, default=Path("slam_targets.md"))
+    ap.add_argument("--votes", type=int, default=GateConfig.votes,
+                    help="agreeing relocalizations needed to (re-)anchor")
+    ap.add_argument("--loop-closure-every", type=int,
+                    default=RelocalizationConfig.loop_closure_every,
+                    help="keyframes from an accepted relocalization to the next try")
     args = ap.parse_args()
+    gate = GateConfig(votes=args.votes)
     lines = ["| run | ATE map frame | ATE SE(3)-aligned | ATE odometry only | kidnaps recovered "
              "| frames to recover (median; each) | recovered pose error (median) | loop closures "
              "(rejected) | injected (rejected) | false anchors | backend fps |",
@@ -39,7 +48,9 @@ def main() -> None:
         r = run_slam_command(args.dataset, args.map, stem.with_suffix(".json"),
                              kidnap_every=every, trajectory=stem.with_suffix(".txt"),
                              progress=False, plugin_options={
-                                 "config": RelocalizationConfig(inject_wrong_fraction=inject)})
+                                 "config": RelocalizationConfig(
+                                     gate=gate, loop_closure_every=args.loop_closure_every,
+                                     inject_wrong_fraction=inject)})
         s = r["relocalization"]
         rec = "-" if not r["n_kidnaps"] else f"{r['n_recovered']}/{r['n_kidnaps']}"
         frames_rec = ("-" if not r["n_kidnaps"] else

@@ -25,11 +25,13 @@ class GateConfig:
     track_m: float = 0.15
     track_deg: float = 7.0
     window: int = 6  # a candidate older than this many frames can no longer be confirmed
-    # relocalizations that must agree before the track is (re-)anchored. Two consecutive frames
-    # in a poorly mapped area can agree on the same wrong pose (RedKitchen seq-02 frames 40-41:
-    # 35-41 cm off, a false anchor); 3 avoids it there but costs ATE under injected wrong
-    # relocalizations on the synthetic scene (BENCHMARKS.md, issue 8): undecided, 2 for now
-    votes: int = 2
+    # relocalizations that must agree to anchor a lost track. Two consecutive frames in a poorly
+    # mapped area can agree on the same wrong pose (RedKitchen seq-02 frames 58-61: 35-41 cm
+    # off, a false anchor with 2); three did not in any run (BENCHMARKS.md, issue 8)
+    votes: int = 3
+    # ... and to re-anchor a track that odometry still calls healthy: a second hypothesis
+    # against a track with no sign of trouble needs more evidence than one for a lost track
+    reanchor_votes: int = 4
 
 
 @dataclass

@@ -1,11 +1,13 @@
 """The relocalization plugin: the core's regressor + PnP inside the SLAM backend.
 
 (a) Kidnapped recovery: while the backend is lost (or not yet started) every incoming frame is
-    relocalized; once `votes` (2) relocalizations agree through odometry the backend is anchored.
-(b) Loop closure: every `loop_closure_every` keyframes the keyframe is relocalized; a result
+    relocalized; once `votes` (3) relocalizations agree through odometry the backend is anchored.
+(b) Loop closure: `loop_closure_every` keyframes after the last accepted relocalization the
+    keyframe is relocalized (the schedule restarts at each acceptance, so a rejected result
+    delays the next closure by a frame, not by a whole period); a result
     that fits the track becomes a robust prior in the graph. One that does not fit is held
     and the next frames are relocalized: if a later one agrees with it the track was wrong
-    (re-anchor), if none does within the window it is rejected (`votes` in all).
+    (re-anchor: `reanchor_votes`, 4, in all), if not within the window they are rejected.
 Inputs to every decision: the PnP inlier count and the regressor's confidence (gating.py).
 """
 
@@ -15,11 +17,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from slamreloc.plugins.gating import Candidate, GateConfig, find_agreeing, fits_track, good_quality
+from slamreloc.plugins.relocstats import RelocStats
 
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix
-from slamreloc.plugins.gating import (Candidate, GateConfig, find_agreeing, fits_track,
-                                      good_quality)
-from slamreloc.plugins.relocstats import RelocStats
 from slamreloc.pnp import estimate_pose
 from slamreloc.slam.backend import TrackState
 from slamreloc.slam.events import Event, EventKind, FrameData
@@ -28,7 +29,7 @@ from slamreloc.slam.events import Event, EventKind, FrameData
 @dataclass(frozen=True)
 class RelocalizationConfig:
     gate: GateConfig = field(default_factory=GateConfig)
-    loop_closure_every: int = 3  # keyframes between loop-closure relocalizations
+    loop_closure_every: int = 3  # keyframes from an accepted relocalization to the next try
     keep_fraction: float = 0.5  # PnP on this share of the most confident predictions (localizer)
     inject_wrong_fraction: float = 0.0  # test hook: replace results by poses >= 0.5 m / 20 deg off
     inject_seed: int = 0
@@ -50,15 +51,15 @@ class RelocalizationPlugin:
         self.pending: list[Candidate] = []  # tracking: candidates that do not fit the track
         self.lost: list[Candidate] = []  # lost: candidates waiting for an agreeing one
         self._rng = np.random.default_rng(config.inject_seed)
-        self._keyframes, self._keyframe_due = 0, False
+        self._keyframes_since, self._keyframe_due = 0, False  # since the last acceptance
 
     def attach(self, backend) -> None:
         self.backend = backend
 
     def on_event(self, event: Event, frame: FrameData) -> None:
         if event.kind == EventKind.NEW_KEYFRAME:
-            self._keyframes += 1
-            self._keyframe_due = self._keyframes % self.config.loop_closure_every == 1
+            self._keyframes_since += 1
+            self._keyframe_due = self._keyframes_since >= self.config.loop_closure_every
         elif event.kind == EventKind.TRACKING_LOST:
             self._reject(self.pending)
         elif event.kind == EventKind.FRAME:
@@ -78,6 +79,7 @@ class RelocalizationPlugin:
             self.backend.anchor(c.frame, c.world_from_cam,
                                 [(a.frame, a.world_from_cam) for a in agreeing])
             self.stats.accept([c, *agreeing], "anchor")
+            self._keyframes_since = 0
             self._reject([x for x in self.lost if x not in agreeing])
             self.lost = []
         else:
@@ -91,15 +93,20 @@ class RelocalizationPlugin:
         if fits_track(c, self.backend, self.config.gate):
             self.backend.add_loop_closure(c.frame, c.world_from_cam)
             self.stats.accept([c], "loop_closure")
+            self._keyframes_since = 0
             self._reject(self.pending)
             return
         agreeing = find_agreeing(c, self.pending, self.backend, self.config.gate)
-        if len(agreeing) + 1 >= self.config.gate.votes:  # consistent with each other, not with the track: the track is wrong
+        if len(agreeing) + 1 >= self.config.gate.reanchor_votes:
+            # consistent with each other, not with the track: the track is wrong
+            others = [x for x in self.pending if x not in agreeing]
+            self.pending = []  # the re-anchor's tracking_lost event must not reject the voters
             self.backend.reanchor(c.frame, c.world_from_cam,
                                   [(a.frame, a.world_from_cam) for a in agreeing],
                                   reason="relocalizations agree with each other, not the track")
             self.stats.accept([c, *agreeing], "reanchor")
-            self._reject([x for x in self.pending if x not in agreeing])
+            self._keyframes_since = 0
+            self._reject(others)
         else:
             self.pending = self._age([*self.pending, c], c.frame)
 

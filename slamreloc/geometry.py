@@ -199,18 +199,21 @@ def read_tum_trajectory(path, numeric_stamps: bool = False) -> list[tuple[str, R
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: trajectory file not found")
+    return [parse_tum_line(line, f"{path}:{i}", numeric_stamps)
+            for i, line in _content_lines(path, "trajectory")]
+
+
+def _content_lines(path: Path, what: str) -> list[tuple[int, str]]:
+    """(line number, line) of a UTF-8 text file, blank lines and `#` comments skipped;
+    an unreadable or binary file is an InputError naming it."""
     try:
         text = path.read_bytes().decode("utf-8")
     except UnicodeDecodeError:
-        raise InputError(f"{path}: trajectory is not a text file (not UTF-8)") from None
+        raise InputError(f"{path}: {what} is not a text file (not UTF-8)") from None
     except OSError as err:
-        raise InputError(f"{path}: cannot read trajectory ({err.strerror or err})") from None
-    poses = []
-    for i, line in enumerate(text.splitlines(), 1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        poses.append(parse_tum_line(line, f"{path}:{i}", numeric_stamps))
-    return poses
+        raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None
+    return [(i, line) for i, line in enumerate(text.splitlines(), 1)
+            if line.strip() and not line.lstrip().startswith("#")]
 
 
 NAMES_SUFFIX = ".names.txt"  # `evaluate --poses P.txt` names P's stamps in P.names.txt
@@ -234,16 +237,8 @@ class TumTrajectory:
 def read_names_sidecar(path) -> dict[str, str]:
     """`stamp name` lines -> {stamp formatted as '%.6f': name}; InputError on a bad line."""
     path = Path(path)
-    try:
-        text = path.read_bytes().decode("utf-8")
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: frame names are not a text file (not UTF-8)") from None
-    except OSError as err:
-        raise InputError(f"{path}: cannot read frame names ({err.strerror or err})") from None
     table = {}
-    for i, line in enumerate(text.splitlines(), 1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
+    for i, line in _content_lines(path, "frame names file"):
         parts = line.split(maxsplit=1)
         if len(parts) != 2:
             raise InputError(f"{path}:{i}: expected 'stamp name', got {line.strip()[:80]!r}")

@@ -8,9 +8,10 @@ import subprocess
 import sys
 from dataclasses import replace
 
+import numpy as np
 import pytest
-
 from slamreloc.plugins.relocalization import RelocalizationConfig
+
 from slamreloc.slam.run import SlamRunConfig, run_slam
 from slamreloc.synthetic import render_scene
 from tests.conftest import SMALL_SCENE
@@ -83,13 +84,20 @@ def test_report_ate_agrees_with_evo(clean_kidnap_run, kidnap_scene):
 
 
 def test_wrong_relocalizations_are_rejected(clean_kidnap_run, kidnap_scene, small_map):
+    """20 % of the relocalizations replaced by poses >= 0.5 m / 20 deg off (three seeds of the
+    hook): every wrong one rejected, no false anchor, and the ATE within 10 % of the clean
+    run. The ATE is compared as the median over the seeds: which correct results the hook
+    destroys moves a single run's ATE (about 3 mm here) by +-10 % on its own."""
     clean, _ = clean_kidnap_run
-    config = SlamRunConfig(**KIDNAP, progress=False, plugin_options={
-        "config": RelocalizationConfig(inject_wrong_fraction=0.2, inject_seed=1)})
-    r, _, _ = run_slam(kidnap_scene, small_map.root, config)
-    stats = r["relocalization"]
-    assert stats["n_injected"] >= 3, stats
-    assert stats["n_injected_rejected"] >= 0.9 * stats["n_injected"]
-    assert stats["n_injected_accepted"] == 0 and r["n_false_anchors"] == 0
-    assert r["n_recovered"] == r["n_kidnaps"]
-    assert r["ate_rmse_m"] <= 1.1 * clean["ate_rmse_m"]  # within 10 % of the clean run
+    ates = []
+    for seed in (1, 2, 3):
+        config = SlamRunConfig(**KIDNAP, progress=False, plugin_options={
+            "config": RelocalizationConfig(inject_wrong_fraction=0.2, inject_seed=seed)})
+        r, _, _ = run_slam(kidnap_scene, small_map.root, config)
+        stats = r["relocalization"]
+        assert stats["n_injected"] >= 3, stats
+        assert stats["n_injected_rejected"] >= 0.9 * stats["n_injected"]
+        assert stats["n_injected_accepted"] == 0 and r["n_false_anchors"] == 0
+        assert r["n_recovered"] == r["n_kidnaps"]
+        ates.append(r["ate_rmse_m"])
+    assert np.median(ates) <= 1.1 * clean["ate_rmse_m"], (ates, clean["ate_rmse_m"])

@@ -15,13 +15,13 @@ from enum import Enum
 import numpy as np
 
 from slamreloc.geometry import Rigid3, rotation_angle_deg
+from slamreloc.memory import release_free_memory
 from slamreloc.slam.anchoring import AnchoringMixin
 from slamreloc.slam.events import Event, EventKind, FrameData, Plugin
 from slamreloc.slam.graph import GraphConfig, PoseGraph
 from slamreloc.slam.health import Health, HealthConfig, check_health
 from slamreloc.slam.odometry import Odometry, OdometryStep
 from slamreloc.slam.timing import Timer
-
 
 LOGGED_EVENTS = frozenset({EventKind.TRACKING_LOST, EventKind.TRACKING_RECOVERED,
                            EventKind.MAP_UPDATED})
@@ -36,6 +36,7 @@ class TrackState(str, Enum):
 @dataclass(frozen=True)
 class BackendConfig:
     keyframe_every: int = 3  # frames between keyframes inside a segment
+    release_memory_every: int = 100  # frames; hand freed heap back to the OS (0: never)
     health: HealthConfig = field(default_factory=HealthConfig)
     graph: GraphConfig = field(default_factory=GraphConfig)
 
@@ -116,6 +117,9 @@ class SlamBackend(AnchoringMixin):
                          {"health": report.verdict.value, "reason": report.reason,
                           "fitness": step.fitness, "state": self.state.value}))
         rec.online_world_from_cam = self.pose_of(index)
+        every = self.config.release_memory_every
+        if every and (index + 1) % every == 0:
+            release_free_memory()  # a run of days must not grow with the allocator's slack
         return StepResult(index, rec.online_world_from_cam, self.state, self._events)
 
     def finish(self) -> None:

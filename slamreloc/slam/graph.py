@@ -45,7 +45,7 @@ class PoseGraph:
         params.setRelinearizeThreshold(config.relinearize_threshold)
         params.relinearizeSkip = 1  # robust kernels re-weight with every relinearization
         self._isam = gtsam.ISAM2(params)
-        self._estimate = gtsam.Values()
+        self._batch: gtsam.Values | None = None  # the last optimize_batch, until the next update
         self.n_odometry, self.n_priors = 0, 0
 
     def _sigmas(self, rad: float, m: float) -> np.ndarray:
@@ -84,20 +84,28 @@ class PoseGraph:
         return gtsam.PriorFactorPose3(key, _pose3(world_from_cam), robust)
 
     def _update(self, graph, values) -> None:
+        # no full calculateEstimate() here: it copies every node, so a run's graph time would
+        # grow with its length; poses are read one at a time (pose) or all at the end (poses)
         self._isam.update(graph, values)
-        self._estimate = self._isam.calculateEstimate()
+        self._batch = None
 
     def optimize_batch(self) -> None:
         """Polish the whole graph with Levenberg-Marquardt from the ISAM2 estimate (end of a
         run: ISAM2 relinearizes only part of the graph at each update)."""
         graph = self._isam.getFactorsUnsafe()
-        self._estimate = gtsam.LevenbergMarquardtOptimizer(graph, self._estimate).optimize()
+        self._batch = gtsam.LevenbergMarquardtOptimizer(graph, self._values()).optimize()
+
+    def _values(self) -> gtsam.Values:
+        return self._batch if self._batch is not None else self._isam.calculateEstimate()
 
     def pose(self, key: int) -> Rigid3:
-        return _rigid(self._estimate.atPose3(key))
+        if self._batch is not None:
+            return _rigid(self._batch.atPose3(key))
+        return _rigid(self._isam.calculateEstimatePose3(key))
 
     def poses(self) -> dict[int, Rigid3]:
-        return {k: _rigid(self._estimate.atPose3(k)) for k in self._estimate.keys()}
+        values = self._values()
+        return {k: _rigid(values.atPose3(k)) for k in values.keys()}
 
 
 def _angle_deg(p: Rigid3) -> float:
