@@ -89,9 +89,10 @@ def run_demo(workdir: Path, viewer: bool = True, port: int = 8080,
             "scene": str(scene_dir)}
 
 
-def serve_demo_viewer(workdir: Path, map_dir: Path, scene_dir: Path, port: int = 8080) -> None:
-    """Serve the viewer on everything the demo wrote (reports, trajectories) until Ctrl-C."""
-    from slamreloc.viewer import ViewerInputs, serve
+def demo_viewer_inputs(workdir: Path, map_dir: Path, scene_dir: Path, port: int = 8080):
+    """ViewerInputs for everything the demo wrote in `workdir`: its reports (each once) and
+    trajectories (the `evaluate --poses` files and the SLAM trajectory)."""
+    from slamreloc.viewer import ViewerInputs
 
     workdir = Path(workdir)
     reports, seen = [], set()
@@ -101,6 +102,12 @@ def serve_demo_viewer(workdir: Path, map_dir: Path, scene_dir: Path, port: int =
             reports.append(path)
     trajectories = sorted(p for p in [*workdir.glob("poses_*.txt"), *workdir.glob("traj*.txt")]
                           if not p.name.endswith(NAMES_SUFFIX))
+    return ViewerInputs(map_dir, trajectories, reports, scene_dir, port=port)
+
+
+def serve_demo_viewer(workdir: Path, map_dir: Path, scene_dir: Path, port: int = 8080) -> None:
+    """Serve the viewer on everything the demo wrote (reports, trajectories) until Ctrl-C."""
+    from slamreloc.viewer import serve
+
     console.rule("viewer")
-    serve(ViewerInputs(map_dir, trajectories, reports, scene_dir, port=port),
-          echo=console.print)
+    serve(demo_viewer_inputs(workdir, map_dir, scene_dir, port), echo=console.print)

@@ -91,28 +91,58 @@ def test_large_maps_are_voxel_downsampled(viewer_case):
         assert n <= 2000 and h.data.map.n_points_total == viewer_case.n_points
 
 
-def test_training_cameras_are_frustums_with_images_up_to_the_budget(viewer_case):
+def _glb_mesh(node):
+    import io
+
+    import trimesh
+
+    scene = trimesh.load(io.BytesIO(node.glb_data), file_type="glb")
+    return next(iter(scene.geometry.values()))
+
+
+def test_training_cameras_are_one_wireframe_and_one_textured_node(viewer_case):
     with scene(ViewerInputs(viewer_case.map_dir)) as (server, h):
-        cams = [k for k in nodes(server) if k.startswith("/map/cameras/")]
-        assert len(cams) == viewer_case.n_train
-        frustum = nodes(server)[cams[0]]
-        assert frustum.image is not None and frustum.image.shape[1] <= 160
-        pose = h.data.map.frames[0].world_from_cam
-        np.testing.assert_allclose(frustum.position, pose.translation, atol=1e-6)
+        n = nodes(server)
+        assert not [k for k in n if k.startswith("/map/cameras/")]  # no node per camera
+        wire = n["/map/cameras_wireframe"]
+        assert wire.points.shape == (viewer_case.n_train * 8, 2, 3)
+        mesh = _glb_mesh(n["/map/camera_images"])
+        assert mesh.vertices.shape == (viewer_case.n_train * 4, 3)
+        # each quad is its camera's image rectangle: the base of its wireframe frustum
+        rim = wire.points.reshape(viewer_case.n_train, 8, 2, 3)[:, 4:, 0]
+        np.testing.assert_allclose(mesh.vertices.reshape(-1, 4, 3), rim, atol=1e-4)
+        texture = mesh.visual.material.baseColorTexture
+        assert texture.format == "JPEG" and max(texture.size) <= 2048
     with scene(ViewerInputs(viewer_case.map_dir, max_images=10)) as (server, h):
-        cams = [k for k in nodes(server) if k.startswith("/map/cameras/")]
-        assert len(cams) == 10
-        wire = nodes(server)["/map/cameras_wireframe"]
-        assert wire.points.shape == ((viewer_case.n_train - 10) * 8, 2, 3)
+        assert len(_glb_mesh(nodes(server)["/map/camera_images"]).vertices) == 10 * 4
 
 
-def test_clicking_a_frustum_shows_its_image_and_name(viewer_case):
+def test_image_atlas_keeps_each_thumbnail_in_its_cell():
+    from slamreloc.viewer.camera_images import build_atlas
+
+    images = [np.full((120, 160, 3), 10 * i, np.uint8) for i in range(20)]
+    atlas, cells = build_atlas(images, max_side=300)
+    assert max(atlas.shape[:2]) <= 300
+    for i, (x0, y0, x1, y1) in enumerate(cells):
+        assert (atlas[y0:y1, x0:x1] == 10 * i).all()
+        assert (x1 - x0) * 120 == pytest.approx((y1 - y0) * 160, rel=0.05)
+
+
+def test_clicking_a_camera_image_shows_its_image_and_name(viewer_case):
     with scene(ViewerInputs(viewer_case.map_dir)) as (server, h):
-        frustum = nodes(server)["/map/cameras/00007"]
+        node = nodes(server)["/map/camera_images"]
         before = h.selection.image.image.copy()
-        for entry in frustum._impl.click_cb:
-            entry.callback(type("Event", (), {"client": None})())
-        assert h.data.map.frames[7].name in h.selection.text.content
+        pose = h.data.map.frames[7].world_from_cam
+        axis = pose.rotation[:, 2]
+        for origin, direction in ((pose.translation + 0.5 * h.geometry.frustum_scale * axis,
+                                   axis),  # the ray through the middle of frame 7's image
+                                  (h.geometry.center + 100 * h.geometry.up,
+                                   h.geometry.up)):  # a ray away from the scene: no change
+            event = type("Event", (), {"client": None, "ray_origin": tuple(origin),
+                                       "ray_direction": tuple(direction)})()
+            for entry in node._impl.click_cb:
+                entry.callback(event)
+            assert h.data.map.frames[7].name in h.selection.text.content
         assert h.selection.image.visible and h.selection.image.image.shape != before.shape
 
 

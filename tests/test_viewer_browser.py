@@ -11,7 +11,6 @@ import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from urllib.parse import urlparse
@@ -19,23 +18,12 @@ from urllib.parse import urlparse
 import numpy as np
 import pytest
 
+from slamreloc.viewer import browser as browser_helpers
+from slamreloc.viewer.browser import (chromium_context, dismiss_notifications, drawn_fraction,
+                                      find_chromium)
 from tests.test_viewer_support import viewer_case  # noqa: F401 - fixture
 
 ROOT = Path(__file__).resolve().parents[1]
-CHROMIUM_FLAGS = ["--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
-                  "--enable-unsafe-swiftshader", "--disable-background-networking",
-                  "--disable-component-update", "--disable-sync", "--no-first-run",
-                  "--disable-dev-shm-usage"]
-VIEWPORT = {"width": 1280, "height": 800}
-CANVAS_WIDTH = 900  # the control panel covers the right of the page
-
-
-def find_chromium() -> str | None:
-    for name in ("chromium", "chromium-browser"):
-        path = shutil.which(name)
-        if path:
-            return path
-    return None
 
 
 def chromium_or_skip() -> str:
@@ -60,18 +48,10 @@ def chromium_or_skip() -> str:
 @pytest.fixture(scope="module")
 def browser():
     path = chromium_or_skip()
-    sync_api = pytest.importorskip("playwright.sync_api",
-                                   reason="playwright not installed (pip install playwright)")
-    with sync_api.sync_playwright() as p:
-        profile = tempfile.mkdtemp(prefix="slamreloc-chromium-")
-        ctx = p.chromium.launch_persistent_context(
-            profile, executable_path=path, headless=True, args=CHROMIUM_FLAGS,
-            viewport=VIEWPORT)
-        try:
-            yield ctx
-        finally:
-            ctx.close()
-            shutil.rmtree(profile, ignore_errors=True)
+    pytest.importorskip("playwright.sync_api",
+                        reason="playwright not installed (pip install playwright)")
+    with chromium_context(path) as ctx:
+        yield ctx
 
 
 def start_view(args: list[str], port: int) -> tuple[subprocess.Popen, str]:
@@ -93,40 +73,11 @@ def start_view(args: list[str], port: int) -> tuple[subprocess.Popen, str]:
     pytest.fail("slamreloc view printed no address:\n" + "".join(seen))
 
 
-def canvas_shot(page) -> np.ndarray:
-    import cv2
-
-    png = page.screenshot(clip={"x": 0, "y": 0, "width": CANVAS_WIDTH,
-                                "height": VIEWPORT["height"]})
-    return cv2.cvtColor(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR),
-                        cv2.COLOR_BGR2RGB)
-
-
-def drawn_fraction(img: np.ndarray) -> float:
-    """Share of pixels that differ from the page's (near-white) background."""
-    return float((np.abs(img.astype(int) - 255).max(axis=2) > 40).mean())
-
-
 def wait_rendered(page, timeout: float = 90.0, min_fraction: float = 0.02) -> np.ndarray:
-    """Poll screenshots until the canvas shows something and has stopped changing."""
-    deadline, last = time.time() + timeout, None
-    while time.time() < deadline:
-        img = canvas_shot(page)
-        if drawn_fraction(img) > min_fraction and last is not None and \
-                np.abs(img.astype(int) - last).max(axis=2).astype(bool).mean() < 0.002:
-            return img
-        last = img.astype(int)
-        time.sleep(0.5)
-    pytest.fail(f"the scene did not render within {timeout} s "
-                f"(drawn fraction {drawn_fraction(canvas_shot(page)):.4f})")
-
-
-def dismiss_notifications(page) -> None:
-    for button in page.locator("button.mantine-Notification-closeButton").all():
-        try:
-            button.click(timeout=2000)
-        except Exception:  # noqa: BLE001 - a notification may close by itself
-            pass
+    try:
+        return browser_helpers.wait_rendered(page, timeout, min_fraction)
+    except TimeoutError as err:
+        pytest.fail(str(err))
 
 
 def test_view_renders_map_and_slider_changes_image(viewer_case, browser, tmp_path):

@@ -13,8 +13,6 @@ import argparse
 import json
 import os
 import resource
-import shutil
-import tempfile
 import time
 from pathlib import Path
 
@@ -22,12 +20,8 @@ import numpy as np
 
 from slamreloc.geometry import look_at
 from slamreloc.types import Camera
+from slamreloc.viewer.browser import canvas_shot, chromium_context, drawn_fraction
 from slamreloc.viewer.data import FrameView, MapView, SceneData, ViewerInputs
-
-FLAGS = ["--no-sandbox", "--disable-gpu", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-         "--no-first-run", "--disable-dev-shm-usage"]
-
 
 def rss_mb() -> float:
     with open(f"/proc/{os.getpid()}/status") as f:
@@ -67,6 +61,50 @@ def synthetic_scene(n_points: int, n_frustums: int, max_images: int = 512,
     return SceneData(scene_map, max_images=max_images)
 
 
+# Page-side timing: message batches the websocket worker hands to the page (viser decodes the
+# websocket in a Worker) and the render loop's frames (requestAnimationFrame callbacks).
+PROBE = """
+window.__probe = {batches: [], frames: []};
+const RealWorker = window.Worker;
+window.Worker = function (...args) {
+  const w = new RealWorker(...args);
+  w.addEventListener("message", (e) => {
+    const d = e.data;
+    if (d && d.type === "message_batch")
+      window.__probe.batches.push([performance.now(), d.messages.length]);
+  });
+  return w;
+};
+window.Worker.prototype = RealWorker.prototype;
+const raf = window.requestAnimationFrame.bind(window);
+window.requestAnimationFrame = (cb) => raf((t) => {  // t: the frame's time, shared by its callbacks
+  const s = performance.now();
+  cb(t);
+  const d = performance.now() - s, f = window.__probe.frames;
+  if (f.length && f[f.length - 1][0] === t) f[f.length - 1][1] += d;
+  else f.push([t, d]);
+});
+"""
+
+
+def page_profile(page, t_drawn_ms: float) -> dict:
+    """Where a load's time went, from the probe: when the last message batch arrived, how
+    many frames were drawn until the scene was, and their cost (page clock: ms since the
+    navigation started)."""
+    probe = page.evaluate("window.__probe")
+    batches = probe["batches"]
+    frames = [(t, d) for t, d in probe["frames"] if t <= t_drawn_ms]
+    gaps = np.diff([t for t, _ in frames]) if len(frames) > 1 else np.zeros(1)
+    return {"messages": int(sum(n for _, n in batches)), "batches": len(batches),
+            "first_batch_s": round(batches[0][0] / 1e3, 2) if batches else None,
+            "last_batch_s": round(batches[-1][0] / 1e3, 2) if batches else None,
+            "frames_until_drawn": len(frames),
+            "frame_js_ms_median": round(float(np.median([d for _, d in frames])), 1)
+            if frames else None,
+            "frame_gap_ms_median": round(float(np.median(gaps)), 1),
+            "frame_gap_ms_max": round(float(gaps.max()), 1)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=int, default=500_000)
@@ -75,9 +113,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="screenshot (PNG)")
     ap.add_argument("--repeat", type=int, default=3, help="page loads to time")
     ap.add_argument("--max-images", type=int, default=512, help="frustums with a thumbnail")
+    ap.add_argument("--profile", action="store_true",
+                    help="also report message batches and frames per load (page-side probe)")
     args = ap.parse_args()
-
-    from playwright.sync_api import sync_playwright
 
     from slamreloc.viewer.server import start
 
@@ -96,22 +134,16 @@ def main() -> None:
                "build_scene_s": round(t_build, 2), "make_data_s": round(t_data, 2),
                "rss_before_mb": round(base, 1), "rss_data_mb": round(data_mb, 1),
                "rss_server_mb": round(rss_mb(), 1), "load_s": []}
-    import cv2
 
     def drawn(page) -> float:
-        png = page.screenshot(clip={"x": 0, "y": 0, "width": 900, "height": 800},
-                              timeout=120_000)
-        img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(int)
-        return float((np.abs(img - 255).max(axis=2) > 40).mean())
+        return drawn_fraction(canvas_shot(page, timeout_ms=120_000))
 
     try:
-        with sync_playwright() as p:
-            profile = tempfile.mkdtemp()
-            ctx = p.chromium.launch_persistent_context(
-                profile, executable_path=shutil.which("chromium") or "/usr/bin/chromium",
-                headless=True, args=FLAGS, viewport={"width": 1280, "height": 800})
+        with chromium_context() as ctx:
             for k in range(args.repeat):
                 page = ctx.new_page()
+                if args.profile:
+                    page.add_init_script(PROBE)
                 t0 = time.perf_counter()
                 page.goto(url)
                 page.wait_for_selector("canvas", timeout=60000)
@@ -125,11 +157,11 @@ def main() -> None:
                 first = next(t for t, f in samples if f >= 0.95 * final)
                 results["load_s"].append(round(first, 2))
                 results.setdefault("drawn_fraction", round(final, 3))
+                if args.profile:  # the page's clock starts with its navigation (~ t0)
+                    results.setdefault("profile", []).append(page_profile(page, 1e3 * first))
                 if args.out and k == args.repeat - 1:
                     page.screenshot(path=str(args.out))
                 page.close()
-            ctx.close()
-            shutil.rmtree(profile, ignore_errors=True)
         results["rss_after_clients_mb"] = round(rss_mb(), 1)
     finally:
         handles.stop()

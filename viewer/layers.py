@@ -12,6 +12,7 @@ import numpy as np
 
 from slamreloc.geometry import Rigid3
 from slamreloc.viewer import colors as palette
+from slamreloc.viewer.camera_images import image_quads, quads_glb
 from slamreloc.viewer.data import EvalReport, MapView, SlamReport, Trajectory
 
 
@@ -128,28 +129,29 @@ def add_map_points(server, scene_map: MapView, g: Geometry) -> tuple[Layer, Laye
 
 
 def add_training_cameras(server, scene_map: MapView, g: Geometry, on_click) -> Layer:
-    """Frustums with an image thumbnail (clickable) for the frames that have one; one batched
-    wireframe node for the rest."""
+    """All training cameras as one wireframe node; the thumbnails (up to the image budget) as
+    one textured node on their frustums' image rectangles, clickable (`camera_images`)."""
     layer = Layer("training cameras")
-    rest = []
-    for i, frame in enumerate(scene_map.frames):
-        if frame.world_from_cam is None:
-            continue
-        if frame.thumbnail is None:
-            rest.append(frame.world_from_cam)
-            continue
-        h = server.scene.add_camera_frustum(
-            f"/map/cameras/{i:05d}", fov=g.fov, aspect=g.aspect, scale=g.frustum_scale,
-            color=palette.TRAINING_CAMERA, image=frame.thumbnail, format="jpeg",
-            jpeg_quality=80, wxyz=wxyz(frame.world_from_cam),
-            position=frame.world_from_cam.translation, cast_shadow=False, receive_shadow=False)
-        h.on_click(lambda event, frame=frame: on_click(frame, event))
-        layer.nodes.append(h)
-    if rest:
-        segs = frustum_segments(rest, g, g.frustum_scale)
+    posed = [f for f in scene_map.frames if f.world_from_cam is not None]
+    if posed:
+        segs = frustum_segments([f.world_from_cam for f in posed], g, g.frustum_scale)
         layer.nodes.append(server.scene.add_line_segments(
             "/map/cameras_wireframe", segs, palette.TRAINING_CAMERA, thickness=1.0,
             thickness_units="screen"))
+    shown = [f for f in posed if f.thumbnail is not None]
+    if shown:
+        quads = image_quads([f.world_from_cam for f in shown], [f.thumbnail for f in shown],
+                            g.fx, g.fy, g.width, g.height, g.frustum_scale)
+        node = server.scene.add_glb("/map/camera_images", quads_glb(quads),
+                                    cast_shadow=False, receive_shadow=False)
+
+        def clicked(event) -> None:
+            k = quads.pick(np.asarray(event.ray_origin), np.asarray(event.ray_direction))
+            if k is not None:
+                on_click(shown[k], event)
+
+        node.on_click(clicked)
+        layer.nodes.append(node)
     return layer
 
 
