@@ -111,6 +111,7 @@ def main() -> int:
             for name in args.expand:
                 page.get_by_text(name, exact=True).first.click(timeout=10_000)
             wait_rendered(page, timeout=180, width=width - 420)
+            dismiss_notifications(page)  # the software-WebGL one may come late
             time.sleep(1.0)
             shot = decode_png(page.screenshot(timeout=120_000))
         size = save_png(shot, args.out, args.colours)

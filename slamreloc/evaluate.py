@@ -12,7 +12,7 @@ from rich.table import Table
 from slamreloc.datasets import read_image
 from slamreloc.errors import InputError
 from slamreloc.fileio import atomic_file
-from slamreloc.geometry import Rigid3, names_sidecar, pose_error, tum_line
+from slamreloc.geometry import Rigid3, pose_error, write_tum_trajectory
 from slamreloc.localizer import Localizer
 from slamreloc.progress import console, track
 from slamreloc.types import Frame
@@ -84,11 +84,9 @@ def write_tum(path: Path, results: list[QueryResult]) -> None:
     stamps = [q.timestamp for q in results]
     if len(set(stamps)) < len(stamps):
         stamps = [float(i) for i in range(len(results))]
-    done = [(f"{t:.6f}", q) for t, q in zip(stamps, results) if q.world_from_cam is not None]
-    with atomic_file(path) as tmp:
-        tmp.write_text("".join(tum_line(t, q.world_from_cam) + "\n" for t, q in done))
-    with atomic_file(names_sidecar(path)) as tmp:
-        tmp.write_text("".join(f"{t} {q.name}\n" for t, q in done))
+    done = [(t, q) for t, q in zip(stamps, results) if q.world_from_cam is not None]
+    write_tum_trajectory(path, [t for t, _ in done], [q.world_from_cam for _, q in done],
+                         names=[q.name for _, q in done])
 
 
 def print_summary(summaries: list[dict]) -> None:

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
+from slamreloc.fileio import atomic_file
 
 RIGID_TOL = 1e-3  # max |R^T R - I| and |det R - 1| accepted for a pose read from a file
 
@@ -222,6 +223,34 @@ NAMES_SUFFIX = ".names.txt"  # `evaluate --poses P.txt` names P's stamps in P.na
 def names_sidecar(path) -> Path:
     """The sidecar `<stem>.names.txt` (`stamp name` per line) beside a TUM file."""
     return Path(path).with_suffix(NAMES_SUFFIX)
+
+
+def write_tum_trajectory(path, stamps, world_from_cam: list[Rigid3], comments=(),
+                         names: list[str] | None = None) -> None:
+    """A TUM file (`stamp tx ty tz qx qy qz qw`, camera-to-world, metres; `# comment` lines
+    first) written atomically, and with `names` the `names_sidecar` (`stamp name` per line) that
+    ties each stamp to its frame."""
+    rows = [f"{float(t):.6f}" for t in stamps]
+    with atomic_file(Path(path)) as tmp:
+        tmp.write_text("".join(f"# {c}\n" for c in comments)
+                       + "".join(tum_line(t, p) + "\n" for t, p in zip(rows, world_from_cam)))
+    if names is not None:
+        with atomic_file(names_sidecar(path)) as tmp:
+            tmp.write_text("".join(f"{t} {n}\n" for t, n in zip(rows, names)))
+
+
+def nearest_stamps(stamps, queries, max_dt: float) -> np.ndarray:
+    """Index into `stamps` of the nearest stamp to each query (seconds); -1 beyond max_dt."""
+    stamps, queries = np.asarray(stamps, float), np.asarray(queries, float)
+    if len(stamps) == 0:
+        return np.full(len(queries), -1)
+    order = np.argsort(stamps, kind="stable")
+    s = stamps[order]
+    pos = np.clip(np.searchsorted(s, queries), 1, max(len(s) - 1, 1))
+    left = np.clip(pos - 1, 0, len(s) - 1)
+    pos = np.clip(pos, 0, len(s) - 1)
+    pick = np.where(np.abs(s[left] - queries) <= np.abs(s[pos] - queries), left, pos)
+    return np.where(np.abs(s[pick] - queries) <= max_dt, order[pick], -1)
 
 
 @dataclass

@@ -65,3 +65,20 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
     for fmt, outcomes in s["by_format"].items():
         terminalreporter.write_line(f"  {fmt}: " + ", ".join(f"{k} {v}" for k, v in
                                                              outcomes.items()))
+
+
+@pytest.fixture(scope="session")
+def viewer_case(scene_dir, tmp_path_factory):
+    """A synthetic map folder with trajectories and reports for the viewer's tests (built once
+    for both viewer test modules)."""
+    from tests.test_viewer_support import build_case
+
+    return build_case(scene_dir, tmp_path_factory.mktemp("viewer"))
+
+
+@pytest.fixture(scope="session")
+def kidnap_scene(tmp_path_factory):
+    """The small scene's room with a 120-frame kidnap sequence (the fixture scene has 30);
+    used by the SLAM tests of both modules, rendered once."""
+    config = replace(SMALL_SCENE, n_map=2, n_query=2, n_kidnap=120, n_unlabelled=2)
+    return render_scene(tmp_path_factory.mktemp("kidnap") / "scene", config)

@@ -15,7 +15,6 @@ from slamreloc.geometry import Rigid3, axis_angle_to_matrix, pose_error
 from slamreloc.slam import EventKind, SlamBackend, available_plugins, load_plugin
 from slamreloc.slam.backend import BackendConfig
 from slamreloc.slam.run import kidnap_schedule
-from tests.test_slam import kidnap_scene  # noqa: F401 - the session fixture
 
 
 def cli(*args):
@@ -34,7 +33,7 @@ def drifting_odometry(truth: list[Rigid3], jump_at: int | None) -> list[Rigid3]:
     return poses
 
 
-def test_external_odometry_api(kidnap_scene, small_map):  # noqa: F811
+def test_external_odometry_api(kidnap_scene, small_map):
     frames = load_dataset(kidnap_scene).frames("kidnap")
     kept, jumps = kidnap_schedule(len(frames), 45, 15)
     frames = [frames[i] for i in kept]
@@ -91,7 +90,7 @@ def test_plugins_come_from_the_entry_point_group(monkeypatch):
         load_plugin("nope")
 
 
-def test_bad_input_is_one_line(kidnap_scene, small_map, tmp_path):  # noqa: F811
+def test_bad_input_is_one_line(kidnap_scene, small_map, tmp_path):
     bad = tmp_path / "odo.txt"
     bad.write_text("0.0 1 2 3 0 0 0 1\nframe-1 1 2 3 0 0 0 1\n")
     cases = [
@@ -107,11 +106,11 @@ def test_bad_input_is_one_line(kidnap_scene, small_map, tmp_path):  # noqa: F811
     assert not (tmp_path / "r.json").exists()
 
 
-def test_odometry_from_a_trajectory_file(kidnap_scene, small_map, tmp_path):  # noqa: F811
+def test_odometry_from_a_trajectory_file(kidnap_scene, small_map, tmp_path):
     """`--odometry TRAJ.txt`: another system's TUM file (here the truth in another frame)."""
     import json
 
-    from slamreloc.slam.trajectory import write_tum
+    from slamreloc.geometry import write_tum_trajectory as write_tum
 
     frames = load_dataset(kidnap_scene).frames("kidnap")
     offset = Rigid3(axis_angle_to_matrix([0.3, -0.2, 1.0]), np.array([5.0, -2.0, 1.0]))

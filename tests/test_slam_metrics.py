@@ -9,9 +9,10 @@ from hypothesis import strategies as st
 
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix
+from slamreloc.geometry import write_tum_trajectory as write_tum
 from slamreloc.slam.metrics import ate_rmse, umeyama_se3
 from slamreloc.slam.run import kidnap_schedule
-from slamreloc.slam.trajectory import read_tum, write_tum
+from slamreloc.slam.trajectory import read_tum
 
 vec3 = st.tuples(*[st.floats(-3, 3, allow_nan=False)] * 3).map(np.array)
 

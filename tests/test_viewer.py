@@ -19,8 +19,7 @@ from slamreloc.viewer import ViewerInputs, build_scene, load_scene_data, make_se
 from slamreloc.viewer import colors as palette
 from slamreloc.viewer.gui import report_table
 from slamreloc.viewer.loaders import read_trajectory, voxel_downsample
-from tests.test_viewer_support import (BIG_ERROR, FAILED, POINTS_PER_FRAME, build_map_folder,
-                                       viewer_case)  # noqa: F401 - fixture
+from tests.test_viewer_support import BIG_ERROR, FAILED, POINTS_PER_FRAME, build_map_folder
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -300,5 +299,26 @@ def test_trajectory_first_column_may_be_names(viewer_case, tmp_path):
     with scene(ViewerInputs(viewer_case.map_dir, [named])) as (server, h):
         traj = h.data.trajectories[0]
         assert traj.names[0] == viewer_case.query_names[0]
+        ok = np.isfinite(viewer_case.estimate_error_m)
+        np.testing.assert_allclose(traj.errors_m, viewer_case.estimate_error_m[ok], atol=1e-4)
+
+
+def test_timestamps_shared_by_sequences_take_the_truth_of_the_matching_one(viewer_case,
+                                                                          tmp_path):
+    """A TUM file with the frames' own timestamps and no names (what other SLAM systems
+    write): every synthetic sequence has the stamps 0, 1/30, ...; the ground truth must come
+    from the sequence the poses belong to (seq-02), not the first one with those stamps."""
+    from slamreloc.datasets import load_dataset
+
+    queries = {q.name: q for q in load_dataset(viewer_case.scene).frames("test")}
+    names = [line.split(maxsplit=1)[1] for line in
+             viewer_case.trajectory.with_suffix(".names.txt").read_text().splitlines()]
+    stamped = tmp_path / "stamped.txt"
+    stamped.write_text("".join(
+        f"{queries[n].timestamp:.6f} {line.split(maxsplit=1)[1]}\n"
+        for n, line in zip(names, viewer_case.trajectory.read_text().splitlines())))
+    with scene(ViewerInputs(viewer_case.map_dir, [stamped])) as (server, h):
+        traj = h.data.trajectories[0]
+        assert traj.names == names
         ok = np.isfinite(viewer_case.estimate_error_m)
         np.testing.assert_allclose(traj.errors_m, viewer_case.estimate_error_m[ok], atol=1e-4)

@@ -21,7 +21,6 @@ import pytest
 from slamreloc.viewer import browser as browser_helpers
 from slamreloc.viewer.browser import (chromium_context, dismiss_notifications, drawn_fraction,
                                       find_chromium)
-from tests.test_viewer_support import viewer_case  # noqa: F401 - fixture
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -10,7 +10,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from slamreloc.datasets import load_dataset, read_depth
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, tum_line
@@ -133,8 +132,3 @@ def build_case(scene: Path, out: Path) -> ViewerCase:
            {"type": "loop_closure", "from": 4, "to": 14, "accepted": False}]}))
     return ViewerCase(Path(scene), map_dir, traj, report, slam, n_train * POINTS_PER_FRAME,
                       n_train, len(queries), truth_colors, [q.name for q in queries], errors)
-
-
-@pytest.fixture(scope="session")
-def viewer_case(scene_dir, tmp_path_factory) -> ViewerCase:
-    return build_case(scene_dir, tmp_path_factory.mktemp("viewer"))

@@ -2,14 +2,18 @@
 Chromium; measures the time from loading the page until the scene is drawn, and the server's
 memory.
 
-    python -m slamreloc.viewer.benchmark [--points 500000] [--frustums 1000] [--out shot.png]
+    python -m slamreloc.viewer.benchmark [--points 500000] [--frustums 1000] [--fresh-browser]
+        [--profile] [--out shot.png]
 
 The map is synthetic (a box-shaped room of coloured points, cameras on a loop with textured
-thumbnails), built in memory: what is measured is the viewer, not the map's I/O."""
+thumbnails), built in memory: what is measured is the viewer, not the map's I/O. The time is
+taken inside the page (see PROBE): from the start of the navigation until the first rendered
+frame that looks like the final picture."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import resource
@@ -22,6 +26,7 @@ from slamreloc.geometry import look_at
 from slamreloc.types import Camera
 from slamreloc.viewer.browser import canvas_shot, chromium_context, drawn_fraction
 from slamreloc.viewer.data import FrameView, MapView, SceneData, ViewerInputs
+
 
 def rss_mb() -> float:
     with open(f"/proc/{os.getpid()}/status") as f:
@@ -61,10 +66,13 @@ def synthetic_scene(n_points: int, n_frustums: int, max_images: int = 512,
     return SceneData(scene_map, max_images=max_images)
 
 
-# Page-side timing: message batches the websocket worker hands to the page (viser decodes the
-# websocket in a Worker) and the render loop's frames (requestAnimationFrame callbacks).
+# Page-side timing, injected before the page's own scripts: message batches the websocket worker
+# hands to the page (viser decodes the websocket in a Worker), and after each animation-frame
+# callback that issued WebGL draw calls, the share of the canvas that is drawn (readPixels of the
+# default framebuffer in the same task, so no preserveDrawingBuffer is needed; it waits until the
+# frame has really been rasterised). Times: page clock, ms since the navigation started.
 PROBE = """
-window.__probe = {batches: [], frames: []};
+window.__probe = {batches: [], frames: [], drawn: [], dirty: false};
 const RealWorker = window.Worker;
 window.Worker = function (...args) {
   const w = new RealWorker(...args);
@@ -76,15 +84,46 @@ window.Worker = function (...args) {
   return w;
 };
 window.Worker.prototype = RealWorker.prototype;
+const G = WebGL2RenderingContext.prototype;
+for (const name of ["drawArrays", "drawElements", "drawArraysInstanced", "drawElementsInstanced"]) {
+  const real = G[name];
+  G[name] = function (...args) { window.__probe.dirty = true; return real.apply(this, args); };
+}
+function drawnShare(gl) {  // [share of drawn pixels, mean R, G, B of the canvas]
+  const w = gl.drawingBufferWidth, h = gl.drawingBufferHeight, px = new Uint8Array(w * h * 4);
+  const fb = gl.getParameter(gl.FRAMEBUFFER_BINDING);
+  gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+  gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, px);
+  gl.bindFramebuffer(gl.FRAMEBUFFER, fb);
+  let n = 0, k = 0, r = 0, g = 0, b = 0;
+  for (let i = 0; i < px.length; i += 16, k++) {  // every 4th pixel
+    r += px[i]; g += px[i + 1]; b += px[i + 2];
+    if (px[i + 3] > 0 && Math.max(255 - px[i], 255 - px[i + 1], 255 - px[i + 2]) > 40) n++;
+  }
+  return [n / k, r / k, g / k, b / k];
+}
 const raf = window.requestAnimationFrame.bind(window);
 window.requestAnimationFrame = (cb) => raf((t) => {  // t: the frame's time, shared by its callbacks
-  const s = performance.now();
+  const s = performance.now(), probe = window.__probe;
+  probe.dirty = false;
   cb(t);
-  const d = performance.now() - s, f = window.__probe.frames;
+  const d = performance.now() - s, f = probe.frames;
   if (f.length && f[f.length - 1][0] === t) f[f.length - 1][1] += d;
   else f.push([t, d]);
+  const canvas = probe.dirty && Array.from(document.querySelectorAll("canvas"))  // the 3D view
+    .reduce((a, b) => (b.width * b.height > (a ? a.width * a.height : 0) ? b : a), null);
+  const gl = canvas && canvas.getContext("webgl2");
+  if (gl) {
+    const r = performance.now(), look = drawnShare(gl);
+    probe.drawn.push([performance.now(), performance.now() - r, ...look]);
+  }
 });
 """
+
+def same_look(a: list, b: list) -> bool:
+    """Two probe samples show the same picture: drawn share within 0.2 %, mean colour within
+    0.5 / 255 per channel."""
+    return abs(a[2] - b[2]) < 0.002 and max(abs(x - y) for x, y in zip(a[3:], b[3:])) < 0.5
 
 
 def page_profile(page, t_drawn_ms: float) -> dict:
@@ -113,6 +152,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="screenshot (PNG)")
     ap.add_argument("--repeat", type=int, default=3, help="page loads to time")
     ap.add_argument("--max-images", type=int, default=512, help="frustums with a thumbnail")
+    ap.add_argument("--fresh-browser", action="store_true",
+                    help="start a new browser for each load (default: one browser, new tabs)")
     ap.add_argument("--profile", action="store_true",
                     help="also report message batches and frames per load (page-side probe)")
     args = ap.parse_args()
@@ -133,35 +174,45 @@ def main() -> None:
                "scene_nodes": len(server.scene._handle_from_node_name),
                "build_scene_s": round(t_build, 2), "make_data_s": round(t_data, 2),
                "rss_before_mb": round(base, 1), "rss_data_mb": round(data_mb, 1),
-               "rss_server_mb": round(rss_mb(), 1), "load_s": []}
+               "rss_server_mb": round(rss_mb(), 1), "load_s": [],
+               "drawn_fraction_screenshot": []}
 
-    def drawn(page) -> float:
-        return drawn_fraction(canvas_shot(page, timeout_ms=120_000))
+    def load_once(ctx, k: int) -> None:
+        """One page load: until the drawn share of the canvas is stable (page-side probe)."""
+        page = ctx.new_page()
+        page.add_init_script(PROBE)
+        t0 = time.perf_counter()
+        page.goto(url)
+        drawn = []  # per drawn frame: [t ms, readback ms, share, mean R, G, B]
+        while time.perf_counter() - t0 < 120:
+            time.sleep(0.2)
+            drawn = page.evaluate("window.__probe.drawn")
+            if len(drawn) >= 4 and drawn[-1][2] > 0.02 and all(
+                    same_look(d, drawn[-1]) for d in drawn[-4:]):
+                break
+        else:
+            raise TimeoutError(f"not drawn within 120 s: {drawn[-4:]}")
+        t_drawn = next(d[0] for d in drawn if same_look(d, drawn[-1]))
+        results["load_s"].append(round(t_drawn / 1e3, 2))
+        shot = canvas_shot(page, timeout_ms=120_000)
+        results["drawn_fraction_screenshot"].append(round(drawn_fraction(shot), 3))
+        if args.profile:
+            prof = page_profile(page, t_drawn)
+            prof["readback_ms_median"] = round(float(np.median([d[1] for d in drawn])), 1)
+            prof["drawn"] = [(round(d[0] / 1e3, 2), round(d[2], 3), round(sum(d[3:]), 1))
+                             for d in drawn[:30]]
+            results.setdefault("profile", []).append(prof)
+        if args.out and k == args.repeat - 1:
+            page.screenshot(path=str(args.out))
+        page.close()
 
     try:
-        with chromium_context() as ctx:
+        with contextlib.ExitStack() as stack:
+            shared = None if args.fresh_browser else stack.enter_context(chromium_context())
             for k in range(args.repeat):
-                page = ctx.new_page()
-                if args.profile:
-                    page.add_init_script(PROBE)
-                t0 = time.perf_counter()
-                page.goto(url)
-                page.wait_for_selector("canvas", timeout=60000)
-                samples = []
-                while time.perf_counter() - t0 < 120:
-                    samples.append((time.perf_counter() - t0, drawn(page)))
-                    if len(samples) > 4 and samples[-1][1] > 0.05 and all(
-                            abs(s[1] - samples[-1][1]) < 0.002 for s in samples[-4:]):
-                        break
-                final = samples[-1][1]
-                first = next(t for t, f in samples if f >= 0.95 * final)
-                results["load_s"].append(round(first, 2))
-                results.setdefault("drawn_fraction", round(final, 3))
-                if args.profile:  # the page's clock starts with its navigation (~ t0)
-                    results.setdefault("profile", []).append(page_profile(page, 1e3 * first))
-                if args.out and k == args.repeat - 1:
-                    page.screenshot(path=str(args.out))
-                page.close()
+                with contextlib.ExitStack() as per_load:
+                    ctx = shared or per_load.enter_context(chromium_context())
+                    load_once(ctx, k)
         results["rss_after_clients_mb"] = round(rss_mb(), 1)
     finally:
         handles.stop()

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.geometry import Rigid3, read_named_trajectory
+from slamreloc.geometry import Rigid3, nearest_stamps, read_named_trajectory
 from slamreloc.viewer import colors as palette
 from slamreloc.viewer.data import (EvalReport, FrameView, MapView, PseudoLabelReport, QueryView,
                                    SceneData, Trajectory, ViewerInputs)
@@ -195,20 +195,6 @@ def _thumbnail(img: np.ndarray, width: int) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- trajectories
-def nearest(stamps: np.ndarray, queries: np.ndarray, max_dt: float) -> np.ndarray:
-    """Index into `stamps` of the nearest stamp to each query; -1 when further than max_dt."""
-    stamps, queries = np.asarray(stamps, float), np.asarray(queries, float)
-    if len(stamps) == 0:
-        return np.full(len(queries), -1)
-    order = np.argsort(stamps, kind="stable")
-    s = stamps[order]
-    pos = np.clip(np.searchsorted(s, queries), 1, max(len(s) - 1, 1))
-    left = np.clip(pos - 1, 0, len(s) - 1)
-    pos = np.clip(pos, 0, len(s) - 1)
-    pick = np.where(np.abs(s[left] - queries) <= np.abs(s[pos] - queries), left, pos)
-    return np.where(np.abs(s[pick] - queries) <= max_dt, order[pick], -1)
-
-
 def read_trajectory(path: str | Path, kind: str | None = None) -> Trajectory:
     """A TUM file `stamp tx ty tz qx qy qz qw` (camera-to-world), read by the core's
     `read_named_trajectory`: the first column may also be a frame name (older `evaluate
@@ -225,18 +211,22 @@ def read_trajectory(path: str | Path, kind: str | None = None) -> Trajectory:
 
 def attach_truth(traj: Trajectory, dataset) -> None:
     """Ground truth and images for each pose: by frame name, else by timestamp within the
-    dataset sequence that matches most of the trajectory's stamps."""
+    dataset sequence that matches most of the trajectory's stamps. Sequences often share
+    their timestamps (frame index / rate); among equally good ones the sequence whose poses
+    lie nearest the trajectory's (median distance) is taken."""
     if dataset is None:
         return
     by_name = frames_by_name(dataset)
     matched = [by_name.get(n) if n else None for n in traj.names]
     if sum(m is not None for m in matched) < len(traj) / 2:
-        best, best_hits = None, 0
-        for seq, frames in dataset.sequences.items():
-            j = nearest(np.array([f.timestamp for f in frames]), traj.stamps, 1e-3)
-            if (j >= 0).sum() > best_hits:
-                best, best_hits = [frames[k] if k >= 0 else None for k in j], (j >= 0).sum()
-        if best is not None and best_hits >= len(traj) / 2:
+        best, best_key = None, (0, 0.0)
+        for frames in dataset.sequences.values():
+            j = nearest_stamps([f.timestamp for f in frames], traj.stamps, 1e-3)
+            cand = [frames[k] if k >= 0 else None for k in j]
+            key = (int((j >= 0).sum()), -_median_distance(traj, cand))
+            if key > best_key:
+                best, best_key = cand, key
+        if best is not None and best_key[0] >= len(traj) / 2:
             matched = best
     traj.truth = [m.world_from_cam if m is not None else None for m in matched]
     traj.image_paths = [m.image_path if m is not None else None for m in matched]
@@ -244,11 +234,19 @@ def attach_truth(traj: Trajectory, dataset) -> None:
         traj.names = [m.name if m is not None else None for m in matched]
 
 
+def _median_distance(traj: Trajectory, frames: list) -> float:
+    """Median distance (m) between the trajectory's camera centres and those frames' (where
+    known); inf when none is."""
+    d = [np.linalg.norm(p.translation - f.world_from_cam.translation)
+         for p, f in zip(traj.poses, frames) if f is not None and f.world_from_cam is not None]
+    return float(np.median(d)) if d else float("inf")
+
+
 def truth_by_stamp(traj: Trajectory, truth: Trajectory, max_dt: float = 0.02) -> None:
     """Ground truth from a ground-truth trajectory file: the nearest stamp within max_dt."""
     if len(truth) == 0:
         return
-    j = nearest(truth.stamps, traj.stamps, max_dt)
+    j = nearest_stamps(truth.stamps, traj.stamps, max_dt)
     traj.truth = [truth.poses[k] if k >= 0 else None for k in j]
     if truth.image_paths:
         traj.image_paths = [truth.image_paths[k] if k >= 0 else None for k in j]

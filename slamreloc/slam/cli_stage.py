@@ -9,10 +9,10 @@ from rich.table import Table
 
 from slamreloc.errors import InputError
 from slamreloc.evaluate import write_json
+from slamreloc.geometry import write_tum_trajectory
 from slamreloc.progress import console
 from slamreloc.slam.poses import final_trajectory
 from slamreloc.slam.run import SlamRunConfig, run_slam
-from slamreloc.slam.trajectory import write_tum
 
 
 def run_slam_command(dataset: Path, map_dir: Path, report: Path, split: str = "test",
@@ -29,9 +29,10 @@ def run_slam_command(dataset: Path, map_dir: Path, report: Path, split: str = "t
     if trajectory is not None:
         poses = final_trajectory(backend)
         keep = [i for i, p in enumerate(poses) if p is not None]
-        write_tum(trajectory, [frames[i].timestamp for i in keep], [poses[i] for i in keep],
-                  [f"slamreloc slam {dataset} (split {split}), map frame, camera-to-world",
-                   "timestamp tx ty tz qx qy qz qw"])
+        write_tum_trajectory(
+            trajectory, [frames[i].timestamp for i in keep], [poses[i] for i in keep],
+            [f"slamreloc slam {dataset} (split {split}), map frame, camera-to-world",
+             "timestamp tx ty tz qx qy qz qw"], names=[frames[i].name for i in keep])
         result["trajectory"] = os.path.relpath(trajectory, Path(report).parent)
     write_json(report, result)
     print_slam_summary(result)

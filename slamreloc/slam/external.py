@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
+from slamreloc.geometry import nearest_stamps
 from slamreloc.slam.odometry import Odometry, OdometryStep
-from slamreloc.slam.trajectory import associate, read_tum
+from slamreloc.slam.trajectory import read_tum
 
 
 class TrajectoryOdometry(Odometry):
@@ -23,7 +24,7 @@ class TrajectoryOdometry(Odometry):
         self.max_dt = max_dt
 
     def step(self, depth, camera, image=None, timestamp=0.0, index=0) -> OdometryStep:
-        i = int(associate(self.stamps, np.array([timestamp]), self.max_dt)[0])
+        i = int(nearest_stamps(self.stamps, np.array([timestamp]), self.max_dt)[0])
         if i < 0:
             raise InputError(f"{self.path}: no pose within {self.max_dt} s of frame "
                              f"{index} (timestamp {timestamp:.6f})")

@@ -8,16 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.fileio import atomic_file
-from slamreloc.geometry import Rigid3, read_tum_trajectory, tum_line
-
-
-def write_tum(path: Path, timestamps: list[float], world_from_cam: list[Rigid3],
-              comments: list[str] = ()) -> None:
-    lines = [f"# {c}\n" for c in comments]
-    lines += [tum_line(f"{t:.6f}", p) + "\n" for t, p in zip(timestamps, world_from_cam)]
-    with atomic_file(path) as tmp:
-        tmp.write_text("".join(lines))
+from slamreloc.geometry import Rigid3, read_tum_trajectory
 
 
 def read_tum(path: Path) -> tuple[np.ndarray, list[Rigid3]]:
@@ -26,13 +17,3 @@ def read_tum(path: Path) -> tuple[np.ndarray, list[Rigid3]]:
     if not rows:
         raise InputError(f"{path}: no poses in the trajectory file")
     return np.array([float(stamp) for stamp, _ in rows]), [pose for _, pose in rows]
-
-
-def associate(stamps: np.ndarray, queries: np.ndarray, max_dt: float = 0.01) -> np.ndarray:
-    """Index into `stamps` of the nearest stamp for each query; -1 beyond `max_dt` seconds."""
-    order = np.argsort(stamps)
-    s = stamps[order]
-    pos = np.clip(np.searchsorted(s, queries), 1, max(len(s) - 1, 1))
-    left = np.clip(pos - 1, 0, len(s) - 1)
-    pick = np.where(np.abs(s[left] - queries) <= np.abs(s[pos] - queries), left, pos)
-    return np.where(np.abs(s[pick] - queries) <= max_dt, order[pick], -1)
