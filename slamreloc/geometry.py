@@ -41,7 +41,8 @@ class Rigid3:
         if m.shape == (4, 4) and not np.allclose(m[3], [0, 0, 0, 1], atol=tol):
             raise InputError(f"{source}: last row is {m[3].tolist()}, not [0 0 0 1]")
         rot = m[:3, :3]
-        if np.abs(rot.T @ rot - np.eye(3)).max() > tol or abs(np.linalg.det(rot) - 1) > tol:
+        if np.abs(rot).max() > 1 + tol or np.abs(rot.T @ rot - np.eye(3)).max() > tol \
+                or abs(np.linalg.det(rot) - 1) > tol:  # a rotation's entries lie in [-1, 1]
             raise InputError(f"{source}: rotation block is not orthonormal (not a rigid pose)")
         return Rigid3(project_to_so3(rot), m[:3, 3].copy())
 
