@@ -21,22 +21,8 @@ import numpy as np
 from slamreloc.demo import demo_viewer_inputs
 from slamreloc.viewer.browser import (chromium_context, decode_png, dismiss_notifications,
                                       drawn_fraction, wait_rendered)
+from slamreloc.viewer.gui import orbit_pose
 from slamreloc.viewer.server import start
-
-
-def view_pose(g, azimuth_deg: float, elevation_deg: float, distance: float,
-              target_offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(eye, target): the map's centre (plus an offset) seen from `distance` map extents away,
-    at an azimuth around the up axis and an elevation above the horizontal."""
-    up = np.asarray(g.up, float)
-    ref = np.array([1.0, 0, 0]) if abs(up[0]) < 0.9 else np.array([0, 1.0, 0])
-    x = np.cross(up, ref)
-    x /= np.linalg.norm(x)
-    y = np.cross(up, x)
-    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
-    direction = np.cos(el) * (np.cos(az) * x + np.sin(az) * y) + np.sin(el) * up
-    target = np.asarray(g.center, float) + target_offset
-    return target + direction * g.extent * distance, target
 
 
 def pick_frame(handles, source_prefix: str, frame: int | None) -> str | None:
@@ -97,8 +83,8 @@ def main() -> int:
     print(f"viewer built in {time.perf_counter() - t0:.1f} s: {len(handles.layers)} layers, "
           f"{len(server.scene._handle_from_node_name)} nodes")
     try:
-        eye, target = view_pose(handles.geometry, args.azimuth, args.elevation, args.distance,
-                                np.asarray(args.target_offset))
+        eye, target = orbit_pose(handles.geometry, args.azimuth, args.elevation, args.distance,
+                                 args.target_offset)
         server.initial_camera.position = tuple(eye)
         server.initial_camera.look_at = tuple(target)
         print(f"frame slider: {pick_frame(handles, args.source, args.frame)}")

@@ -120,6 +120,7 @@ window.requestAnimationFrame = (cb) => raf((t) => {  // t: the frame's time, sha
 });
 """
 
+
 def same_look(a: list, b: list) -> bool:
     """Two probe samples show the same picture: drawn share within 0.2 %, mean colour within
     0.5 / 255 per channel."""

@@ -144,9 +144,14 @@ class Playback:
         self._stop.set()
 
 
+def horizontal_axis(up: np.ndarray) -> np.ndarray:
+    """A unit vector perpendicular to `up` (the map's horizontal x axis for the views)."""
+    side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    return side / np.linalg.norm(side)
+
+
 def top_view(server, g: Geometry, clients=None) -> None:
-    side = np.cross(g.up, [1.0, 0.0, 0.0] if abs(g.up[0]) < 0.9 else [0.0, 1.0, 0.0])
-    eye = g.center + g.up * g.extent * 1.1 + side * g.extent * 0.02
+    eye = g.center + g.up * g.extent * 1.1 + horizontal_axis(g.up) * g.extent * 0.02
     for client in (clients or server.get_clients().values()):
         with client.atomic():
             client.camera.up_direction = g.up
@@ -154,11 +159,24 @@ def top_view(server, g: Geometry, clients=None) -> None:
             client.camera.look_at = g.center
 
 
+def orbit_pose(g: Geometry, azimuth_deg: float, elevation_deg: float, distance: float,
+               target_offset=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """(eye, target): the map's centre (plus an offset, metres) seen from `distance` map
+    extents away, at an azimuth around the up axis (0: along `horizontal_axis`) and an
+    elevation above the horizontal (degrees)."""
+    up = np.asarray(g.up, float)
+    x = horizontal_axis(up)
+    y = np.cross(up, x)
+    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
+    direction = np.cos(el) * (np.cos(az) * x + np.sin(az) * y) + np.sin(el) * up
+    target = np.asarray(g.center, float) + np.asarray(target_offset, float)
+    return target + direction * g.extent * distance, target
+
+
 def overview_pose(g: Geometry) -> tuple[np.ndarray, np.ndarray]:
-    """(eye, target) of the initial view: above and to the side of the map, looking at it."""
-    side = np.cross(g.up, [1.0, 0.0, 0.0] if abs(g.up[0]) < 0.9 else [0.0, 1.0, 0.0])
-    side /= np.linalg.norm(side)
-    return g.center + g.up * g.extent * 0.45 + side * g.extent * 0.6, g.center
+    """(eye, target) of the initial view: above and to the side of the map (0.6 extents
+    out, 0.45 up), looking at it."""
+    return orbit_pose(g, 0.0, np.degrees(np.arctan2(0.45, 0.6)), 0.75)
 
 
 def add_layer_toggles(server, layers: list[Layer], trajectories: list[TrajectoryNodes],
