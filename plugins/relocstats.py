@@ -11,6 +11,7 @@ from slamreloc.plugins.gating import Candidate
 class RelocStats:
     n_attempts: int = 0  # relocalizations run
     n_failed: int = 0  # PnP failed or inliers / confidence too low
+    n_refined: int = 0  # PnP poses moved onto the map's surface by ICP (depth)
     n_loop_closures: int = 0  # accepted while tracking (fit the track)
     n_anchors: int = 0  # confirmed after tracking loss
     n_reanchors: int = 0  # confirmed against the track

@@ -17,7 +17,7 @@ from slamreloc.progress import track
 from slamreloc.slam.backend import SlamBackend, TrackState
 from slamreloc.slam.events import Event, EventKind, FrameData
 from slamreloc.slam.poses import final_trajectory
-from slamreloc.slam.run import SEVENSCENES_DEPTH_K, make_odometry
+from slamreloc.slam.run import make_odometry
 from slamreloc.types import Frame
 
 
@@ -54,7 +54,7 @@ def smooth_poses(dataset: Dataset, frames: list[Frame], poses: list[Rigid3 | Non
     order) with depth odometry; None when the frames have no depth."""
     if any(f.depth_path is None for f in frames):
         return None
-    depth_k = None if dataset.depth_registered else SEVENSCENES_DEPTH_K
+    depth_k = dataset.depth_intrinsics
     backend = SlamBackend(make_odometry("auto", depth_k), [RegistrationPriors(poses)])
     for f in track(frames, "smoothing with odometry", enabled=progress):
         image = read_image(f.image_path) if dataset.depth_registered else None  # hybrid odometry

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slamreloc.datasets import Dataset, load_dataset
+from slamreloc.datasets import Dataset, load_dataset, read_depth
 from slamreloc.errors import InputError
 from slamreloc.extract import extract_frames
 from slamreloc.features import make_extractor
@@ -44,7 +44,8 @@ from slamreloc.pseudo_label.register import (LABELLED, NEW, PSEUDO, Database, Fr
 from slamreloc.pseudo_label.smooth import smooth_poses
 from slamreloc.regressor.model import SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
-from slamreloc.scene_map import MapDatabase, SceneMap, check_map_target, save_map
+from slamreloc.scene_map import SURFACE, MapDatabase, SceneMap, check_map_target, save_map
+from slamreloc.surface import Surface, depth_cloud, extend_surface
 from slamreloc.types import Features, Frame
 
 PROVENANCE = "provenance.npz"
@@ -63,6 +64,7 @@ class PseudoLabelConfig:
     epochs: int | None = None  # override for the update (fine-tune or retrain)
     error_scale_px: float = 2.0  # quality weight 1 / (1 + (err / scale)^2)
     smooth: bool = True  # fuse registrations with depth odometry (where frames have depth)
+    extend_surface: bool = True  # registered frames' depth joins the map's surface (new area)
     device: str = "auto"
 
 
@@ -342,9 +344,13 @@ def _base_provenance(map_dir: Path, n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.full(n, LABELLED, np.int8), np.ones(n, np.float32)
 
 
-def _save(out: Path, meta: dict, model, db: MapDatabase, provenance: dict) -> Path:
-    """The map's own atomic, locked write, with provenance.npz inside it."""
-    return save_map(out, meta, model, db, extra={PROVENANCE: provenance})
+def _save(out: Path, meta: dict, model, db: MapDatabase, provenance: dict,
+          surface: Surface | None) -> Path:
+    """The map's own atomic, locked write, with provenance.npz (and the surface) inside it."""
+    extra = {PROVENANCE: provenance}
+    if surface is not None:
+        extra[SURFACE] = surface.to_arrays()
+    return save_map(out, meta, model, db, extra=extra)
 
 
 @dataclass
@@ -357,6 +363,7 @@ class PseudoLabels:
     weights: np.ndarray  # per database row
     source: np.ndarray  # per database row: LABELLED, PSEUDO, NEW
     report: dict
+    surface: Surface | None = None  # the map's surface, grown by the registered frames
 
 
 def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
@@ -423,6 +430,13 @@ def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
                             / config.error_scale_px) ** 2)
     weights = np.concatenate([base_quality, quality]).astype(np.float32)
     source = np.concatenate([base_source, new_src]).astype(np.int8)
+    surface = old.surface
+    if surface is not None and config.extend_surface:
+        surface = extend_surface(surface, [
+            (states[i].world_from_cam, depth_cloud(
+                read_depth(frames[i].depth_path, dataset.depth_units_per_metre),
+                frames[i].camera, dataset.depth_intrinsics))
+            for i in reg if frames[i].depth_path is not None])
     timings["pseudo_label_s"] = time.perf_counter() - t_all
 
     report = {
@@ -437,18 +451,21 @@ def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
         "rounds": reg_stats["history"], "timings_s": timings,
         "registered_via": {v: sum(s.via == v for s in states if s.registered)
                            for v in ("database", "neighbours", "both", "odometry")},
+        "n_surface_points_before": 0 if old.surface is None else len(old.surface.points),
+        "n_surface_points_after": 0 if surface is None else len(surface.points),
         "poses": {frames[i].name: states[i].world_from_cam.matrix().tolist() for i in reg},
     }
     if truth_poses is not None:
         t0 = time.perf_counter()
         labelled_rows = np.flatnonzero(base_source == LABELLED)
-        report.update(score(frames, feats, states, truth_poses, depths, config.labels,
+        # the reference uses the core's default labelling, whatever the update's settings
+        report.update(score(frames, feats, states, truth_poses, depths, LabelConfig(),
                             map_views(base, old.camera, labelled_rows)))
         report["timings_s"]["scoring_s"] = time.perf_counter() - t0
     else:
         report["pseudo_label_precision_10cm"] = None
         report["note"] = "the dataset has no poses: precision and pose errors not scored"
-    return PseudoLabels(old, map_dir, db, weights, source, report)
+    return PseudoLabels(old, map_dir, db, weights, source, report, surface)
 
 
 def write_updated_map(labels: PseudoLabels, out: Path,
@@ -501,7 +518,10 @@ def write_updated_map(labels: PseudoLabels, out: Path,
         "history": old.meta.get("pseudo_label", {}).get("history", [])
         + [str(labels.map_dir.resolve())],
     }
-    _save(out, meta, model, db, {"source": labels.source, "quality": labels.weights})
+    if labels.surface is not None:
+        meta["surface"] = {**old.meta.get("surface", {}), "n_points": len(labels.surface.points)}
+    _save(out, meta, model, db, {"source": labels.source, "quality": labels.weights},
+          labels.surface)
     return SceneMap.load(out), rep
 
 

@@ -95,12 +95,15 @@ def evaluate(
     plot: Annotated[Optional[Path], typer.Option(help="write error curves and top view (PNG)")] =
     None,
     device: Annotated[Device, typer.Option(help="regressor device")] = Device.cpu,
+    depth: Annotated[bool, typer.Option(
+        "--depth", help="refine each pose by ICP of the frame's depth against the map's "
+        "surface (RGB-D relocalization)")] = False,
 ) -> None:
     """Localize every frame of a split against MAP and score it against ground truth."""
     from slamreloc.pipeline import run_evaluation
 
     summary = run_evaluation(map_dir, dataset, report, split, method.value, poses, plot,
-                             device.value)
+                             device.value, depth=depth)
     from slamreloc.evaluate import print_summary
 
     print_summary([summary])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,8 +33,10 @@ class QueryResult:
     timestamp: float = 0.0  # the frame's timestamp (seconds), the TUM file's first column
 
 
-def evaluate_frames(localizer: Localizer, frames: list[Frame],
-                    progress: bool = True) -> list[QueryResult]:
+def evaluate_frames(localizer: Localizer, frames: list[Frame], progress: bool = True,
+                    refine=None) -> list[QueryResult]:
+    """refine: optional `(frame, world_from_cam) -> world_from_cam` applied to each localized
+    pose (depth ICP against the map's surface: `pipeline.depth_refiner`), timed as `icp`."""
     if not frames:
         raise InputError("no query frames to evaluate")
     unposed = next((f for f in frames if f.world_from_cam is None), None)
@@ -47,6 +50,11 @@ def evaluate_frames(localizer: Localizer, frames: list[Frame],
                              f"its camera is {frame.camera.width}x{frame.camera.height}")
         loc = localizer.localize(image, frame.camera)
         est = loc.estimate.world_from_cam
+        if refine is not None and est is not None:
+            t0 = time.perf_counter()
+            est = refine(frame, est)
+            loc.timings_ms["icp"] = 1000 * (time.perf_counter() - t0)
+            loc.timings_ms["total"] += loc.timings_ms["icp"]
         dt, dr = pose_error(est, frame.world_from_cam) if est else (np.inf, np.inf)
         results.append(QueryResult(frame.name, est, loc.estimate.num_inliers, dt, dr,
                                    loc.timings_ms, frame.timestamp))
@@ -58,8 +66,10 @@ def summarize(results: list[QueryResult], method: str) -> dict:
     t = np.array([r.translation_error_m for r in results])
     r = np.array([r.rotation_error_deg for r in results])
     finite = lambda v: float(v) if np.isfinite(v) else None  # noqa: E731 - JSON has no inf
-    timing = {k: float(np.median([q.timings_ms[k] for q in results]))
-              for k in ("features", "regressor", "pnp", "total")} if results else {}
+    stages = [k for k in ("features", "regressor", "pnp", "icp", "total")
+              if any(k in q.timings_ms for q in results)]
+    timing = {k: float(np.median([q.timings_ms[k] for q in results if k in q.timings_ms]))
+              for k in stages}
     return {
         "method": method, "n_queries": len(results),
         "n_localized": int(np.sum([q.world_from_cam is not None for q in results])),

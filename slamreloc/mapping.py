@@ -17,8 +17,9 @@ from slamreloc.progress import console
 from slamreloc.regressor.checkpoint import checkpoint_path
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
-from slamreloc.scene_map import (MapDatabase, SceneMap, check_map_target, map_write_lock,
-                                 save_map)
+from slamreloc.scene_map import (SURFACE, MapDatabase, SceneMap, check_map_target,
+                                 map_write_lock, save_map)
+from slamreloc.surface import SurfaceConfig, dataset_surface
 from slamreloc.types import Features, Frame
 
 
@@ -30,6 +31,7 @@ class MapConfig:
     labels: LabelConfig = field(default_factory=LabelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     device: str = "auto"
+    surface: SurfaceConfig | None = field(default_factory=SurfaceConfig)  # None: no surface
 
 
 def labelled_database(frames: list[Frame], feats: list[Features], labels: LabelSet) -> MapDatabase:
@@ -91,6 +93,11 @@ def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progr
     console.print(f"labels: {labels.stats['n_labelled']} of {labels.stats['n_keypoints']} keypoints "
                   f"({100 * labels.stats['labelled_fraction']:.1f} %), median reprojection error "
                   f"{labels.stats['median_reproj_error_px'] or 0:.2f} px")
+    t0 = time.perf_counter()
+    surface = None if config.surface is None else dataset_surface(
+        frames, lambda f: read_depth(f.depth_path, dataset.depth_units_per_metre),
+        dataset.depth_intrinsics, config.surface, progress)
+    timings["surface_s"] = time.perf_counter() - t0
     model = SceneCoordinateRegressor(RegressorConfig.preset(config.arch, extractor.dim))
     t0 = time.perf_counter()
     train_stats = train_regressor(model, db.descriptors, db.points, config.train, config.device,
@@ -106,6 +113,10 @@ def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progr
         "dataset": {"root": str(dataset.root.resolve()), "kind": dataset.kind, "split": split},
         "timings_s": timings,
     }
-    scene_map = SceneMap.load(save_map(out, meta, model, db))
+    extra = {}
+    if surface is not None:
+        meta["surface"] = {"n_points": len(surface.points), "voxel_m": config.surface.voxel_m}
+        extra[SURFACE] = surface.to_arrays()
+    scene_map = SceneMap.load(save_map(out, meta, model, db, extra=extra))
     ckpt.unlink(missing_ok=True)  # the map now holds what the checkpoint was for
     return scene_map

@@ -4,24 +4,49 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from slamreloc.datasets import load_dataset, read_image
+from slamreloc.datasets import Dataset, load_dataset, read_depth, read_image
 from slamreloc.errors import InputError
 from slamreloc.evaluate import evaluate_frames, summarize, write_json, write_tum
-from slamreloc.geometry import tum_line
+from slamreloc.geometry import Rigid3, tum_line
 from slamreloc.localizer import make_localizer
 from slamreloc.scene_map import SceneMap
-from slamreloc.types import Camera
+from slamreloc.surface import depth_cloud, refine_pose
+from slamreloc.types import Camera, Frame
+
+
+def depth_refiner(scene_map: SceneMap, dataset: Dataset):
+    """`(frame, world_from_cam) -> world_from_cam`: ICP of the frame's depth against the map's
+    surface (the PnP pose where the fit is not accepted)."""
+    surface = scene_map.surface
+    if surface is None:
+        raise InputError(f"{scene_map.root}: map has no surface (it was built without depth); "
+                         "--depth needs one")
+
+    def refine(frame: Frame, world_from_cam: Rigid3) -> Rigid3:
+        if frame.depth_path is None:
+            raise InputError(f"{frame.image_path}: no depth image for --depth")
+        depth = read_depth(frame.depth_path, dataset.depth_units_per_metre)
+        fit = refine_pose(surface, depth_cloud(depth, frame.camera, dataset.depth_intrinsics),
+                          world_from_cam)
+        return fit.world_from_cam if fit.accepted else world_from_cam
+
+    return refine
 
 
 def evaluate_method(scene_map: SceneMap, dataset_dir: Path, split: str = "test",
-                    method: str = "regressor", device: str = "cpu", progress: bool = True):
-    """Localize a split with one method. Returns (report dict, per-query results, frames)."""
-    frames = load_dataset(dataset_dir).frames(split)
+                    method: str = "regressor", device: str = "cpu", progress: bool = True,
+                    depth: bool = False):
+    """Localize a split with one method (`depth`: refine each pose by ICP of the frame's depth
+    against the map's surface). Returns (report dict, per-query results, frames)."""
+    dataset = load_dataset(dataset_dir)
+    frames = dataset.frames(split)
     if not frames:
         raise InputError(f"{dataset_dir}: split '{split}' has no frames to evaluate")
+    refine = depth_refiner(scene_map, dataset) if depth else None
     localizer = make_localizer(scene_map, method, device=device)
-    results = evaluate_frames(localizer, frames, progress)
+    results = evaluate_frames(localizer, frames, progress, refine)
     summary = summarize(results, method)
+    summary["refine"] = "depth" if depth else None
     summary["map"] = {"parameters": scene_map.regressor.num_parameters(),
                       "size_bytes": scene_map.size_bytes(),
                       "database_bytes": scene_map.database_bytes(),
@@ -37,10 +62,11 @@ def evaluate_method(scene_map: SceneMap, dataset_dir: Path, split: str = "test",
 
 def run_evaluation(map_dir: Path, dataset_dir: Path, report: Path, split: str = "test",
                    method: str = "regressor", poses: Path | None = None,
-                   plot: Path | None = None, device: str = "cpu", progress: bool = True) -> dict:
+                   plot: Path | None = None, device: str = "cpu", progress: bool = True,
+                   depth: bool = False) -> dict:
     """Localize a split, write REPORT.json (and TUM poses / a plot); returns the report."""
     summary, results, frames = evaluate_method(SceneMap.load(map_dir), dataset_dir, split,
-                                               method, device, progress)
+                                               method, device, progress, depth)
     write_json(report, summary)
     if poses:
         write_tum(poses, results)

@@ -7,6 +7,8 @@
     MAP/database.npz         labelled training descriptors (float16), their world points (m),
                              keypoints, frame index, training poses (world_from_cam 4x4) —
                              used by the matching baseline, pseudo-labelling and the viewer
+    MAP/surface.npz          optional: the training frames' depth fused into points + normals
+                             (map frame, m) — ICP refinement of relocalizations (surface.py)
 
 Opening a map never runs code from it: both archives are read with numpy's
 `allow_pickle=False` (an object array is refused), every array's shape, dtype and values are
@@ -47,11 +49,13 @@ import torch
 from slamreloc import __version__
 from slamreloc.errors import InputError
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
+from slamreloc.surface import Surface
 from slamreloc.types import Camera
 
 MAP_FORMAT = "slamreloc-map"
 FORMAT_VERSION = 2  # 1: regressor.pt (torch pickle); 2: regressor.npz + checksums
 META, WEIGHTS, DATABASE = "slamreloc_map.json", "regressor.npz", "database.npz"
+SURFACE = "surface.npz"  # optional
 LEGACY_WEIGHTS = "regressor.pt"  # format 1
 MAX_META_BYTES = 64 << 20
 MAX_ARRAY_BYTES = 16 << 30
@@ -115,6 +119,17 @@ class SceneMap:
         arrays = _read_npz(path, "training database")
         return _check_database(arrays, path, self.regressor.config.in_dim,
                                list(self.meta.get("frame_names", [])))
+
+    @cached_property
+    def surface(self) -> Surface | None:
+        """The fused depth surface, or None for a map built without depth."""
+        if SURFACE not in self.meta.get("files", {}):
+            return None
+        path = self.root / SURFACE
+        if not path.is_file():
+            raise InputError(f"{path}: the map lists a surface but the file is missing")
+        _check_digest(self.root, SURFACE, self.meta)
+        return Surface.from_arrays(_read_npz(path, "surface"), str(path))
 
     def size_bytes(self) -> int:
         """What localization with the regressor needs: weights + metadata."""

@@ -79,6 +79,13 @@ def test_new_map_records_provenance_and_old_map_is_intact(updated, small_map):
     assert meta["source_map"] == str(small_map.root.resolve())
     assert meta["n_frames_registered"] == rep["n_frames_registered"]
     assert len(db_new.frame_names) == len(db_old.frame_names) + rep["n_frames_registered"]
+    # the registered frames' depth extends the map's surface and keeps the old one in it
+    assert rep["n_surface_points_before"] == len(small_map.surface.points)
+    assert rep["n_surface_points_after"] == len(new_map.surface.points)
+    assert len(new_map.surface.points) >= len(small_map.surface.points)
+    assert new_map.meta["surface"]["n_points"] == len(new_map.surface.points)
+    near = new_map.surface.tree.query(small_map.surface.points)[0]
+    assert np.median(near) < 0.01
 
 
 def test_updated_map_still_localizes_held_out_views(updated, small_map, scene_dir):

@@ -8,6 +8,8 @@ from pathlib import Path
 from slamreloc.errors import InputError
 from slamreloc.types import Frame
 
+SEVENSCENES_DEPTH_K = (585.0, 585.0, 320.0, 240.0)  # 7-Scenes depth camera at 640x480
+
 
 @dataclass
 class Dataset:
@@ -21,6 +23,12 @@ class Dataset:
     depth_units_per_metre: float = 1000.0
     roles: dict[str, str] = field(default_factory=dict)  # synthetic: sequence -> role
     split_files: dict[str, Path] = field(default_factory=dict)  # split -> file that names it
+
+    @property
+    def depth_intrinsics(self) -> tuple[float, float, float, float] | None:
+        """The depth camera's (fx, fy, cx, cy) at 640x480 where depth is not registered to the
+        images (7-Scenes), else None: the RGB camera's own intrinsics apply."""
+        return None if self.depth_registered else SEVENSCENES_DEPTH_K
 
     def frames(self, split: str = "all") -> list[Frame]:
         """Frames of a split: "train", "test", "all", a role, or comma-separated sequences."""

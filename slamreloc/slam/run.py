@@ -16,7 +16,6 @@ from slamreloc.slam.kissicp import KissIcpConfig, KissIcpOdometry
 from slamreloc.slam.odometry import Odometry
 from slamreloc.slam.report import build_report
 
-SEVENSCENES_DEPTH_K = (585.0, 585.0, 320.0, 240.0)  # 7-Scenes depth camera at 640x480
 
 
 @dataclass
@@ -72,11 +71,12 @@ def run_slam(dataset_dir: Path, map_dir: Path, config: SlamRunConfig = SlamRunCo
     frames = dataset.frames(config.split)
     if not frames:
         raise InputError(f"{dataset_dir}: split '{config.split}' has no frames")
-    depth_k = None if dataset.depth_registered else SEVENSCENES_DEPTH_K
+    depth_k = dataset.depth_intrinsics
     odometry = make_odometry(config.odometry, depth_k)
     external = odometry.name == "trajectory"
     if plugins is None:
-        plugins = [load_plugin("relocalization", map_dir=map_dir, **config.plugin_options)]
+        plugins = [load_plugin("relocalization", map_dir=map_dir, depth_intrinsics=depth_k,
+                               **config.plugin_options)]
     backend = SlamBackend(odometry, plugins, config.backend)
     kept, jumps = kidnap_schedule(len(frames), config.kidnap_every, config.kidnap_skip)
     processed, t_backend = [frames[i] for i in kept], 0.0

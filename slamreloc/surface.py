@@ -1,0 +1,204 @@
+"""The map's surface: depth of the posed training frames fused into one voxelised point cloud
+with normals (map frame, metres), and point-to-plane ICP of a new depth frame against it.
+
+The regressor places a camera to a few centimetres; where the frame has depth, ICP against the
+surface the map was built from pulls that estimate onto the map's geometry (sub-centimetre to a
+few millimetres where the view sees enough structure). On 7-Scenes the ground-truth poses are
+the depth camera's (KinectFusion), so the refined pose is in exactly their frame.
+
+    surface = build_surface(depth_frames)            # [(world_from_cam, points_cam), ...]
+    fit = refine_pose(surface, points_cam, world_from_cam_guess)
+    fit.world_from_cam, fit.fitness, fit.rmse_m
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from slamreloc.errors import InputError
+from slamreloc.geometry import Rigid3, axis_angle_to_matrix, rotation_angle_deg
+from slamreloc.progress import track
+from slamreloc.slam.odometry import DepthSampling, backproject, depth_camera
+from slamreloc.types import Camera, Frame
+
+
+@dataclass(frozen=True)
+class SurfaceConfig:
+    voxel_m: float = 0.025  # one point per voxel of the fused cloud
+    normal_radius_m: float = 0.075
+    frame_stride: int = 2  # every n-th training frame's depth enters the surface
+
+
+@dataclass(frozen=True)
+class IcpConfig:
+    """Coarse-to-fine correspondence distances (m); a fit is accepted when at least
+    `min_fitness` of the frame's points lie within the last distance of the surface and the
+    correction stays within (max_shift_m, max_turn_deg) of the guess."""
+
+    distances_m: tuple[float, ...] = (0.10, 0.05, 0.025)
+    iterations: int = 15  # at most, Gauss-Newton steps per distance
+    source_voxel_m: float = 0.04  # the frame's cloud is thinned to one point per voxel ...
+    max_source_points: int = 600  # ... and to this many (RedKitchen: 1.3 cm / 0.5 deg from
+    # 7 cm / 2.5 deg guesses, ~25 ms; 2500 points: 1.2 cm, 3x the time; BENCHMARKS.md)
+    # RedKitchen seq-02 against seq-01's surface: every PnP pose (up to 38 cm / 8.7 deg off)
+    # converged to within 5 cm, fitness 0.66-0.97; from guesses 0.5 m or 20 deg off ICP lands
+    # elsewhere with fitness ~0.25 (BENCHMARKS.md, issue 8)
+    min_fitness: float = 0.6
+    max_shift_m: float = 0.5
+    max_turn_deg: float = 15.0
+
+
+DEGENERATE = 1e-3  # an ICP direction whose curvature is below this share of the largest
+
+
+@dataclass
+class Surface:
+    points: np.ndarray  # (N, 3) float32, map frame, metres
+    normals: np.ndarray  # (N, 3) float32, unit
+
+    @cached_property
+    def tree(self):
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.points.astype(np.float64))
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {"points": self.points.astype(np.float32),
+                "normals": self.normals.astype(np.float16)}
+
+    @staticmethod
+    def from_arrays(arrays: dict[str, np.ndarray], source: str) -> Surface:
+        """Check shapes and values (a damaged file raises InputError naming `source`)."""
+        pts, nrm = arrays.get("points"), arrays.get("normals")
+        if pts is None or nrm is None:
+            raise InputError(f"{source}: surface needs 'points' and 'normals' arrays")
+        if pts.ndim != 2 or pts.shape[1:] != (3,) or nrm.shape != pts.shape:
+            raise InputError(f"{source}: surface points {pts.shape} and normals {nrm.shape} "
+                             "must both be (N, 3)")
+        if pts.dtype.kind != "f" or nrm.dtype.kind != "f":
+            raise InputError(f"{source}: surface arrays must be floating point")
+        if not (np.isfinite(pts).all() and np.isfinite(nrm).all()):
+            raise InputError(f"{source}: surface has non-finite values")
+        return Surface(pts.astype(np.float32), nrm.astype(np.float32))
+
+
+def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """One point (the first) per occupied voxel."""
+    if len(points) == 0:
+        return points
+    _, first = np.unique(np.floor(points / voxel_m).astype(np.int64), axis=0, return_index=True)
+    return points[np.sort(first)]
+
+
+def depth_cloud(depth: np.ndarray, camera: Camera,
+                 depth_intrinsics: tuple[float, float, float, float] | None,
+                 sampling: DepthSampling = DepthSampling()) -> np.ndarray:
+    """(N, 3) points of a depth map (metres) in its camera's frame; `depth_intrinsics` as in
+    `Dataset.depth_intrinsics` (None: registered to the RGB `camera`)."""
+    return backproject(depth, depth_camera(camera, depth.shape, depth_intrinsics), sampling)
+
+
+def dataset_surface(frames: list[Frame], read_depth, depth_intrinsics,
+                    config: SurfaceConfig = SurfaceConfig(), progress: bool = True
+                    ) -> Surface | None:
+    """The surface of posed frames with depth; `read_depth(frame)` -> metres. None without
+    depth."""
+    chosen = [f for f in frames[::config.frame_stride]
+              if f.depth_path is not None and f.world_from_cam is not None]
+    return build_surface(((f.world_from_cam,
+                           depth_cloud(read_depth(f), f.camera, depth_intrinsics))
+                          for f in track(chosen, "surface", enabled=progress)), config)
+
+
+def build_surface(depth_frames: Iterable[tuple[Rigid3, np.ndarray]],
+                  config: SurfaceConfig = SurfaceConfig(), base: Surface | None = None
+                  ) -> Surface | None:
+    """Fuse (world_from_cam, points in that camera's frame) pairs, with the points of `base`
+    (a surface to grow); None if nothing is left."""
+    import open3d as o3d
+
+    clouds = [voxel_thin(pose.transform(pts), config.voxel_m / 2)
+              for pose, pts in depth_frames if len(pts)]
+    if base is not None:
+        clouds.append(base.points.astype(np.float64))
+    if not clouds:
+        return None
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(clouds)))
+    cloud = cloud.voxel_down_sample(config.voxel_m)
+    if len(cloud.points) < 100:
+        return None
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(config.normal_radius_m, 30))
+    return Surface(np.asarray(cloud.points, np.float32), np.asarray(cloud.normals, np.float32))
+
+
+def extend_surface(surface: Surface, depth_frames: list[tuple[Rigid3, np.ndarray]],
+                   config: SurfaceConfig = SurfaceConfig(), min_gap_m: float = 0.05) -> Surface:
+    """`surface` plus the parts of new posed depth frames it does not cover (points farther
+    than `min_gap_m` from it): the new area joins, the old geometry is not blurred by a second
+    copy at slightly other poses."""
+    new = [voxel_thin(pose.transform(pts), config.voxel_m / 2) for pose, pts in depth_frames]
+    new = np.concatenate([p for p in new if len(p)] or [np.zeros((0, 3))])
+    if len(new):
+        new = new[surface.tree.query(new, distance_upper_bound=min_gap_m)[0] > min_gap_m]
+    if len(new) < 100:
+        return surface
+    return build_surface([(Rigid3.identity(), new)], config, base=surface) or surface
+
+
+@dataclass
+class IcpFit:
+    world_from_cam: Rigid3
+    fitness: float  # share of the frame's (thinned) points within the last distance
+    rmse_m: float  # point-to-plane residual of those points
+    accepted: bool
+
+
+def _step(surface: Surface, pts_world: np.ndarray, max_m: float, centre: np.ndarray):
+    """One point-to-plane Gauss-Newton step: (rotation vector about `centre`, translation), in
+    the map frame (rotating about the points' centre keeps the two apart)."""
+    dist, idx = surface.tree.query(pts_world, distance_upper_bound=max_m)
+    ok = np.isfinite(dist)
+    p, n = pts_world[ok], surface.normals[idx[ok]].astype(np.float64)
+    r = np.einsum("ij,ij->i", p - surface.points[idx[ok]], n)
+    if len(r) < 6:
+        return None, ok, r
+    J = np.hstack([np.cross(p - centre, n), n])
+    w = 1.0 / np.maximum(1.0, np.abs(r) / (0.3 * max_m))  # Huber-like weights
+    H, g = (J * w[:, None]).T @ J, -(J * w[:, None]).T @ r
+    # degeneracy-aware step: directions the geometry leaves free (sliding along a wall) keep
+    # the guess's values instead of following noise
+    ev, vec = np.linalg.eigh(H)
+    keep = ev > DEGENERATE * max(ev[-1], 1e-12)
+    return vec[:, keep] @ ((vec[:, keep].T @ g) / ev[keep]), ok, r
+
+
+def refine_pose(surface: Surface, points_cam: np.ndarray, world_from_cam: Rigid3,
+                config: IcpConfig = IcpConfig()) -> IcpFit:
+    """Point-to-plane ICP of a depth frame's points (camera frame) from a pose guess."""
+    src = voxel_thin(points_cam, config.source_voxel_m)
+    if len(src) > config.max_source_points:
+        src = src[np.linspace(0, len(src) - 1, config.max_source_points).astype(int)]
+    rot, trans = world_from_cam.rotation.copy(), world_from_cam.translation.copy()
+    ok, r = np.zeros(len(src), bool), np.zeros(0)
+    for max_m in config.distances_m:
+        for _ in range(config.iterations):
+            centre = rot @ src.mean(axis=0) + trans
+            x, ok, r = _step(surface, src @ rot.T + trans, max_m, centre)
+            if x is None:
+                break
+            d_rot = axis_angle_to_matrix(x[:3])
+            rot, trans = d_rot @ rot, d_rot @ (trans - centre) + centre + x[3:]
+            if np.linalg.norm(x[:3]) < 1e-4 and np.linalg.norm(x[3:]) < 1e-4:
+                break
+    _, ok, r = _step(surface, src @ rot.T + trans, config.distances_m[-1], trans)
+    fit = Rigid3(rot, trans)
+    fitness = float(ok.mean()) if len(ok) else 0.0
+    shift = float(np.linalg.norm(trans - world_from_cam.translation))
+    turn = rotation_angle_deg(world_from_cam.rotation.T @ rot)
+    accepted = (fitness >= config.min_fitness and shift <= config.max_shift_m
+                and turn <= config.max_turn_deg)
+    return IcpFit(fit, fitness, float(np.sqrt(np.mean(r ** 2))) if len(r) else np.inf, accepted)

@@ -1,0 +1,166 @@
+"""The map's depth surface and ICP refinement: built with the map, checked on load, and pulling
+perturbed poses of the synthetic scene onto the truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from slamreloc.datasets import load_dataset, read_depth
+from slamreloc.errors import InputError
+from slamreloc.geometry import Rigid3, axis_angle_to_matrix, pose_error
+from slamreloc.scene_map import SURFACE, SceneMap
+from slamreloc.surface import IcpConfig, Surface, depth_cloud, refine_pose
+
+
+@pytest.fixture(scope="module")
+def query(scene_dir):
+    ds = load_dataset(scene_dir)
+    frames = ds.frames("query")
+    return [(f.world_from_cam, depth_cloud(read_depth(f.depth_path, ds.depth_units_per_metre),
+                                            f.camera, ds.depth_intrinsics))
+            for f in frames[::4]]
+
+
+def test_a_map_of_a_depth_dataset_carries_its_surface(small_map):
+    surface = small_map.surface
+    assert surface is not None and len(surface.points) == small_map.meta["surface"]["n_points"]
+    assert len(surface.points) > 1000
+    np.testing.assert_allclose(np.linalg.norm(surface.normals, axis=1), 1, atol=1e-2)
+    # every training camera sees the surface in front of it
+    db = small_map.database
+    cam_from_world = Rigid3.from_matrix(db.world_from_cam[0]).inverse()
+    assert np.mean(cam_from_world.transform(surface.points)[:, 2] > 0) > 0.2
+
+
+def _scene_points(rng) -> np.ndarray:
+    """A 4 x 4 x 2.5 m room (floor, ceiling, four walls) with three balls in it."""
+    g = np.linspace(0, 1, 60)
+    u, v = (a.ravel() for a in np.meshgrid(g, g))
+    planes = [np.stack([4 * u, 4 * v, 0 * u], 1), np.stack([4 * u, 4 * v, 0 * u + 2.5], 1),
+              np.stack([0 * u, 4 * u, 2.5 * v], 1), np.stack([0 * u + 4, 4 * u, 2.5 * v], 1),
+              np.stack([4 * u, 0 * u, 2.5 * v], 1), np.stack([4 * u, 0 * u + 4, 2.5 * v], 1)]
+    k = np.arange(3000) + 0.5
+    phi, theta = np.arccos(1 - 2 * k / 3000), np.pi * (1 + 5 ** 0.5) * k
+    ball = np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], 1)
+    balls = [c + r * ball for c, r in (((1.2, 1.5, 0.5), 0.4), ((2.8, 2.2, 1.2), 0.3),
+                                       ((2.0, 3.0, 0.3), 0.3))]
+    return np.concatenate([*planes, *balls]) + rng.normal(0, 0.002, (1, 3))
+
+
+@pytest.fixture(scope="module")
+def room():
+    from slamreloc.surface import build_surface
+
+    points = _scene_points(np.random.default_rng(0))
+    return build_surface([(Rigid3.identity(), points)]), points
+
+
+small = st.lists(st.floats(-1, 1), min_size=3, max_size=3).map(np.array)
+
+
+@settings(max_examples=25, deadline=None)
+@given(small, small)
+def test_icp_pulls_a_perturbed_pose_onto_the_truth(room, shift, turn):
+    """Guesses up to 8 cm / 3 deg off (a relocalization's error) end within 5 mm / 0.3 deg."""
+    surface, points = room
+    truth = Rigid3(axis_angle_to_matrix(np.array([1.9, 0.3, -0.2])), np.array([2.0, 2.0, 1.3]))
+    cam = truth.inverse().transform(points)
+    cam = cam[(cam[:, 2] > 0.3) & (np.abs(cam[:, 0]) < cam[:, 2]) & (np.abs(cam[:, 1]) < cam[:, 2])]
+    guess = Rigid3(truth.rotation @ axis_angle_to_matrix(np.radians(3) * turn / np.sqrt(3)),
+                   truth.translation + 0.08 * shift / np.sqrt(3))
+    fit = refine_pose(surface, cam, guess)
+    assert fit.accepted and fit.fitness > 0.9
+    dt, dr = pose_error(fit.world_from_cam, truth)
+    assert dt < 0.005 and dr < 0.3, (dt, dr, pose_error(guess, truth))
+
+
+def test_icp_keeps_a_good_pose_of_the_synthetic_scene(small_map, query):
+    """On the rendered room (flat walls: directions the view leaves free are not moved), a pose
+    at the truth stays within 1 cm / 0.2 deg of it."""
+    for world_from_cam, points in query:
+        fit = refine_pose(small_map.surface, points, world_from_cam)
+        assert fit.accepted and fit.fitness > 0.8
+        dt, dr = pose_error(fit.world_from_cam, world_from_cam)
+        assert dt < 0.01 and dr < 0.2, (dt, dr)
+
+
+def test_a_view_that_is_not_on_the_surface_is_not_accepted(small_map, query):
+    world_from_cam, points = query[0]
+    rng = np.random.default_rng(0)
+    noise = rng.uniform(-3, 3, size=(2000, 3)) + [0, 0, 4]  # a cloud of nothing in particular
+    fit = refine_pose(small_map.surface, noise, world_from_cam)
+    assert not fit.accepted
+    far = Rigid3(world_from_cam.rotation, world_from_cam.translation + [0, 0, 20])
+    assert not refine_pose(small_map.surface, points, far, IcpConfig()).accepted
+
+
+def test_a_damaged_surface_is_refused_naming_the_file(small_map, tmp_path):
+    import shutil
+
+    copy = tmp_path / "map"
+    shutil.copytree(small_map.root, copy)
+    data = bytearray((copy / SURFACE).read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    (copy / SURFACE).write_bytes(bytes(data))
+    with pytest.raises(InputError, match=f"{SURFACE}: contents do not match"):
+        SceneMap.load(copy).surface
+    (copy / SURFACE).unlink()
+    with pytest.raises(InputError, match="surface but the file is missing"):
+        SceneMap.load(copy).surface
+
+
+@pytest.mark.parametrize("arrays, message", [
+    ({"points": np.zeros((5, 3), np.float32)}, "needs 'points' and 'normals'"),
+    ({"points": np.zeros((5, 2), np.float32), "normals": np.zeros((5, 2), np.float32)},
+     "must both be"),
+    ({"points": np.full((5, 3), np.nan, np.float32), "normals": np.zeros((5, 3), np.float32)},
+     "non-finite"),
+])
+def test_malformed_surface_arrays_are_named(arrays, message):
+    with pytest.raises(InputError, match=message):
+        Surface.from_arrays(arrays, "m/surface.npz")
+
+
+def _cli(*args):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "slamreloc.cli", *map(str, args)],
+                          capture_output=True, text=True)
+
+
+def test_evaluate_with_depth_refines_every_query(small_map, scene_dir, tmp_path):
+    """`evaluate --depth`: RGB-D relocalization, at least as accurate as the image alone."""
+    import json
+
+    runs = {}
+    for name, extra in (("rgb", []), ("depth", ["--depth"])):
+        res = _cli("evaluate", small_map.root, scene_dir, "--split", "query", "--report",
+                   tmp_path / f"{name}.json", *extra)
+        assert res.returncode == 0, res.stderr
+        runs[name] = json.loads((tmp_path / f"{name}.json").read_text())
+    assert runs["depth"]["refine"] == "depth" and runs["rgb"]["refine"] is None
+    assert runs["depth"]["timing_ms"]["icp"] > 0
+    assert runs["depth"]["recall"]["1cm1deg"] >= runs["rgb"]["recall"]["1cm1deg"]
+    assert runs["depth"]["median_translation_m"] <= runs["rgb"]["median_translation_m"] + 1e-3
+    assert runs["depth"]["median_translation_m"] < 0.01
+
+
+def test_evaluate_with_depth_needs_a_surface(small_map, scene_dir, tmp_path):
+    import json
+    import shutil
+
+    copy = tmp_path / "map"
+    shutil.copytree(small_map.root, copy)
+    meta = json.loads((copy / "slamreloc_map.json").read_text())
+    del meta["files"][SURFACE], meta["surface"]
+    (copy / "slamreloc_map.json").write_text(json.dumps(meta))
+    (copy / SURFACE).unlink()
+    assert SceneMap.load(copy).surface is None
+    res = _cli("evaluate", copy, scene_dir, "--split", "query", "--report", tmp_path / "r.json",
+               "--depth")
+    assert res.returncode != 0 and "no surface" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
