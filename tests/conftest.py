@@ -24,6 +24,16 @@ SMALL_MAP = MapConfig(arch="wide", feature_options={"upsample": True},
                       train=TrainConfig(epochs=120))
 
 
+def sigint_as_from_a_terminal() -> None:
+    """Popen preexec_fn: the child takes SIGINT (Ctrl-C) with the default action. A shell that
+    runs the suite as a background job hands its children SIGINT ignored, and Python then
+    never raises KeyboardInterrupt: the tests that press Ctrl-C must not depend on how the
+    suite was started."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def needs(path: Path):
     return pytest.mark.skipif(not path.is_dir(), reason=f"real data not found at {path}")
 

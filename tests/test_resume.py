@@ -17,6 +17,7 @@ import slamreloc.regressor.train as train_mod
 from slamreloc.errors import InputError
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
+from tests.conftest import sigint_as_from_a_terminal
 
 CONFIG = TrainConfig(epochs=6, batch_size=256, precision="fp32", checkpoint_every_s=0.0)
 
@@ -85,7 +86,8 @@ def test_ctrl_c_during_map_saves_state_and_says_how_to_resume(scene_dir, tmp_pat
     cmd = [sys.executable, "-m", "slamreloc.cli", "map", str(scene_dir), "--out", str(out),
            "--epochs", "500", "--precision", "fp32"]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "COLUMNS": "200"})
+                            env={**os.environ, "COLUMNS": "200"},
+                            preexec_fn=sigint_as_from_a_terminal)
     seen = ""
     deadline = time.monotonic() + 240
     while "training on" not in seen and time.monotonic() < deadline:

@@ -21,6 +21,7 @@ import pytest
 from slamreloc.viewer import browser as browser_helpers
 from slamreloc.viewer.browser import (chromium_context, dismiss_notifications, drawn_fraction,
                                       find_chromium)
+from tests.conftest import sigint_as_from_a_terminal
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -58,7 +59,8 @@ def start_view(args: list[str], port: int) -> tuple[subprocess.Popen, str]:
            "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     proc = subprocess.Popen([sys.executable, "-m", "slamreloc.cli", "view", *args,
                              "--port", str(port)], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, cwd=ROOT, env=env)
+                            stderr=subprocess.STDOUT, text=True, cwd=ROOT, env=env,
+                            preexec_fn=sigint_as_from_a_terminal)
     deadline = time.time() + 90
     seen = []
     while time.time() < deadline:
