@@ -89,16 +89,21 @@ def test_ctrl_c_during_map_saves_state_and_says_how_to_resume(scene_dir, tmp_pat
                             env={**os.environ, "COLUMNS": "200"},
                             preexec_fn=sigint_as_from_a_terminal)
     seen = ""
-    deadline = time.monotonic() + 240
-    while "training on" not in seen and time.monotonic() < deadline:
-        line = proc.stderr.readline()
-        if not line:
-            break
-        seen += line
-    assert "training on" in seen, seen
-    time.sleep(3.0)
-    proc.send_signal(signal.SIGINT)
-    rest = proc.communicate(timeout=120)[1]
+    try:
+        deadline = time.monotonic() + 240
+        while "training on" not in seen and time.monotonic() < deadline:
+            line = proc.stderr.readline()
+            if not line:
+                break
+            seen += line
+        assert "training on" in seen, seen
+        time.sleep(3.0)
+        proc.send_signal(signal.SIGINT)
+        rest = proc.communicate(timeout=120)[1]
+    finally:
+        if proc.poll() is None:  # a failed check must not leave 500 epochs training
+            proc.kill()
+            proc.wait()
     assert proc.returncode == 130, seen + rest
     assert "--resume" in rest and "Traceback" not in rest
     assert (tmp_path / ".m.train-checkpoint.pt").is_file()
