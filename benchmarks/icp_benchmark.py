@@ -16,11 +16,11 @@ import time
 import numpy as np
 import torch
 
-from slamreloc.datasets import load_dataset, read_depth, read_image
+from slamreloc.datasets import load_dataset, read_image
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, pose_error
 from slamreloc.localizer import RegressorLocalizer
 from slamreloc.scene_map import SceneMap
-from slamreloc.surface import IcpConfig, depth_cloud, refine_pose
+from slamreloc.surface import IcpConfig, frame_cloud, refine_pose
 
 PERTURBATIONS = ((0.07, 2.5), (0.15, 5.0), (0.5, 0.0), (0.0, 20.0))  # metres, degrees
 
@@ -49,8 +49,7 @@ def main() -> None:
     scene_map = SceneMap.load(args.map)
     surface, loc = scene_map.surface, RegressorLocalizer(scene_map)
     frames = ds.frames(args.split)
-    clouds = [depth_cloud(read_depth(f.depth_path, ds.depth_units_per_metre), f.camera,
-                          ds.depth_intrinsics) for f in frames]
+    clouds = [frame_cloud(f, ds) for f in frames]
     print(f"{len(frames)} frames, surface {len(surface.points)} points")
     print("| start | after ICP (median) | within 5 cm / 5 deg | fit taken | ICP ms |")
     print("|---|---|---|---|---|")
@@ -64,8 +63,7 @@ def main() -> None:
         times.append(1000 * (time.perf_counter() - t0))
         taken.append(fit.accepted)
         pnp.append(pose_error(est.world_from_cam, f.world_from_cam))
-        refined.append(pose_error(fit.world_from_cam if fit.accepted else est.world_from_cam,
-                                  f.world_from_cam))
+        refined.append(pose_error(fit.chosen(), f.world_from_cam))
     print(summary(f"PnP poses ({len(pnp)} localized): before", pnp, [0], [0]))
     print(summary("PnP poses: after ICP", refined, times, taken))
     for n in args.points:

@@ -158,7 +158,7 @@ class RelocalizationPlugin:
             points = depth_cloud(frame.depth, frame.camera, self.depth_intrinsics)
             fit = refine_pose(self.surface, points, world_from_cam, self.config.icp)
         self.stats.n_refined += fit.accepted
-        return fit.world_from_cam if fit.accepted else world_from_cam
+        return fit.chosen()
 
     def _wrong(self, world_from_cam: Rigid3) -> Rigid3:
         """A pose at least 0.5 m or 20 deg from the given one (the robustness test hook)."""

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slamreloc.datasets import Dataset, load_dataset, read_depth
+from slamreloc.datasets import Dataset, load_dataset
 from slamreloc.errors import InputError
 from slamreloc.extract import extract_frames
 from slamreloc.features import make_extractor
@@ -45,7 +45,7 @@ from slamreloc.pseudo_label.smooth import smooth_poses
 from slamreloc.regressor.model import SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
 from slamreloc.scene_map import SURFACE, MapDatabase, SceneMap, check_map_target, save_map
-from slamreloc.surface import Surface, depth_cloud, extend_surface
+from slamreloc.surface import Surface, extend_surface, frame_cloud
 from slamreloc.types import Features, Frame
 
 PROVENANCE = "provenance.npz"
@@ -432,11 +432,9 @@ def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
     source = np.concatenate([base_source, new_src]).astype(np.int8)
     surface = old.surface
     if surface is not None and config.extend_surface:
-        surface = extend_surface(surface, [
-            (states[i].world_from_cam, depth_cloud(
-                read_depth(frames[i].depth_path, dataset.depth_units_per_metre),
-                frames[i].camera, dataset.depth_intrinsics))
-            for i in reg if frames[i].depth_path is not None])
+        surface = extend_surface(surface, [(states[i].world_from_cam,
+                                            frame_cloud(frames[i], dataset))
+                                           for i in reg if frames[i].depth_path is not None])
     timings["pseudo_label_s"] = time.perf_counter() - t_all
 
     report = {

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,7 +35,8 @@ class QueryResult:
 
 
 def evaluate_frames(localizer: Localizer, frames: list[Frame], progress: bool = True,
-                    refine=None) -> list[QueryResult]:
+                    refine: Callable[[Frame, Rigid3], Rigid3] | None = None
+                    ) -> list[QueryResult]:
     """refine: optional `(frame, world_from_cam) -> world_from_cam` applied to each localized
     pose (depth ICP against the map's surface: `pipeline.depth_refiner`), timed as `icp`."""
     if not frames:

@@ -94,9 +94,8 @@ def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progr
                   f"({100 * labels.stats['labelled_fraction']:.1f} %), median reprojection error "
                   f"{labels.stats['median_reproj_error_px'] or 0:.2f} px")
     t0 = time.perf_counter()
-    surface = None if config.surface is None else dataset_surface(
-        frames, lambda f: read_depth(f.depth_path, dataset.depth_units_per_metre),
-        dataset.depth_intrinsics, config.surface, progress)
+    surface = None if config.surface is None else dataset_surface(dataset, frames,
+                                                                  config.surface, progress)
     timings["surface_s"] = time.perf_counter() - t0
     model = SceneCoordinateRegressor(RegressorConfig.preset(config.arch, extractor.dim))
     t0 = time.perf_counter()

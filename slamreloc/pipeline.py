@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from slamreloc.datasets import Dataset, load_dataset, read_depth, read_image
+from slamreloc.datasets import Dataset, load_dataset, read_image
 from slamreloc.errors import InputError
 from slamreloc.evaluate import evaluate_frames, summarize, write_json, write_tum
 from slamreloc.geometry import Rigid3, tum_line
 from slamreloc.localizer import make_localizer
 from slamreloc.scene_map import SceneMap
-from slamreloc.surface import depth_cloud, refine_pose
+from slamreloc.surface import frame_cloud, refine_pose
 from slamreloc.types import Camera, Frame
 
 
@@ -23,12 +23,7 @@ def depth_refiner(scene_map: SceneMap, dataset: Dataset):
                          "--depth needs one")
 
     def refine(frame: Frame, world_from_cam: Rigid3) -> Rigid3:
-        if frame.depth_path is None:
-            raise InputError(f"{frame.image_path}: no depth image for --depth")
-        depth = read_depth(frame.depth_path, dataset.depth_units_per_metre)
-        fit = refine_pose(surface, depth_cloud(depth, frame.camera, dataset.depth_intrinsics),
-                          world_from_cam)
-        return fit.world_from_cam if fit.accepted else world_from_cam
+        return refine_pose(surface, frame_cloud(frame, dataset), world_from_cam).chosen()
 
     return refine
 

@@ -19,6 +19,7 @@ from functools import cached_property
 
 import numpy as np
 
+from slamreloc.datasets import Dataset, read_depth
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, rotation_angle_deg
 from slamreloc.progress import track
@@ -102,15 +103,21 @@ def depth_cloud(depth: np.ndarray, camera: Camera,
     return backproject(depth, depth_camera(camera, depth.shape, depth_intrinsics), sampling)
 
 
-def dataset_surface(frames: list[Frame], read_depth, depth_intrinsics,
+def frame_cloud(frame: Frame, dataset: Dataset) -> np.ndarray:
+    """The points of a dataset frame's depth image in its camera's frame (metres)."""
+    if frame.depth_path is None:
+        raise InputError(f"{frame.image_path}: no depth image")
+    return depth_cloud(read_depth(frame.depth_path, dataset.depth_units_per_metre),
+                       frame.camera, dataset.depth_intrinsics)
+
+
+def dataset_surface(dataset: Dataset, frames: list[Frame],
                     config: SurfaceConfig = SurfaceConfig(), progress: bool = True
                     ) -> Surface | None:
-    """The surface of posed frames with depth; `read_depth(frame)` -> metres. None without
-    depth."""
+    """The surface of a dataset's posed frames with depth; None without depth."""
     chosen = [f for f in frames[::config.frame_stride]
               if f.depth_path is not None and f.world_from_cam is not None]
-    return build_surface(((f.world_from_cam,
-                           depth_cloud(read_depth(f), f.camera, depth_intrinsics))
+    return build_surface(((f.world_from_cam, frame_cloud(f, dataset))
                           for f in track(chosen, "surface", enabled=progress)), config)
 
 
@@ -155,17 +162,29 @@ class IcpFit:
     fitness: float  # share of the frame's (thinned) points within the last distance
     rmse_m: float  # point-to-plane residual of those points
     accepted: bool
+    guess: Rigid3  # the pose ICP started from
+
+    def chosen(self) -> Rigid3:
+        """The fit where it was accepted, else the guess."""
+        return self.world_from_cam if self.accepted else self.guess
+
+
+def _residuals(surface: Surface, pts_world: np.ndarray, max_m: float):
+    """(mask of points with a surface point within max_m, those points, their surface normals,
+    point-to-plane residuals)."""
+    dist, idx = surface.tree.query(pts_world, distance_upper_bound=max_m)
+    ok = np.isfinite(dist)
+    p, n = pts_world[ok], surface.normals[idx[ok]].astype(np.float64)
+    return ok, p, n, np.einsum("ij,ij->i", p - surface.points[idx[ok]], n)
 
 
 def _step(surface: Surface, pts_world: np.ndarray, max_m: float, centre: np.ndarray):
     """One point-to-plane Gauss-Newton step: (rotation vector about `centre`, translation), in
-    the map frame (rotating about the points' centre keeps the two apart)."""
-    dist, idx = surface.tree.query(pts_world, distance_upper_bound=max_m)
-    ok = np.isfinite(dist)
-    p, n = pts_world[ok], surface.normals[idx[ok]].astype(np.float64)
-    r = np.einsum("ij,ij->i", p - surface.points[idx[ok]], n)
+    the map frame (rotating about the points' centre keeps the two apart); None with fewer
+    than 6 correspondences."""
+    _, p, n, r = _residuals(surface, pts_world, max_m)
     if len(r) < 6:
-        return None, ok, r
+        return None
     J = np.hstack([np.cross(p - centre, n), n])
     w = 1.0 / np.maximum(1.0, np.abs(r) / (0.3 * max_m))  # Huber-like weights
     H, g = (J * w[:, None]).T @ J, -(J * w[:, None]).T @ r
@@ -173,7 +192,7 @@ def _step(surface: Surface, pts_world: np.ndarray, max_m: float, centre: np.ndar
     # the guess's values instead of following noise
     ev, vec = np.linalg.eigh(H)
     keep = ev > DEGENERATE * max(ev[-1], 1e-12)
-    return vec[:, keep] @ ((vec[:, keep].T @ g) / ev[keep]), ok, r
+    return vec[:, keep] @ ((vec[:, keep].T @ g) / ev[keep])
 
 
 def refine_pose(surface: Surface, points_cam: np.ndarray, world_from_cam: Rigid3,
@@ -183,22 +202,22 @@ def refine_pose(surface: Surface, points_cam: np.ndarray, world_from_cam: Rigid3
     if len(src) > config.max_source_points:
         src = src[np.linspace(0, len(src) - 1, config.max_source_points).astype(int)]
     rot, trans = world_from_cam.rotation.copy(), world_from_cam.translation.copy()
-    ok, r = np.zeros(len(src), bool), np.zeros(0)
     for max_m in config.distances_m:
         for _ in range(config.iterations):
             centre = rot @ src.mean(axis=0) + trans
-            x, ok, r = _step(surface, src @ rot.T + trans, max_m, centre)
+            x = _step(surface, src @ rot.T + trans, max_m, centre)
             if x is None:
                 break
             d_rot = axis_angle_to_matrix(x[:3])
             rot, trans = d_rot @ rot, d_rot @ (trans - centre) + centre + x[3:]
             if np.linalg.norm(x[:3]) < 1e-4 and np.linalg.norm(x[3:]) < 1e-4:
                 break
-    _, ok, r = _step(surface, src @ rot.T + trans, config.distances_m[-1], trans)
+    ok, _, _, r = _residuals(surface, src @ rot.T + trans, config.distances_m[-1])
     fit = Rigid3(rot, trans)
     fitness = float(ok.mean()) if len(ok) else 0.0
     shift = float(np.linalg.norm(trans - world_from_cam.translation))
     turn = rotation_angle_deg(world_from_cam.rotation.T @ rot)
     accepted = (fitness >= config.min_fitness and shift <= config.max_shift_m
                 and turn <= config.max_turn_deg)
-    return IcpFit(fit, fitness, float(np.sqrt(np.mean(r ** 2))) if len(r) else np.inf, accepted)
+    return IcpFit(fit, fitness, float(np.sqrt(np.mean(r ** 2))) if len(r) else np.inf, accepted,
+                  world_from_cam)
