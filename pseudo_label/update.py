@@ -33,7 +33,6 @@ from slamreloc.extract import extract_frames
 from slamreloc.features import make_extractor
 from slamreloc.geometry import Rigid3, pose_error
 from slamreloc.labels import LabelConfig, build_labels, depth_points
-from slamreloc.mapping import registered_depths
 from slamreloc.scene_map import map_write_lock
 from slamreloc.progress import console, track
 from slamreloc.pseudo_label.finetune import FinetuneConfig, finetune_regressor
@@ -43,6 +42,7 @@ from slamreloc.pseudo_label.register import (LABELLED, NEW, PSEUDO, Database, Fr
                                              reprojection_errors)
 from slamreloc.pseudo_label.smooth import smooth_poses
 from slamreloc.regressor.model import SceneCoordinateRegressor
+from slamreloc.rgbd import registered_depths
 from slamreloc.regressor.train import TrainConfig, train_regressor
 from slamreloc.scene_map import SURFACE, MapDatabase, SceneMap, check_map_target, save_map
 from slamreloc.surface import Surface, extend_surface, frame_cloud
@@ -58,6 +58,7 @@ class PseudoLabelConfig:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     labels: LabelConfig = field(default_factory=LabelConfig)
     label_agreement_m: float = 0.05  # inherited label vs re-triangulation / depth, + 2 % depth
+    depth_required: bool = True  # frames with depth: keypoints without a depth reading unlabelled
     update: str = "finetune"  # or "retrain" (from scratch, the map's own epochs)
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
     finetune_epoch_fraction: float = 0.25  # of the map's training epochs, when epochs unset
@@ -95,12 +96,15 @@ def _label_frames(frames, feats, states, depths, config: PseudoLabelConfig):
     return reg, labels
 
 
-def _apply_labels(frames, feats, states, depths, config: PseudoLabelConfig) -> dict:
+def _apply_labels(frames, feats, states, depths, config: PseudoLabelConfig,
+                  final: bool = False) -> dict:
     """Merge triangulated labels into the frame states: keypoints without a label get the
-    triangulated point (NEW); inherited labels that disagree with it (or with registered depth)
-    are dropped. Returns counts."""
+    triangulated point (NEW); inherited labels that disagree with it (or with the frame's
+    depth) are dropped; in the `final` labelling, with `config.depth_required`, so are the
+    labels of keypoints without a depth reading in frames with depth (the rounds before keep
+    them: they help register frames further out). Returns counts."""
     reg, labels = _label_frames(frames, feats, states, depths, config)
-    n_new = n_conflict = 0
+    n_new = n_conflict = n_unread = 0
     for k, i in enumerate(reg):
         s = states[i]
         cam = frames[i].camera
@@ -121,16 +125,19 @@ def _apply_labels(frames, feats, states, depths, config: PseudoLabelConfig) -> d
             s.error_px[add] = reprojection_errors(s.world_from_cam, cam, feats[i].keypoints[add],
                                                   tri[add])
             n_new += int(add.sum())
-        if depths is not None:  # registered depth verifies every label
+        if depths is not None and frames[i].depth_path is not None:
+            # the frame's depth verifies every label
             dep = depth_points(replace(frames[i], world_from_cam=s.world_from_cam),
                                feats[i].keypoints, depths[i])
             z = s.world_from_cam.inverse().transform(dep)[:, 2]
-            has = ~np.isnan(dep[:, 0]) & (s.source >= 0)
+            has = ~np.isnan(dep[:, 0])
             gap = np.linalg.norm(dep - s.points, axis=1)
-            bad = has & ~(gap < config.label_agreement_m + 0.02 * np.abs(z))
+            bad = has & (s.source >= 0) & ~(gap < config.label_agreement_m + 0.02 * np.abs(z))
             n_conflict += int(bad.sum())
-            s.drop(bad)
-    return {"n_new_labels": n_new, "n_conflicts": n_conflict,
+            unread = ~has & (s.source >= 0) & (final and config.depth_required)
+            n_unread += int(unread.sum())
+            s.drop(bad | unread)
+    return {"n_new_labels": n_new, "n_conflicts": n_conflict, "n_without_depth": n_unread,
             "track_ids": None if labels is None else (reg, labels.track_ids)}
 
 
@@ -197,7 +204,7 @@ def register_sequence(frames: list[Frame], feats, base: MapDatabase, depths,
     smoothed = _smooth(frames, feats, states, base, anchored, smoother, config)
     if smoothed is not None:
         states, n_priors = smoothed
-        extension = _apply_labels(frames, feats, states, depths, config)
+        extension = _apply_labels(frames, feats, states, depths, config, final=True)
         history.append({"round": "smoothed", "registered": sum(s.registered for s in states),
                         "priors": n_priors, "dropped": 0, "database": len(base.points),
                         "new_labels": extension["n_new_labels"]})
@@ -211,7 +218,7 @@ def register_sequence(frames: list[Frame], feats, base: MapDatabase, depths,
         ok = new is not None and consistent(i, new.world_from_cam, states, rc, new.num_inliers)
         states[i] = new if ok else FrameState.empty(len(feats[i]))
     dropped = continuity_sweep(states, rc)
-    extension = _apply_labels(frames, feats, states, depths, config)
+    extension = _apply_labels(frames, feats, states, depths, config, final=True)
     history.append({"round": "final", "registered": sum(s.registered for s in states),
                     "dropped": len(dropped), "database": len(db),
                     "new_labels": extension["n_new_labels"]})
@@ -283,27 +290,35 @@ def map_views(base: MapDatabase, camera, rows: np.ndarray) -> tuple[list[Frame],
 
 def score(frames, feats, states, truth_poses, depths, label_config: LabelConfig,
           views: tuple[list[Frame], list[Features]] = ([], [])) -> dict:
-    """Pseudo-label precision against the same keypoints labelled with the true poses (core
-    labels code: tracks triangulated with the true poses of these frames and of the map's
-    labelled `views`, whose wide baselines pin the points down; registered depth where the
-    dataset has it), and the pose errors of registered frames."""
+    """Pseudo-label precision against the truth of each labelled keypoint: its depth reading
+    (registered depth, or depth warped into the RGB camera) lifted with the true pose; where it
+    has none, the same keypoints triangulated with the true poses (core labels code: tracks of
+    these frames and of the map's labelled `views`, whose wide baselines pin the points down).
+    Also the precision against the triangulation alone, and the pose errors of registered
+    frames."""
     gt_frames = [replace(f, world_from_cam=p) for f, p in zip(frames, truth_poses)]
     v_frames, v_feats = views
-    gt_depths = None if depths is None else [
-        *[np.zeros((f.camera.height, f.camera.width), np.float32) for f in v_frames], *depths]
-    gt = build_labels([*v_frames, *gt_frames], [*v_feats, *feats], gt_depths, label_config,
-                      progress=False)
-    gt.points = gt.points[len(v_frames):]
+    tri = build_labels([*v_frames, *gt_frames], [*v_feats, *feats], None, label_config,
+                       progress=False).points[len(v_frames):]
     errs = {PSEUDO: [], NEW: []}
-    n_labels = 0
+    tri_errs, n_by_depth, n_labels = [], 0, 0
     for i, s in enumerate(states):
         lab = s.source >= 0
         n_labels += int(lab.sum())
-        ok = lab & ~np.isnan(gt.points[i][:, 0])
-        e = np.linalg.norm(s.points[ok] - gt.points[i][ok], axis=1)
+        truth = tri[i]
+        if depths is not None and frames[i].depth_path is not None:
+            dep = depth_points(gt_frames[i], feats[i].keypoints, depths[i])
+            has_dep = ~np.isnan(dep[:, 0])
+            n_by_depth += int((lab & has_dep).sum())
+            truth = np.where(has_dep[:, None], dep, truth)
+        ok = lab & ~np.isnan(truth[:, 0])
+        e = np.linalg.norm(s.points[ok] - truth[ok], axis=1)
         for src in (PSEUDO, NEW):
             errs[src].append(e[s.source[ok] == src])
+        ok_tri = lab & ~np.isnan(tri[i][:, 0])
+        tri_errs.append(np.linalg.norm(s.points[ok_tri] - tri[i][ok_tri], axis=1))
     e_all = np.concatenate(errs[PSEUDO] + errs[NEW])
+    e_tri = np.concatenate(tri_errs)
     per = {src: np.concatenate(v) for src, v in errs.items()}
     pose_t, pose_r = [], []
     for s, p in zip(states, truth_poses):
@@ -320,6 +335,9 @@ def score(frames, feats, states, truth_poses, depths, label_config: LabelConfig,
         "precision_new_10cm": prec(per[NEW]),
         "n_pseudo_labels_scored": int(len(e_all)),
         "scored_fraction": float(len(e_all) / max(n_labels, 1)),
+        "n_scored_by_depth": n_by_depth,
+        "precision_triangulation_reference_10cm": prec(e_tri),
+        "n_scored_by_triangulation_reference": int(len(e_tri)),
         "median_label_error_m": float(np.median(e_all)) if len(e_all) else None,
         "median_pose_error_m": float(np.median(pose_t)) if len(pose_t) else None,
         "median_pose_error_deg": float(np.median(pose_r)) if len(pose_r) else None,
@@ -457,7 +475,8 @@ def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
         t0 = time.perf_counter()
         labelled_rows = np.flatnonzero(base_source == LABELLED)
         # the reference uses the core's default labelling, whatever the update's settings
-        report.update(score(frames, feats, states, truth_poses, depths, LabelConfig(),
+        truth_depths = depths if depths is not None else registered_depths(dataset, frames)
+        report.update(score(frames, feats, states, truth_poses, truth_depths, LabelConfig(),
                             map_views(base, old.camera, labelled_rows)))
         report["timings_s"]["scoring_s"] = time.perf_counter() - t0
     else:

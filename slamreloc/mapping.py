@@ -8,12 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from slamreloc.datasets import Dataset, read_depth
+from slamreloc.datasets import Dataset
 from slamreloc.errors import InputError
 from slamreloc.extract import extract_frames
 from slamreloc.features import make_extractor
 from slamreloc.labels import LabelConfig, LabelSet, build_labels
 from slamreloc.progress import console
+from slamreloc.rgbd import registered_depths
 from slamreloc.regressor.checkpoint import checkpoint_path
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
@@ -43,15 +44,6 @@ def labelled_database(frames: list[Frame], feats: list[Features], labels: LabelS
         frame_index=np.concatenate([np.full(k.sum(), i) for i, k in enumerate(keep)]),
         frame_names=[f.name for f in frames],
         world_from_cam=np.stack([f.world_from_cam.matrix() for f in frames]))
-
-
-def registered_depths(dataset: Dataset, frames: list[Frame]) -> list[np.ndarray] | None:
-    """Depth maps (metres, 0 = invalid) of `frames` where the dataset's depth is registered to
-    the images, else None (7-Scenes: depth from another camera)."""
-    if not dataset.depth_registered:
-        return None
-    return [read_depth(f.depth_path, dataset.depth_units_per_metre) if f.depth_path
-            else np.zeros((f.camera.height, f.camera.width), np.float32) for f in frames]
 
 
 def build_map(dataset: Dataset, out: Path, split: str = "train", config: MapConfig = MapConfig(),

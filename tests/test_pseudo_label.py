@@ -61,6 +61,9 @@ def test_unlabelled_sequence_is_registered_precisely(updated):
     assert rep["median_pose_error_m"] <= 0.05 and rep["median_pose_error_deg"] <= 2.0
     assert rep["n_new_points"] >= 10  # the map grows (29 measured; depth-verified)
     assert rep["n_pseudo_labels"] == rep["n_inherited_labels"] + rep["n_triangulated_labels"]
+    # the frames have depth: every label kept has a depth reading and is scored against it
+    assert rep["n_scored_by_depth"] == rep["n_pseudo_labels"]
+    assert rep["precision_triangulation_reference_10cm"] is not None
 
 
 def test_new_map_records_provenance_and_old_map_is_intact(updated, small_map):
