@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from slamreloc.datasets import Dataset, read_depth
-from slamreloc.geometry import Rigid3
+from slamreloc.geometry import Rigid3, project
 from slamreloc.slam.odometry import DepthSampling, backproject, depth_camera
 from slamreloc.types import Camera, Frame
 
@@ -25,11 +25,9 @@ def warp_depth(depth: np.ndarray, depth_cam: Camera, rgb_from_depth: Rigid3,
     """(camera.height, camera.width) float32 depth in metres along the RGB camera's z, 0 where
     no depth pixel lands; `depth` (metres) is taken by `depth_cam`."""
     pts = rgb_from_depth.transform(backproject(depth, depth_cam, WARP_SAMPLING))
+    pts = pts[pts[:, 2] > 0.05]
     z = pts[:, 2]
-    ahead = z > 0.05
-    pts, z = pts[ahead], z[ahead]
-    u = np.round(camera.fx * pts[:, 0] / z + camera.cx).astype(np.int64)
-    v = np.round(camera.fy * pts[:, 1] / z + camera.cy).astype(np.int64)
+    u, v = np.round(project(pts, *camera.params())).astype(np.int64).T
     inside = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
     out = np.full(camera.height * camera.width, np.inf, np.float32)
     np.minimum.at(out, v[inside] * camera.width + u[inside], z[inside].astype(np.float32))
@@ -42,9 +40,9 @@ def frame_depth(frame: Frame, dataset: Dataset) -> np.ndarray:
     cam = frame.camera
     if frame.depth_path is None:
         return np.zeros((cam.height, cam.width), np.float32)
-    if dataset.depth_registered:
-        return read_depth(frame.depth_path, dataset.depth_units_per_metre)
     depth = read_depth(frame.depth_path, dataset.depth_units_per_metre)
+    if dataset.depth_registered:
+        return depth
     return warp_depth(depth, depth_camera(cam, depth.shape, dataset.depth_intrinsics),
                       dataset.rgb_from_depth, cam)
 
