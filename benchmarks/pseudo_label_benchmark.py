@@ -24,13 +24,14 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import torch
+from slamreloc.pseudo_label import PseudoLabelConfig
+from slamreloc.pseudo_label.update import pseudo_label, write_updated_map
 
 from slamreloc.datasets import load_dataset
 from slamreloc.mapping import MapConfig, build_map
 from slamreloc.pipeline import evaluate_method
-from slamreloc.pseudo_label import PseudoLabelConfig
-from slamreloc.pseudo_label.update import pseudo_label, write_updated_map
 from slamreloc.scene_map import SceneMap
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,6 +56,24 @@ def row(name: str, s: dict) -> str:
            f"{100 * s['median_translation_m']:.1f} cm / {s['median_rotation_deg']:.2f} deg")
     return (f"| {name} | {100 * r['5cm5deg']:.1f} % | {100 * r['10cm5deg']:.1f} % | {med} | "
             f"{s['n_localized']}/{s['n_queries']} |")
+
+
+def within(q: dict, max_m: float, max_deg: float) -> bool:
+    t, r = q["translation_error_m"], q["rotation_error_deg"]
+    return t is not None and t <= max_m and r <= max_deg
+
+
+def area_recalls(per_query: dict[str, list[dict]]) -> dict:
+    """5cm5deg recall of every map on the queries the labelled map already places within
+    10 cm / 5 deg (the old area) and on the rest (the area the update has to add)."""
+    lab = [per_query[k] for k in per_query if k.startswith("labelled map")]
+    old = np.array([any(within(q[i], 0.10, 5.0) for q in lab) for i in range(len(lab[0]))])
+    rec = {}
+    for name, qs in per_query.items():
+        ok = np.array([within(q, 0.05, 5.0) for q in qs])
+        rec[name] = {"old": float(ok[old].mean()) if old.any() else 0.0,
+                     "new": float(ok[~old].mean()) if (~old).any() else 0.0}
+    return {"n_old": int(old.sum()), "n_new": int((~old).sum()), "recall_5cm5deg": rec}
 
 
 def main() -> None:
@@ -97,15 +116,16 @@ def main() -> None:
         (work / f"report_{update}.json").write_text(json.dumps(rep, indent=2))
 
     reference, t_ref = build(split / "full", work / "map_true_poses", args.epochs, args.reuse)
-    evals = {}
+    evals, per_query = {}, {}
     for name, m, method in (("labelled map (200 frames), matching", labelled, "matching"),
                             ("labelled map (200 frames)", labelled, "regressor"),
                             ("updated, fine-tuned", maps["finetune"], "regressor"),
                             ("updated, retrained", maps["retrain"], "regressor"),
                             ("true poses of all 400 frames", reference, "regressor")):
         s, _, _ = evaluate_method(m, split / "queries", "test", method)
-        s.pop("per_query", None)
+        per_query[name] = s.pop("per_query")
         evals[name] = s
+    areas = area_recalls(per_query)
     rep = reports["finetune"]
     before = evals["labelled map (200 frames)"]["recall"]["5cm5deg"]
     after = evals["updated, fine-tuned"]["recall"]["5cm5deg"]
@@ -141,13 +161,21 @@ def main() -> None:
         f"- regressor recall gain (fine-tuned): {100 * (after - before):+.1f} points "
         f"(retrained: {100 * (after_rt - before):+.1f}); share of the true-pose map's recall: "
         f"{100 * after / max(ref, 1e-9):.0f} % (retrained {100 * after_rt / max(ref, 1e-9):.0f} %)",
+        "",
+        f"By area (old: the {areas['n_old']} queries the labelled map places within 10 cm / "
+        f"5 deg by matching or regressor; new: the other {areas['n_new']}), 5cm5deg:",
+        "",
+        "| map | old area | new area |",
+        "|---|---|---|",
+        *[f"| {k} | {100 * v['old']:.1f} % | {100 * v['new']:.1f} % |"
+          for k, v in areas["recall_5cm5deg"].items()],
     ]
     text = "\n".join(lines)
     print(text)
     if args.out:
         args.out.write_text(text + "\n")
     (work / "benchmark.json").write_text(json.dumps(
-        {"evaluations": evals, "reports": {k: {kk: vv for kk, vv in v.items() if kk != "poses"}
+        {"evaluations": evals, "areas": areas, "per_query": per_query, "reports": {k: {kk: vv for kk, vv in v.items() if kk != "poses"}
                                            for k, v in reports.items()}}, indent=2))
 
 

@@ -507,9 +507,11 @@ def write_updated_map(labels: PseudoLabels, out: Path,
                                          progress)
     else:
         model = SceneCoordinateRegressor(old.regressor.config)
-        known = set(TrainConfig.__dataclass_fields__)
-        tc = TrainConfig(**{k: v for k, v in old.meta.get("train", {}).items()
-                            if k in known and k not in ("betas",)})
+        # the map's own training settings, except its precision: that was resolved for the
+        # machine that trained it (bf16 recorded on an AMX machine would be emulated, ~30x
+        # slower, on an AVX2-only one); this machine chooses its own
+        known = set(TrainConfig.__dataclass_fields__) - {"betas", "precision"}
+        tc = TrainConfig(**{k: v for k, v in old.meta.get("train", {}).items() if k in known})
         tc = replace(tc, epochs=config.epochs or map_epochs)
         train_stats = {"mode": "retrain", **train_regressor(
             model, db.descriptors, db.points, tc, config.device, progress,

@@ -6,10 +6,12 @@ import json
 import shutil
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
 
+from slamreloc import precision
 from slamreloc.datasets import load_dataset
 from slamreloc.pipeline import evaluate_method
 from slamreloc.pseudo_label import PseudoLabelConfig, update_map
@@ -141,3 +143,26 @@ def test_cli_and_bad_inputs(updated, small_map, scene_dir, tmp_path):
     with np.load(new_map.root / PROVENANCE) as z1, np.load(again.root / PROVENANCE) as z2:
         assert np.array_equal(z2["source"][:len(z1["source"])], z1["source"])
         assert np.array_equal(z2["quality"][:len(z1["quality"])], z1["quality"])
+
+
+def test_retrain_update_chooses_precision_for_this_machine(small_map, scene_dir, tmp_path,
+                                                           monkeypatch):
+    """A map trained in bf16 (recorded in its meta) and retrained on a CPU that emulates bf16
+    trains in fp32 there, without the emulated-bf16 warning."""
+    src = tmp_path / "map"
+    shutil.copytree(small_map.root, src)
+    meta_path = src / "slamreloc_map.json"
+    meta = json.loads(meta_path.read_text())
+    meta["train"]["precision"] = "bf16"
+    meta_path.write_text(json.dumps(meta))
+    monkeypatch.setattr(precision, "bf16_support",
+                        lambda device_type="cpu": (False, "test: bf16 emulated here"))
+    data = unposed_copy(scene_dir, tmp_path / "unlabelled")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", precision.EmulatedBf16Warning)
+        new_map, rep = update_map(src, load_dataset(data), tmp_path / "new", None,
+                                  PseudoLabelConfig(update="retrain", epochs=1, rounds=1),
+                                  progress=False)
+    assert rep["update"]["mode"] == "retrain" and rep["update"]["precision"] == "fp32"
+    assert new_map.meta["pseudo_label"]["update"] == "retrain"
+    assert len(new_map.database.points) > len(small_map.database.points)
