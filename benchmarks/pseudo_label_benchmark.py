@@ -1,9 +1,10 @@
 """Map update from an unlabelled sequence on 7-Scenes RedKitchen (issue 9's scenario).
 
-    labelled map   = frames 0-199 of seq-01 (true poses)
+    labelled map   = frames 0-199 of seq-01 (true poses)       [--n-labelled]
     unlabelled     = frames 200-399 of seq-01, pose files left out (scored with the originals)
+                                                               [--n-unlabelled]
     queries        = seq-02
-    reference      = a map trained with the true poses of all 400 frames
+    reference      = a map trained with the true poses of the labelled + unlabelled frames
 
 Usage:
     python benchmarks/pseudo_label_benchmark.py ../shared/data/7scenes_redkitchen \
@@ -84,6 +85,9 @@ def main() -> None:
     ap.add_argument("--epochs", type=int, default=100, help="training epochs of both maps")
     ap.add_argument("--rounds", type=int, default=PseudoLabelConfig().rounds)
     ap.add_argument("--reuse", action="store_true")
+    ap.add_argument("--n-labelled", type=int, default=200, help="first frames of seq-01")
+    ap.add_argument("--n-unlabelled", type=int, default=None,
+                    help="the frames after them (default: the rest of seq-01)")
     ap.add_argument("--only-reference", action="store_true",
                     help="build only the true-pose map (run beside a --reuse run)")
     args = ap.parse_args()
@@ -91,8 +95,11 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     split = work / "split"
     if not (split / "queries").is_dir():
+        sizes = ["--n-labelled", str(args.n_labelled)]
+        if args.n_unlabelled is not None:
+            sizes += ["--n-unlabelled", str(args.n_unlabelled)]
         subprocess.run([sys.executable, str(ROOT / "scripts" / "make_redkitchen_update_split.py"),
-                        str(args.source), "--out", str(split)], check=True)
+                        str(args.source), "--out", str(split), *sizes], check=True)
     t_start = time.perf_counter()
     if args.only_reference:  # to build the reference map in a parallel process
         marker = work / ".map_true_poses.building"
@@ -117,20 +124,22 @@ def main() -> None:
 
     reference, t_ref = build(split / "full", work / "map_true_poses", args.epochs, args.reuse)
     evals, per_query = {}, {}
-    for name, m, method in (("labelled map (200 frames), matching", labelled, "matching"),
-                            ("labelled map (200 frames)", labelled, "regressor"),
+    n_lab, n_full = (len(load_dataset(split / p).frames("all")) for p in ("labelled", "full"))
+    lab, full = f"labelled map ({n_lab} frames)", f"true poses of all {n_full} frames"
+    for name, m, method in ((f"{lab}, matching", labelled, "matching"),
+                            (lab, labelled, "regressor"),
                             ("updated, fine-tuned", maps["finetune"], "regressor"),
                             ("updated, retrained", maps["retrain"], "regressor"),
-                            ("true poses of all 400 frames", reference, "regressor")):
+                            (full, reference, "regressor")):
         s, _, _ = evaluate_method(m, split / "queries", "test", method)
         per_query[name] = s.pop("per_query")
         evals[name] = s
     areas = area_recalls(per_query)
     rep = reports["finetune"]
-    before = evals["labelled map (200 frames)"]["recall"]["5cm5deg"]
+    before = evals[lab]["recall"]["5cm5deg"]
     after = evals["updated, fine-tuned"]["recall"]["5cm5deg"]
     after_rt = evals["updated, retrained"]["recall"]["5cm5deg"]
-    ref = evals["true poses of all 400 frames"]["recall"]["5cm5deg"]
+    ref = evals[full]["recall"]["5cm5deg"]
     t_ft = reports["finetune"]["timings_s"]["update_s"]
     t_rt = reports["retrain"]["timings_s"]["update_s"]
     lines = [

@@ -4,10 +4,11 @@
     OUT/unlabelled/seq-01   frames 200-399 of seq-01, colour + depth only: NO pose files, so
                             registration cannot read the truth (score with --truth SOURCE)
     OUT/queries/seq-02      all of seq-02 with poses (the test split)
-    OUT/full/seq-01         frames 0-399 of seq-01 with poses (the true-pose reference map)
+    OUT/full/seq-01         the labelled + unlabelled frames with poses (the true-pose
+                            reference map)
 
 Usage: python scripts/make_redkitchen_update_split.py ../shared/data/7scenes_redkitchen \
-           --out /tmp/rk_split [--n-labelled 200]
+           --out /tmp/rk_split [--n-labelled 200] [--n-unlabelled N (default: the rest)]
 The data stays where it is (research licence): only links are written.
 """
 
@@ -35,6 +36,7 @@ def main() -> None:
     ap.add_argument("source", type=Path, help="7-Scenes redkitchen folder (seq-01, seq-02)")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--n-labelled", type=int, default=200)
+    ap.add_argument("--n-unlabelled", type=int, default=None, help="default: the rest")
     args = ap.parse_args()
     src = args.source
     seq1 = sorted({p.name.split(".")[0] for p in (src / "seq-01").glob("frame-*.color.*")})
@@ -44,10 +46,14 @@ def main() -> None:
     if args.out.exists():
         shutil.rmtree(args.out)
     k = args.n_labelled
+    end = len(seq1) if args.n_unlabelled is None else k + args.n_unlabelled
+    if k < 2 or end - k < 2 or end > len(seq1):
+        raise SystemExit(f"error: {src}/seq-01 has {len(seq1)} frames: cannot take {k} labelled "
+                         f"and {end - k} unlabelled ones (each at least 2, together at most {len(seq1)})")
     parts = {"labelled": ("seq-01", seq1[:k], True, "TrainSplit.txt", "sequence1"),
-             "unlabelled": ("seq-01", seq1[k:], False, "TrainSplit.txt", "sequence1"),
+             "unlabelled": ("seq-01", seq1[k:end], False, "TrainSplit.txt", "sequence1"),
              "queries": ("seq-02", seq2, True, "TestSplit.txt", "sequence2"),
-             "full": ("seq-01", seq1, True, "TrainSplit.txt", "sequence1")}
+             "full": ("seq-01", seq1[:end], True, "TrainSplit.txt", "sequence1")}
     for name, (seq, frames, pose, split_file, line) in parts.items():
         n = link_frames(src / seq, args.out / name / seq, frames, pose)
         (args.out / name / split_file).write_text(line + "\n")
