@@ -32,7 +32,10 @@ class RegistrationConfig:
     min_inliers: int = 40  # below this the frame stays unregistered
     max_trials: int = 5000  # RANSAC
     seed_inliers: int = 80  # needed by a frame with no registered neighbour in the window
-    anchor_inliers: int = 40  # inliers on the map's own labels that make a registration a prior
+    anchor_inliers: int = 40  # inliers of a registration on the map's own labels alone that
+    # make it a prior of the pose graph, if it is within this of the chain's pose (gross check)
+    prior_agreement_m: float = 0.15
+    prior_agreement_deg: float = 5.0
     window: int = 5  # frames either side that count as neighbours
     neighbours: int = 2  # registered neighbours matched directly, each side
     # continuity: deviation from the neighbours' motion allowed, base + per frame of gap
@@ -105,11 +108,6 @@ class FrameState:
         """Remove the labels of the keypoints in `mask`."""
         self.source[mask], self.points[mask], self.error_px[mask], self.row[mask] = (
             -1, np.nan, np.nan, -1)
-
-    def n_anchored(self, anchored: np.ndarray) -> int:
-        """Labels inherited from the map's own (true-pose) labels: `anchored` flags map rows."""
-        r = self.row[(self.row >= 0) & (self.source == PSEUDO)]
-        return int(anchored[r[r < len(anchored)]].sum())
 
     @property
     def registered(self) -> bool:
@@ -210,6 +208,14 @@ def inherit_labels(world_from_cam: Rigid3, f: Features, camera: Camera, q_idx: n
     state.row[q_idx[good]] = rows[good]
     state.num_inliers = int(good.sum())
     return state
+
+
+def register_on(db: Database, f: Features, camera: Camera,
+                config: RegistrationConfig) -> FrameState | None:
+    """A frame registered on `db` alone (matches, PnP-RANSAC); None when that fails."""
+    m = db.match(f.descriptors, config.ratio, config.same_point_m)
+    return _pnp_state(-1, f, camera, m[:, 0], db.points[m[:, 1]].astype(np.float64),
+                      db.rows[m[:, 1]], config)
 
 
 def label_at_pose(f: Features, camera: Camera, world_from_cam: Rigid3, db: Database,

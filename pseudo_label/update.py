@@ -7,7 +7,7 @@
    multi-view tracks among all registered frames with the *estimated* poses, which labels
    keypoints the map never had (the new area) and joins the database, so the next round can
    register frames further out. A continuity sweep drops registrations that jump.
-3. Where the frames have depth, registrations that rest on the map's own labels become robust
+3. Where the frames have depth, registrations on the map's own labels alone become robust
    priors in the SLAM backend's odometry pose graph (smooth.py): the chain of registrations
    through the sequence's own pseudo-labels drifts (centimetres per frame beyond the map), depth
    odometry much less; every frame takes the fused pose (frames no registration reached
@@ -38,7 +38,7 @@ from slamreloc.progress import console, track
 from slamreloc.pseudo_label.finetune import FinetuneConfig, finetune_regressor
 from slamreloc.pseudo_label.register import (LABELLED, NEW, PSEUDO, Database, FrameState,
                                              RegistrationConfig, consistent, continuity_sweep,
-                                             label_at_pose, register_frame,
+                                             label_at_pose, register_frame, register_on,
                                              reprojection_errors)
 from slamreloc.pseudo_label.smooth import smooth_poses
 from slamreloc.regressor.model import SceneCoordinateRegressor
@@ -227,21 +227,22 @@ def register_sequence(frames: list[Frame], feats, base: MapDatabase, depths,
 
 def _smooth(frames, feats, states, base: MapDatabase, anchored: np.ndarray, smoother,
             config: PseudoLabelConfig):
-    """Registrations resting on the map's own labels become priors of the odometry pose graph
-    (registrations through the sequence's own pseudo-labels drift with the chain that made
-    them); every frame then takes the graph's pose and inherits only map labels that fit it.
-    Returns (states, number of priors), or None without a smoother (no depth)."""
+    """Each registered frame is registered again on the map's own labels alone; where that
+    holds (enough inliers, near the chain's pose) it becomes a prior of the odometry pose graph,
+    independent of the chain (registrations through the sequence's own pseudo-labels drift with
+    the chain that made them). Every frame then takes the graph's pose and inherits only map
+    labels that fit it. Returns (states, number of priors), or None without a smoother."""
     rc = config.registration
     if smoother is None:
         return None
-    priors = [s.world_from_cam if s.registered and s.n_anchored(anchored) >= rc.anchor_inliers
-              else None for s in states]
+    rows = np.flatnonzero(anchored)
+    db = Database(base.descriptors[rows].astype(np.float32), base.points[rows], rows)
+    priors = [_map_prior(s, f, frame.camera, db, rc) if s.registered else None
+              for s, f, frame in zip(states, feats, frames)]
     n_priors = sum(p is not None for p in priors)
     poses = smoother(priors) if n_priors else None
     if poses is None:
         return None
-    rows = np.flatnonzero(anchored)
-    db = Database(base.descriptors[rows].astype(np.float32), base.points[rows], rows)
     out = []
     for f, s, pose, frame in zip(feats, states, poses, frames):
         pose = pose if pose is not None else s.world_from_cam  # off the graph: keep the chain's
@@ -252,6 +253,18 @@ def _smooth(frames, feats, states, base: MapDatabase, anchored: np.ndarray, smoo
         new.via = s.via if s.registered else "odometry"
         out.append(new)
     return out, n_priors
+
+
+def _map_prior(state: FrameState, f: Features, camera, db: Database,
+               rc: RegistrationConfig) -> Rigid3 | None:
+    """The frame's registration on the map's labels alone, if it has `anchor_inliers` and lies
+    near the chain's pose; else None."""
+    on_map = register_on(db, f, camera, rc)
+    if on_map is None or on_map.num_inliers < rc.anchor_inliers:
+        return None
+    dt, dr = pose_error(on_map.world_from_cam, state.world_from_cam)
+    ok = dt <= rc.prior_agreement_m and dr <= rc.prior_agreement_deg
+    return on_map.world_from_cam if ok else None
 
 
 def _count_new_points(states, extension) -> int:
