@@ -86,6 +86,12 @@ class Database:
         keep &= col_arg.numpy()[idx[:, 0]] == qi
         return np.stack([qi[keep], idx[keep, 0]], axis=1)
 
+    def correspondences(self, query: np.ndarray, config: RegistrationConfig
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`match` as (query indices, world points (float64), map rows)."""
+        m = self.match(query, config.ratio, config.same_point_m)
+        return m[:, 0], self.points[m[:, 1]].astype(np.float64), self.rows[m[:, 1]]
+
 
 @dataclass
 class FrameState:
@@ -166,11 +172,11 @@ def register_frame(i: int, feats: list[Features], cameras: list[Camera], states:
         if state is not None and state.num_inliers >= config.seed_inliers:
             state.via = "neighbours"
             return state
-    m = db.match(f.descriptors, config.ratio, config.same_point_m)
+    db_q, db_pts, db_rows = db.correspondences(f.descriptors, config)
     # neighbour matches first: on a keypoint matched both ways, the neighbour's label wins
-    q_idx = np.concatenate([nb_q, m[:, 0]])
-    pts = np.concatenate([nb_pts, db.points[m[:, 1]]]).astype(np.float64)
-    rows = np.concatenate([nb_rows, db.rows[m[:, 1]]])
+    q_idx = np.concatenate([nb_q, db_q])
+    pts = np.concatenate([nb_pts, db_pts]).astype(np.float64)
+    rows = np.concatenate([nb_rows, db_rows])
     _, first = np.unique(q_idx, return_index=True)
     q_idx, pts, rows = q_idx[first], pts[first], rows[first]
     state = _pnp_state(i, f, cameras[i], q_idx, pts, rows, config)
@@ -210,21 +216,18 @@ def inherit_labels(world_from_cam: Rigid3, f: Features, camera: Camera, q_idx: n
     return state
 
 
-def register_on(db: Database, f: Features, camera: Camera,
+def register_on(corr: tuple, f: Features, camera: Camera,
                 config: RegistrationConfig) -> FrameState | None:
-    """A frame registered on `db` alone (matches, PnP-RANSAC); None when that fails."""
-    m = db.match(f.descriptors, config.ratio, config.same_point_m)
-    return _pnp_state(-1, f, camera, m[:, 0], db.points[m[:, 1]].astype(np.float64),
-                      db.rows[m[:, 1]], config)
+    """A frame registered by PnP-RANSAC on its `Database.correspondences` alone; None when
+    that fails."""
+    return _pnp_state(-1, f, camera, *corr, config)
 
 
-def label_at_pose(f: Features, camera: Camera, world_from_cam: Rigid3, db: Database,
+def label_at_pose(f: Features, camera: Camera, world_from_cam: Rigid3, corr: tuple,
                   config: RegistrationConfig) -> FrameState:
-    """A frame whose pose is known (smoothed): inherit the database points it matches that
-    reproject within `label_max_error_px` under that pose (no PnP)."""
-    m = db.match(f.descriptors, config.ratio, config.same_point_m)
-    return inherit_labels(world_from_cam, f, camera, m[:, 0], db.points[m[:, 1]].astype(
-        np.float64), db.rows[m[:, 1]], config)
+    """A frame whose pose is known (smoothed): inherit the points of its
+    `Database.correspondences` that reproject within `label_max_error_px` (no PnP)."""
+    return inherit_labels(world_from_cam, f, camera, *corr, config)
 
 
 def _nearest_registered(i: int, states: list[FrameState], direction: int, window: int,

@@ -237,29 +237,30 @@ def _smooth(frames, feats, states, base: MapDatabase, anchored: np.ndarray, smoo
         return None
     rows = np.flatnonzero(anchored)
     db = Database(base.descriptors[rows].astype(np.float32), base.points[rows], rows)
-    priors = [_map_prior(s, f, frame.camera, db, rc) if s.registered else None
-              for s, f, frame in zip(states, feats, frames)]
+    corr = [db.correspondences(f.descriptors, rc) for f in feats]  # for priors and labels
+    priors = [_map_prior(s, f, frame.camera, c, rc) if s.registered else None
+              for s, f, frame, c in zip(states, feats, frames, corr)]
     n_priors = sum(p is not None for p in priors)
     poses = smoother(priors) if n_priors else None
     if poses is None:
         return None
     out = []
-    for f, s, pose, frame in zip(feats, states, poses, frames):
+    for f, s, pose, frame, c in zip(feats, states, poses, frames, corr):
         pose = pose if pose is not None else s.world_from_cam  # off the graph: keep the chain's
         if pose is None:
             out.append(FrameState.empty(len(f)))
             continue
-        new = label_at_pose(f, frame.camera, pose, db, rc)
+        new = label_at_pose(f, frame.camera, pose, c, rc)
         new.via = s.via if s.registered else "odometry"
         out.append(new)
     return out, n_priors
 
 
-def _map_prior(state: FrameState, f: Features, camera, db: Database,
+def _map_prior(state: FrameState, f: Features, camera, corr: tuple,
                rc: RegistrationConfig) -> Rigid3 | None:
-    """The frame's registration on the map's labels alone, if it has `anchor_inliers` and lies
-    near the chain's pose; else None."""
-    on_map = register_on(db, f, camera, rc)
+    """The frame's registration on its correspondences with the map's labels alone, if it has
+    `anchor_inliers` and lies near the chain's pose; else None."""
+    on_map = register_on(corr, f, camera, rc)
     if on_map is None or on_map.num_inliers < rc.anchor_inliers:
         return None
     dt, dr = pose_error(on_map.world_from_cam, state.world_from_cam)
