@@ -36,6 +36,10 @@ class RegistrationConfig:
     # make it a prior of the pose graph, if it is within this of the chain's pose (gross check)
     prior_agreement_m: float = 0.15
     prior_agreement_deg: float = 5.0
+    # frames without such a prior give their chain registration (through the sequence's own
+    # pseudo-labels) as a prior this many times less certain; 0: none (odometry alone carries
+    # the graph between map priors, and drifts over long stretches beyond the map)
+    chain_prior_sigma_scale: float = 1.0
     window: int = 5  # frames either side that count as neighbours
     neighbours: int = 2  # registered neighbours matched directly, each side
     # continuity: deviation from the neighbours' motion allowed, base + per frame of gap

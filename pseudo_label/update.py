@@ -40,7 +40,7 @@ from slamreloc.pseudo_label.register import (LABELLED, NEW, PSEUDO, Database, Fr
                                              RegistrationConfig, consistent, continuity_sweep,
                                              label_at_pose, register_frame, register_on,
                                              reprojection_errors)
-from slamreloc.pseudo_label.smooth import smooth_poses
+from slamreloc.pseudo_label.smooth import Prior, smooth_poses
 from slamreloc.regressor.model import SceneCoordinateRegressor
 from slamreloc.rgbd import registered_depths
 from slamreloc.regressor.train import TrainConfig, train_regressor
@@ -230,17 +230,23 @@ def _smooth(frames, feats, states, base: MapDatabase, anchored: np.ndarray, smoo
     """Each registered frame is registered again on the map's own labels alone; where that
     holds (enough inliers, near the chain's pose) it becomes a prior of the odometry pose graph,
     independent of the chain (registrations through the sequence's own pseudo-labels drift with
-    the chain that made them). Every frame then takes the graph's pose and inherits only map
-    labels that fit it. Returns (states, number of priors), or None without a smoother."""
+    the chain that made them). The other registered frames give their chain pose as a prior
+    `rc.chain_prior_sigma_scale` times less certain: beyond the map the chain drifts less than
+    long stretches of odometry. Every frame then takes the graph's pose and inherits only map
+    labels that fit it. Returns (states, number of map priors), or None without a smoother."""
     rc = config.registration
     if smoother is None:
         return None
     rows = np.flatnonzero(anchored)
     db = Database(base.descriptors[rows].astype(np.float32), base.points[rows], rows)
     corr = [db.correspondences(f.descriptors, rc) for f in feats]  # for priors and labels
-    priors = [_map_prior(s, f, frame.camera, c, rc) if s.registered else None
+    on_map = [_map_prior(s, f, frame.camera, c, rc) if s.registered else None
               for s, f, frame, c in zip(states, feats, frames, corr)]
-    n_priors = sum(p is not None for p in priors)
+    n_priors = sum(p is not None for p in on_map)
+    chain = rc.chain_prior_sigma_scale > 0
+    priors = [Prior(p) if p is not None else
+              Prior(s.world_from_cam, rc.chain_prior_sigma_scale) if chain and s.registered
+              else None for p, s in zip(on_map, states)]
     poses = smoother(priors) if n_priors else None
     if poses is None:
         return None

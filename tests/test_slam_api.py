@@ -185,3 +185,17 @@ def test_backend_hands_freed_heap_back_every_n_frames(monkeypatch):
         backend.process(None, None, camera, odometry_world_from_cam=Rigid3(
             np.eye(3), np.array([0.01 * i, 0.0, 0.0])))
     assert len(calls) == 2
+
+
+@pytest.mark.parametrize("weak_scale, lo, hi", [(1.0, 0.013, 0.017), (3.0, 0.002, 0.004)])
+def test_prior_sigma_scale_weighs_a_relocalization(weak_scale, lo, hi):
+    """Two priors on one keyframe 3 cm apart: equal sigmas meet halfway; a prior with sigmas
+    3x wider pulls with 1/9 of the weight (about 3 mm from the other)."""
+    from slamreloc.slam.graph import PoseGraph
+
+    graph = PoseGraph()
+    graph.add_node(0, Rigid3.identity(), prior=Rigid3.identity())
+    graph.add_prior(0, Rigid3(np.eye(3), np.array([0.03, 0.0, 0.0])), sigma_scale=weak_scale)
+    graph.optimize_batch()
+    x = graph.pose(0).translation
+    assert lo < x[0] < hi and abs(x[1]) < 1e-6 and abs(x[2]) < 1e-6

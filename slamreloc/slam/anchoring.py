@@ -72,13 +72,15 @@ class AnchoringMixin:
         self._emit(Event(EventKind.TRACKING_RECOVERED, cur, self.pose_of(cur),
                                   {"relocalized_frame": i, "reanchor": True}))
 
-    def add_loop_closure(self, i: int, world_from_cam_i: Rigid3) -> None:
-        """An accepted relocalization of frame i (tracked): a robust prior on its keyframe."""
+    def add_loop_closure(self, i: int, world_from_cam_i: Rigid3,
+                         sigma_scale: float = 1.0) -> None:
+        """An accepted relocalization of frame i (tracked): a robust prior on its keyframe
+        (sigmas: the graph's relocalization sigmas times `sigma_scale`)."""
         k = self._nearest_keyframe(i)
         if k is None:
             raise ValueError(f"frame {i} is not on an anchored track")
         with self.timer("graph"):
             self.graph.add_prior(self.frames[k].key,
-                                 world_from_cam_i @ self.odometry_between(i, k))
+                                 world_from_cam_i @ self.odometry_between(i, k), sigma_scale)
         self._emit(Event(EventKind.MAP_UPDATED, i, self.pose_of(i),
                                   {"keyframe": k}))

@@ -69,15 +69,17 @@ class PoseGraph:
             graph.add(self._prior(key, prior))
         self._update(graph, values)
 
-    def add_prior(self, key: int, world_from_cam: Rigid3) -> None:
-        """A relocalization of keyframe `key` in the map frame (robust)."""
+    def add_prior(self, key: int, world_from_cam: Rigid3, sigma_scale: float = 1.0) -> None:
+        """A relocalization of keyframe `key` in the map frame (robust); `sigma_scale`
+        widens its sigmas (a less certain source)."""
         graph = gtsam.NonlinearFactorGraph()
-        graph.add(self._prior(key, world_from_cam))
+        graph.add(self._prior(key, world_from_cam, sigma_scale))
         self._update(graph, gtsam.Values())
 
-    def _prior(self, key: int, world_from_cam: Rigid3):
+    def _prior(self, key: int, world_from_cam: Rigid3, sigma_scale: float = 1.0):
         c = self.config
-        base = gtsam.noiseModel.Diagonal.Sigmas(self._sigmas(c.reloc_sigma_rad, c.reloc_sigma_m))
+        base = gtsam.noiseModel.Diagonal.Sigmas(
+            sigma_scale * self._sigmas(c.reloc_sigma_rad, c.reloc_sigma_m))
         robust = gtsam.noiseModel.Robust.Create(
             gtsam.noiseModel.mEstimator.Cauchy.Create(c.cauchy_k), base)
         self.n_priors += 1
