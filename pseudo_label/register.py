@@ -37,8 +37,8 @@ class RegistrationConfig:
     prior_agreement_m: float = 0.15
     prior_agreement_deg: float = 5.0
     # frames without such a prior give their chain registration (through the sequence's own
-    # pseudo-labels) as a prior this many times less certain; 0: none (odometry alone carries
-    # the graph between map priors, and drifts over long stretches beyond the map)
+    # pseudo-labels) as a prior with the graph's relocalization sigmas times this; 0: none
+    # (odometry alone carries the graph between map priors, and drifts over long stretches)
     chain_prior_sigma_scale: float = 1.0
     window: int = 5  # frames either side that count as neighbours
     neighbours: int = 2  # registered neighbours matched directly, each side

@@ -8,10 +8,11 @@
    keypoints the map never had (the new area) and joins the database, so the next round can
    register frames further out. A continuity sweep drops registrations that jump.
 3. Where the frames have depth, registrations on the map's own labels alone become robust
-   priors in the SLAM backend's odometry pose graph (smooth.py): the chain of registrations
-   through the sequence's own pseudo-labels drifts (centimetres per frame beyond the map), depth
-   odometry much less; every frame takes the fused pose (frames no registration reached
-   included) and inherits only map labels that fit it. Without depth, a final pass
+   priors in the SLAM backend's odometry pose graph (smooth.py), and the chain's registrations
+   become priors of the frames without one (`chain_prior_sigma_scale`): odometry is precise
+   over short stretches, the chain holds over long ones beyond the map; every frame takes the
+   fused pose (frames no registration reached included) and inherits only map labels that fit
+   it. Without depth, a final pass
    re-registers every frame against the final database instead. Inherited labels that disagree
    with their own re-triangulation (or registered depth) are dropped, and the tracks are
    triangulated once more with the final poses.
@@ -243,10 +244,7 @@ def _smooth(frames, feats, states, base: MapDatabase, anchored: np.ndarray, smoo
     on_map = [_map_prior(s, f, frame.camera, c, rc) if s.registered else None
               for s, f, frame, c in zip(states, feats, frames, corr)]
     n_priors = sum(p is not None for p in on_map)
-    chain = rc.chain_prior_sigma_scale > 0
-    priors = [Prior(p) if p is not None else
-              Prior(s.world_from_cam, rc.chain_prior_sigma_scale) if chain and s.registered
-              else None for p, s in zip(on_map, states)]
+    priors = [_graph_prior(p, s, rc) for p, s in zip(on_map, states)]
     poses = smoother(priors) if n_priors else None
     if poses is None:
         return None
@@ -272,6 +270,17 @@ def _map_prior(state: FrameState, f: Features, camera, corr: tuple,
     dt, dr = pose_error(on_map.world_from_cam, state.world_from_cam)
     ok = dt <= rc.prior_agreement_m and dr <= rc.prior_agreement_deg
     return on_map.world_from_cam if ok else None
+
+
+def _graph_prior(on_map: Rigid3 | None, state: FrameState, rc: RegistrationConfig
+                 ) -> Prior | None:
+    """The frame's prior in the pose graph: its registration on the map's labels, else its
+    chain registration with `chain_prior_sigma_scale` times the sigmas (0: none)."""
+    if on_map is not None:
+        return Prior(on_map)
+    if state.registered and rc.chain_prior_sigma_scale > 0:
+        return Prior(state.world_from_cam, rc.chain_prior_sigma_scale)
+    return None
 
 
 def _count_new_points(states, extension) -> int:
