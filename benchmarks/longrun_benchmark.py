@@ -33,13 +33,13 @@ import os
 import platform
 import sys
 import time
-from dataclasses import fields, is_dataclass
+from dataclasses import fields, is_dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from slamreloc.datasets import load_dataset, read_image
-from slamreloc.demo import DEMO_KIDNAP
+from slamreloc.cli.demo import DEMO_KIDNAP
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, pose_error
 from slamreloc.localizer import RegressorLocalizer
 from slamreloc.mapping import MapConfig, build_map
@@ -47,6 +47,7 @@ from slamreloc.regressor.train import TrainConfig
 from slamreloc.scene_map import SceneMap
 from slamreloc.slam.backend import BackendConfig, SlamBackend
 from slamreloc.slam.events import load_plugin
+from slamreloc.slam.feed import feed, read_frames
 from slamreloc.slam.run import kidnap_schedule
 from slamreloc.synthetic import SceneConfig, render_scene
 
@@ -133,18 +134,21 @@ def localize_run(scene: Path, map_dir: Path, n: int, block: int) -> dict:
 
 
 def slam_run(scene: Path, map_dir: Path, n: int, block: int, release_every: int) -> dict:
-    seq = load_dataset(scene).frames("kidnap")
+    dataset = load_dataset(scene)
+    seq = dataset.frames("kidnap")
     kept, _ = kidnap_schedule(len(seq), *DEMO_KIDNAP)
     plugin = load_plugin("relocalization", map_dir=map_dir)
     backend = SlamBackend(plugins=[plugin],
                           config=BackendConfig(release_memory_every=release_every))
+    frames = [seq[kept[i % len(kept)]] for i in range(n)]
+    # the true pose as external odometry, timestamps running on across the repetitions
+    inputs = (replace(inp, timestamp=i / 30.0,
+                      odometry_world_from_cam=ODOM_FROM_WORLD @ f.world_from_cam)
+              for i, (f, inp) in enumerate(zip(frames, read_frames(dataset, frames,
+                                                                   depth=False))))
     rows, t0, c0 = [], time.perf_counter(), time.process_time()
     timer_before = {}
-    for i in range(n):
-        f = seq[kept[i % len(kept)]]
-        backend.process(read_image(f.image_path), None, f.camera,
-                        odometry_world_from_cam=ODOM_FROM_WORLD @ f.world_from_cam,
-                        timestamp=i / 30.0)
+    for i, _ in enumerate(feed(backend, inputs)):
         if (i + 1) % block == 0:
             dt = time.perf_counter() - t0
             totals = {k: float(np.sum(v)) for k, v in backend.timer.samples.items()}

@@ -32,7 +32,8 @@ from slamreloc.datasets import load_dataset
 from slamreloc.mapping import MapConfig, build_map
 from slamreloc.pipeline import evaluate_method
 from slamreloc.pseudo_label import PseudoLabelConfig
-from slamreloc.pseudo_label.update import pseudo_label, write_updated_map
+from slamreloc.pseudo_label.update import pseudo_label
+from slamreloc.pseudo_label.write import write_updated_map
 from slamreloc.scene_map import SceneMap
 
 ROOT = Path(__file__).resolve().parents[1]

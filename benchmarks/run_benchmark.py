@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 from slamreloc.datasets import load_dataset
-from slamreloc.evaluate import write_json
+from slamreloc.fileio import write_json
 from slamreloc.mapping import MapConfig, build_map
 from slamreloc.pipeline import evaluate_method
 from slamreloc.plots import plot_evaluation

@@ -16,9 +16,10 @@ import time
 import numpy as np
 import torch
 
-from slamreloc.datasets import load_dataset, read_depth, read_image
+from slamreloc.datasets import load_dataset, read_image
 from slamreloc.slam.backend import SlamBackend
 from slamreloc.slam.events import EventKind
+from slamreloc.slam.feed import feed_all, read_frames
 from slamreloc.slam.metrics import ate_rmse
 from slamreloc.slam.run import make_odometry
 
@@ -39,11 +40,12 @@ class AnchorAtStart:
             self.backend.anchor(frame.index, self.world_from_cam)
 
 
-def run_odometry(name, frames, depths, depth_k):
+def run_odometry(name, frames, inputs, depth_k):
+    """inputs: the frames' FrameInputs (depth only), read beforehand: the backend is timed
+    without the reading."""
     backend = SlamBackend(make_odometry(name, depth_k), [AnchorAtStart(frames[0].world_from_cam)])
     t0, c0 = time.perf_counter(), time.thread_time()
-    for f, d in zip(frames, depths):
-        backend.process(None, d, f.camera, timestamp=f.timestamp)
+    feed_all(backend, inputs)
     wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
     odo = [frames[0].world_from_cam @ r.odom_from_cam for r in backend.frames]
     timing = backend.timer.summary()
@@ -89,16 +91,16 @@ def main():
     torch.set_num_threads(1)
     ds = load_dataset(args.dataset)
     frames = ds.frames(args.split)
-    depths = [read_depth(f.depth_path, ds.depth_units_per_metre) for f in frames]
+    inputs = list(read_frames(ds, frames, image=False, depth=True))
     depth_k = ds.depth_intrinsics
     print(f"{args.dataset} split {args.split}: {len(frames)} frames "
-          f"{depths[0].shape[1]}x{depths[0].shape[0]}; {platform.machine()}, "
+          f"{inputs[0].depth.shape[1]}x{inputs[0].depth.shape[0]}; {platform.machine()}, "
           f"{platform.processor() or ''} torch threads 1")
     print("| odometry | drift ATE | odometry ms | graph ms | backend fps (wall) | "
           "backend fps (CPU time of this thread) | false tracking losses |")
     print("|---|---|---|---|---|---|---|")
     for name in args.odometry:
-        r = run_odometry(name, frames, depths, depth_k)
+        r = run_odometry(name, frames, inputs, depth_k)
         print(f"| {name} | {100 * r['drift_ate_m']:.1f} cm | {r['odometry_ms']:.1f} | "
               f"{r['graph_ms']:.2f} | {r['backend_fps']:.1f} | {r['backend_cpu_fps']:.1f} | "
               f"{r['lost']} |")

@@ -1,7 +1,8 @@
 """Issue 8's relocalization targets in one table: `slamreloc slam` with and without kidnapping,
-with and without 20 % of the relocalizations replaced by wrong poses (the plugin's test hook).
+with and without 20 % of the relocalizations replaced by wrong poses (the test harness's
+`FaultInjectingRelocalization`, tests/fault_injection.py). From the repository root:
 
-    python benchmarks/slam_targets.py ../shared/data/7scenes_redkitchen --map M [--out T.md]
+    python -m benchmarks.slam_targets ../shared/data/7scenes_redkitchen --map M [--out T.md]
         [--votes V] [--loop-closure-every K]
 
 Each run is what `slamreloc slam ... --report R --trajectory T` runs, with the default backend
@@ -13,10 +14,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from slamreloc.cli.slam_stage import run_slam_command
+from slamreloc.datasets import load_dataset
 from slamreloc.plugins.gating import GateConfig
 from slamreloc.plugins.relocalization import RelocalizationConfig
-
-from slamreloc.slam.cli_stage import run_slam_command
+from tests.fault_injection import FaultInjectingRelocalization
 
 RUNS = {"no kidnapping": (0, 0.0), "--kidnap-every 40": (40, 0.0),
         "no kidnapping, 20 % wrong relocalizations injected": (0, 0.2),
@@ -38,19 +40,22 @@ def main() -> None:
                     default=RelocalizationConfig.loop_closure_every,
                     help="keyframes from an accepted relocalization to the next try")
     args = ap.parse_args()
-    gate = GateConfig(votes=args.votes)
+    config = RelocalizationConfig(gate=GateConfig(votes=args.votes),
+                                  loop_closure_every=args.loop_closure_every)
+    depth_k = load_dataset(args.dataset).depth_intrinsics
     lines = ["| run | ATE map frame | ATE SE(3)-aligned | ATE odometry only | kidnaps recovered "
              "| frames to recover (median; each) | recovered pose error (median) | loop closures "
              "(rejected) | injected (rejected) | false anchors | backend fps |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for k, (name, (every, inject)) in enumerate(RUNS.items()):
         stem = args.out.with_name(f"{args.out.stem}_run{k}")
+        faulty = [FaultInjectingRelocalization(args.map, config=config,
+                                               depth_intrinsics=depth_k,
+                                               wrong_fraction=inject)] if inject else None
         r = run_slam_command(args.dataset, args.map, stem.with_suffix(".json"),
                              kidnap_every=every, trajectory=stem.with_suffix(".txt"),
-                             progress=False, plugin_options={
-                                 "config": RelocalizationConfig(
-                                     gate=gate, loop_closure_every=args.loop_closure_every,
-                                     inject_wrong_fraction=inject)})
+                             progress=False, plugin_options={"config": config},
+                             plugins=faulty)
         s = r["relocalization"]
         rec = "-" if not r["n_kidnaps"] else f"{r['n_recovered']}/{r['n_kidnaps']}"
         frames_rec = ("-" if not r["n_kidnaps"] else

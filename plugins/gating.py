@@ -40,7 +40,7 @@ class Candidate:
     world_from_cam: Rigid3
     num_inliers: int
     confidence: float
-    injected: bool = False  # the test hook replaced this result by a wrong pose
+    injected: bool = False  # the test harness replaced this result by a wrong pose
 
 
 def good_quality(c: Candidate, config: GateConfig) -> bool:

@@ -23,7 +23,7 @@ import numpy as np
 from slamreloc.plugins.gating import Candidate, GateConfig, find_agreeing, fits_track, good_quality
 from slamreloc.plugins.relocstats import RelocStats
 
-from slamreloc.geometry import Rigid3, axis_angle_to_matrix
+from slamreloc.geometry import Rigid3
 from slamreloc.pnp import estimate_pose
 from slamreloc.slam.backend import TrackState
 from slamreloc.slam.events import Event, EventKind, FrameData
@@ -36,8 +36,6 @@ class RelocalizationConfig:
     loop_closure_every: int = 3  # keyframes from an accepted relocalization to the next try
     keep_fraction: float = 0.5  # PnP on this share of the most confident predictions (localizer)
     icp: IcpConfig | None = field(default_factory=IcpConfig)  # None: no depth refinement
-    inject_wrong_fraction: float = 0.0  # test hook: replace results by poses >= 0.5 m / 20 deg off
-    inject_seed: int = 0
 
 
 class RelocalizationPlugin:
@@ -60,7 +58,6 @@ class RelocalizationPlugin:
         self.stats = RelocStats()
         self.pending: list[Candidate] = []  # tracking: candidates that do not fit the track
         self.lost: list[Candidate] = []  # lost: candidates waiting for an agreeing one
-        self._rng = np.random.default_rng(config.inject_seed)
         self._keyframes_since, self._keyframe_due = 0, False  # since the last acceptance
 
     def attach(self, backend) -> None:
@@ -132,6 +129,17 @@ class RelocalizationPlugin:
 
     def relocalize(self, frame: FrameData) -> Candidate | None:
         """Regressor + PnP on the frame's image; None when PnP fails or quality is too low."""
+        c = self.candidate(frame)
+        if c is None:
+            return None
+        if not good_quality(c, self.config.gate):
+            self.stats.n_failed += 1
+            return None
+        return c
+
+    def candidate(self, frame: FrameData) -> Candidate | None:
+        """The frame's relocalization before the quality gate: regressor + PnP, refined by ICP
+        onto the map's surface where the frame has depth; None when PnP fails."""
         loc = self.localizer
         with self.backend.timer("relocalization"):
             keypoints, points, conf = loc.confident_correspondences(loc.extractor(frame.image))
@@ -144,13 +152,7 @@ class RelocalizationPlugin:
             self.stats.n_failed += 1
             return None
         confidence = float(np.median(conf[est.inlier_mask])) if conf is not None else 1.0
-        c = Candidate(frame.index, world_from_cam, est.num_inliers, confidence)
-        if self._rng.random() < self.config.inject_wrong_fraction:
-            c.world_from_cam, c.injected = self._wrong(c.world_from_cam), True
-        if not good_quality(c, self.config.gate):
-            self.stats.n_failed += 1
-            return None
-        return c
+        return Candidate(frame.index, world_from_cam, est.num_inliers, confidence)
 
     def _refine(self, frame: FrameData, world_from_cam: Rigid3) -> Rigid3:
         """ICP of the frame's depth onto the map's surface; the guess where it does not fit."""
@@ -159,16 +161,6 @@ class RelocalizationPlugin:
             fit = refine_pose(self.surface, points, world_from_cam, self.config.icp)
         self.stats.n_refined += fit.accepted
         return fit.chosen()
-
-    def _wrong(self, world_from_cam: Rigid3) -> Rigid3:
-        """A pose at least 0.5 m or 20 deg from the given one (the robustness test hook)."""
-        axis = self._rng.normal(size=3)
-        axis /= np.linalg.norm(axis)
-        if self._rng.random() < 0.5:
-            return Rigid3(world_from_cam.rotation,
-                          world_from_cam.translation + axis * self._rng.uniform(0.5, 1.0))
-        rot = axis_angle_to_matrix(axis * np.radians(self._rng.uniform(20, 40)))
-        return Rigid3(world_from_cam.rotation @ rot, world_from_cam.translation)
 
     def finish(self) -> None:
         """End of the run: candidates still waiting for confirmation count as rejected."""

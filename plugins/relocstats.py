@@ -16,7 +16,7 @@ class RelocStats:
     n_anchors: int = 0  # confirmed after tracking loss
     n_reanchors: int = 0  # confirmed against the track
     n_rejected: int = 0  # never confirmed
-    n_injected: int = 0  # test hook: wrong poses injected (with enough inliers)
+    n_injected: int = 0  # wrong poses injected by the test harness (with enough inliers)
     n_injected_rejected: int = 0
     n_injected_accepted: int = 0
     accepted_frames: list[int] = field(default_factory=list)

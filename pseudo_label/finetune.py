@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from slamreloc.regressor.model import SceneCoordinateRegressor
+from slamreloc.regressor.regions import kmeans, nearest_centres
 from slamreloc.regressor.train import TrainConfig, train_regressor
 
 
@@ -40,17 +41,6 @@ class FinetuneConfig:
                            seed=self.seed)
 
 
-def _kmeans(points: torch.Tensor, k: int, gen: torch.Generator, iterations: int = 20):
-    start = torch.randperm(len(points), generator=gen)[:k]
-    centres = points[start].clone()
-    for _ in range(iterations):
-        assign = torch.cdist(points, centres).argmin(1)
-        count = torch.bincount(assign, minlength=k).float()
-        total = torch.zeros_like(centres).index_add_(0, assign, points)
-        centres[count > 0] = total[count > 0] / count[count > 0, None]
-    return centres
-
-
 @torch.no_grad()
 def extend_regions(model: SceneCoordinateRegressor, points_n: torch.Tensor,
                    config: FinetuneConfig, gen: torch.Generator) -> tuple[torch.Tensor, int]:
@@ -58,10 +48,7 @@ def extend_regions(model: SceneCoordinateRegressor, points_n: torch.Tensor,
     centres = model.centres
     k = len(centres)
 
-    def nearest():
-        return _nearest(points_n, centres)
-
-    dist, assign = nearest()
+    dist, assign = nearest_centres(points_n, centres)
     far = dist > config.far_factor * model.offset_scale
     n_far = int(far.sum())
     n_move = 0
@@ -70,7 +57,7 @@ def extend_regions(model: SceneCoordinateRegressor, points_n: torch.Tensor,
                              min(int(config.max_new_fraction * k), n_far)))
         use = torch.bincount(assign[~far], minlength=k)
         moved = torch.argsort(use.float() + torch.rand(k, generator=gen) * 0.1)[:n_move]
-        centres[moved] = _kmeans(points_n[far], n_move, gen)
+        centres[moved] = kmeans(points_n[far], n_move, gen)
         out = model.mlp[-1]
         bound = 1.0 / np.sqrt(out.in_features)
         out.weight[moved] = torch.empty(n_move, out.in_features).uniform_(-bound, bound,
@@ -79,17 +66,8 @@ def extend_regions(model: SceneCoordinateRegressor, points_n: torch.Tensor,
         rows = (k + moved[:, None] * 3 + torch.arange(3)[None]).reshape(-1)
         out.weight[rows] = 0.0
         out.bias[rows] = 0.0
-        dist, assign = nearest()
+        dist, assign = nearest_centres(points_n, centres)
     return assign, n_move
-
-
-def _nearest(points: torch.Tensor, centres: torch.Tensor):
-    d, a = [], []
-    for chunk in points.split(65536):
-        v, i = torch.cdist(chunk, centres).min(1)
-        d.append(v)
-        a.append(i)
-    return torch.cat(d), torch.cat(a)
 
 
 def finetune_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray,

@@ -15,12 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from slamreloc.features.matcher import match_mutual
+from slamreloc.features.matcher import match_descriptors
 from slamreloc.geometry import Rigid3, project, rotation_angle_deg
+from slamreloc.map_format import PSEUDO
 from slamreloc.pnp import PnPConfig, estimate_pose
 from slamreloc.types import Camera, Features
-
-LABELLED, PSEUDO, NEW = 0, 1, 2  # where a database point came from (provenance.npz `source`)
 
 
 @dataclass(frozen=True)
@@ -65,30 +64,8 @@ class Database:
     def match(self, query: np.ndarray, ratio: float, same_point_m: float) -> np.ndarray:
         """(M, 2) pairs (query index, database index): mutual nearest neighbours that pass the
         ratio test (or whose two nearest entries are one 3D point)."""
-        n, m = len(query), len(self.desc)
-        if n < 2 or m < 2:
-            return np.zeros((0, 2), np.int64)
-        q = torch.as_tensor(query, dtype=torch.float32)
-        best_v = torch.full((n, 2), -2.0)
-        best_i = torch.zeros((n, 2), dtype=torch.long)
-        col_arg = torch.empty(m, dtype=torch.long)
-        with torch.inference_mode():
-            for s in range(0, m, 32768):
-                sim = q @ self.desc[s:s + 32768].T
-                col_arg[s:s + sim.shape[1]] = sim.argmax(0)
-                k = min(2, sim.shape[1])
-                val, idx = sim.topk(k, dim=1)
-                cand_v = torch.cat([best_v, val], 1)
-                cand_i = torch.cat([best_i, idx + s], 1)
-                order = cand_v.argsort(dim=1, descending=True)[:, :2]
-                best_v, best_i = cand_v.gather(1, order), cand_i.gather(1, order)
-        dist = (2.0 - 2.0 * best_v).clamp_min(0).sqrt().numpy()
-        idx = best_i.numpy()
-        same = np.linalg.norm(self.points[idx[:, 0]] - self.points[idx[:, 1]], axis=1)
-        qi = np.arange(n)
-        keep = ((dist[:, 0] < ratio * dist[:, 1]) | (same < same_point_m))
-        keep &= col_arg.numpy()[idx[:, 0]] == qi
-        return np.stack([qi[keep], idx[keep, 0]], axis=1)
+        return match_descriptors(query, self.desc, ratio, db_points=self.points,
+                                 same_point_m=same_point_m)
 
     def correspondences(self, query: np.ndarray, config: RegistrationConfig
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -154,7 +131,7 @@ def neighbour_correspondences(i: int, feats: list[Features], states: list[FrameS
         lab = np.flatnonzero(states[j].source >= 0)
         if len(lab) < 2:
             continue
-        m = match_mutual(feats[i].descriptors, feats[j].descriptors[lab], config.ratio)
+        m = match_descriptors(feats[i].descriptors, feats[j].descriptors[lab], config.ratio)
         q_idx.append(m[:, 0])
         pts.append(states[j].points[lab[m[:, 1]]])
         rows.append(states[j].row[lab[m[:, 1]]])

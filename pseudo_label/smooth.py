@@ -6,20 +6,31 @@ over long ones. The SLAM backend fuses both: odometry between-factors plus every
 as a robust (Cauchy) prior in the map frame, each with its own sigma scale (how much it is
 trusted), optimised as a whole. Frames that could not be registered on their own get their pose
 from the odometry through them.
+
+The priors (`smooth_states`): a registered frame's registration on the map's own labels alone,
+where it holds, else its chain registration (through the sequence's own pseudo-labels) with
+`RegistrationConfig.chain_prior_sigma_scale` times the sigmas. Every frame then takes the fused
+pose and inherits the map labels that fit it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from slamreloc.datasets import Dataset, read_depth, read_image
-from slamreloc.geometry import Rigid3
+import numpy as np
+
+from slamreloc.datasets import Dataset
+from slamreloc.geometry import Rigid3, pose_error
 from slamreloc.progress import track
+from slamreloc.pseudo_label.register import (Database, FrameState, RegistrationConfig,
+                                             label_at_pose, register_on)
+from slamreloc.scene_map import MapDatabase
 from slamreloc.slam.backend import SlamBackend, TrackState
 from slamreloc.slam.events import Event, EventKind, FrameData
+from slamreloc.slam.feed import feed_all, read_frames
 from slamreloc.slam.poses import final_trajectory
 from slamreloc.slam.run import make_odometry
-from slamreloc.types import Frame
+from slamreloc.types import Features, Frame
 
 
 @dataclass(frozen=True)
@@ -66,10 +77,67 @@ def smooth_poses(dataset: Dataset, frames: list[Frame], priors: list[Prior | Non
         return None
     depth_k = dataset.depth_intrinsics
     backend = SlamBackend(make_odometry("auto", depth_k), [RegistrationPriors(priors)])
-    for f in track(frames, "smoothing with odometry", enabled=progress):
-        image = read_image(f.image_path) if dataset.depth_registered else None  # hybrid odometry
-        backend.process(image, read_depth(f.depth_path, dataset.depth_units_per_metre), f.camera,
-                        timestamp=f.timestamp)
+    # images only for open3d's hybrid odometry (registered depth): no plugin here reads them
+    inputs = read_frames(dataset, frames, image=dataset.depth_registered, depth=True)
+    feed_all(backend, track(inputs, "smoothing with odometry", total=len(frames),
+                            enabled=progress))
     backend.finish()
     lost = sum(e.kind == EventKind.TRACKING_LOST for e in backend.event_log)
     return SmoothingResult(final_trajectory(backend), lost)
+
+
+def smooth_states(frames: list[Frame], feats: list[Features], states: list[FrameState],
+                  base: MapDatabase, anchored: np.ndarray, smoother, rc: RegistrationConfig
+                  ) -> tuple[list[FrameState], int] | None:
+    """Each registered frame is registered again on the map's own labels alone; where that
+    holds (enough inliers, near the chain's pose) it becomes a prior of the odometry pose graph,
+    independent of the chain (registrations through the sequence's own pseudo-labels drift with
+    the chain that made them). The other registered frames give their chain pose as a prior
+    `rc.chain_prior_sigma_scale` times less certain: beyond the map the chain drifts less than
+    long stretches of odometry. Every frame then takes the graph's pose and inherits only map
+    labels that fit it. Returns (states, number of map priors), or None without a smoother."""
+    if smoother is None:
+        return None
+    rows = np.flatnonzero(anchored)
+    db = Database(base.descriptors[rows].astype(np.float32), base.points[rows], rows)
+    corr = [db.correspondences(f.descriptors, rc) for f in feats]  # for priors and labels
+    on_map = [map_prior(s, f, frame.camera, c, rc) if s.registered else None
+              for s, f, frame, c in zip(states, feats, frames, corr)]
+    n_priors = sum(p is not None for p in on_map)
+    priors = [graph_prior(p, s, rc) for p, s in zip(on_map, states)]
+    poses = smoother(priors) if n_priors else None
+    if poses is None:
+        return None
+    out = []
+    for f, s, pose, frame, c in zip(feats, states, poses, frames, corr):
+        pose = pose if pose is not None else s.world_from_cam  # off the graph: keep the chain's
+        if pose is None:
+            out.append(FrameState.empty(len(f)))
+            continue
+        new = label_at_pose(f, frame.camera, pose, c, rc)
+        new.via = s.via if s.registered else "odometry"
+        out.append(new)
+    return out, n_priors
+
+
+def map_prior(state: FrameState, f: Features, camera, corr: tuple,
+              rc: RegistrationConfig) -> Rigid3 | None:
+    """The frame's registration on its correspondences with the map's labels alone, if it has
+    `anchor_inliers` and lies near the chain's pose; else None."""
+    on_map = register_on(corr, f, camera, rc)
+    if on_map is None or on_map.num_inliers < rc.anchor_inliers:
+        return None
+    dt, dr = pose_error(on_map.world_from_cam, state.world_from_cam)
+    ok = dt <= rc.prior_agreement_m and dr <= rc.prior_agreement_deg
+    return on_map.world_from_cam if ok else None
+
+
+def graph_prior(on_map: Rigid3 | None, state: FrameState, rc: RegistrationConfig
+                ) -> Prior | None:
+    """The frame's prior in the pose graph: its registration on the map's labels, else its
+    chain registration with `chain_prior_sigma_scale` times the sigmas (0: none)."""
+    if on_map is not None:
+        return Prior(on_map)
+    if state.registered and rc.chain_prior_sigma_scale > 0:
+        return Prior(state.world_from_cam, rc.chain_prior_sigma_scale)
+    return None

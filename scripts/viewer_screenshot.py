@@ -1,7 +1,8 @@
 """Screenshot of `slamreloc view` on the demo's output, for the README (docs/viewer.png).
 
     slamreloc demo --workdir /tmp/demo-view --no-viewer
-    python scripts/viewer_screenshot.py /tmp/demo-view --out docs/viewer.png
+    python -m scripts.viewer_screenshot /tmp/demo-view --out docs/viewer.png   (from the
+        repository root: it uses tests/browser.py)
 
 Serves the viewer on what the demo wrote (the same inputs `slamreloc demo` serves: map, scene,
 reports, trajectories), puts the frame slider on one frame of the SLAM trajectory, opens the
@@ -18,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from slamreloc.demo import demo_viewer_inputs
-from slamreloc.viewer.browser import (chromium_context, decode_png, dismiss_notifications,
-                                      drawn_fraction, wait_rendered)
+from slamreloc.cli.demo import demo_viewer_inputs
 from slamreloc.viewer.gui import orbit_pose
 from slamreloc.viewer.server import start
+from tests.browser import (chromium_context, decode_png, dismiss_notifications, drawn_fraction,
+                           wait_rendered)
 
 
 def pick_frame(handles, source_prefix: str, frame: int | None) -> str | None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -13,7 +12,6 @@ from rich.table import Table
 
 from slamreloc.datasets import read_image
 from slamreloc.errors import InputError
-from slamreloc.fileio import atomic_file
 from slamreloc.geometry import Rigid3, pose_error, write_tum_trajectory
 from slamreloc.localizer import Localizer
 from slamreloc.progress import console, track
@@ -81,11 +79,6 @@ def summarize(results: list[QueryResult], method: str) -> dict:
                    for k, (tt, rr) in THRESHOLDS.items()},
         "timing_ms": timing,
     }
-
-
-def write_json(path: Path, data: dict) -> None:
-    with atomic_file(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2))
 
 
 def write_tum(path: Path, results: list[QueryResult]) -> None:

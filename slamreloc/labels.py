@@ -17,7 +17,7 @@ import pycolmap
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from slamreloc.features.matcher import match_mutual
+from slamreloc.features.matcher import match_descriptors
 from slamreloc.geometry import Rigid3, project
 from slamreloc.progress import track
 from slamreloc.types import Features, Frame
@@ -88,7 +88,7 @@ def verified_matches(frames, feats, pairs, config, progress=True) -> np.ndarray:
     """(M, 4) rows (frame_a, kp_a, frame_b, kp_b) of epipolar-consistent matches."""
     rows = []
     for i, j in track(pairs, "matching pairs", enabled=progress):
-        m = match_mutual(feats[i].descriptors, feats[j].descriptors, config.ratio)
+        m = match_descriptors(feats[i].descriptors, feats[j].descriptors, config.ratio)
         if len(m) == 0:
             continue
         err = _sampson_px(feats[i].keypoints[m[:, 0]], feats[j].keypoints[m[:, 1]],

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from slamreloc.features import make_extractor
-from slamreloc.features.matcher import top2
+from slamreloc.features.matcher import match_descriptors
 from slamreloc.precision import autocast, resolve_precision
 from slamreloc.pnp import PnPConfig, PoseEstimate, estimate_pose
 from slamreloc.regressor.train import resolve_device
@@ -38,8 +38,8 @@ class Localizer:
         self.map = scene_map
         self.pnp = pnp
         self.device = resolve_device(device)
-        feat = dict(scene_map.meta["features"])
-        self.extractor = make_extractor(feat.pop("name"), **feat)
+        self.extractor = make_extractor(scene_map.info.feature_name,
+                                        **scene_map.info.feature_options)
 
     def correspondences(self, feats: Features) -> tuple[np.ndarray, np.ndarray]:
         """(points2d (N, 2), points3d (N, 3)) for PnP."""
@@ -113,10 +113,9 @@ class MatchingLocalizer(Localizer):
         self.ratio, self.same_point_m = ratio, same_point_m
 
     def correspondences(self, feats):
-        dist, idx = top2(feats.descriptors, self.db_desc)
-        same = np.linalg.norm(self.db_points[idx[:, 0]] - self.db_points[idx[:, 1]], axis=1)
-        keep = (dist[:, 0] < self.ratio * dist[:, 1]) | (same < self.same_point_m)
-        return feats.keypoints[keep], self.db_points[idx[keep, 0]]
+        m = match_descriptors(feats.descriptors, self.db_desc, self.ratio, mutual=False,
+                              db_points=self.db_points, same_point_m=self.same_point_m)
+        return feats.keypoints[m[:, 0]], self.db_points[m[:, 1]]
 
 
 def make_localizer(scene_map: SceneMap, method: str = "regressor", **kwargs) -> Localizer:

@@ -13,13 +13,15 @@ from slamreloc.errors import InputError
 from slamreloc.extract import extract_frames
 from slamreloc.features import make_extractor
 from slamreloc.labels import LabelConfig, LabelSet, build_labels
+from slamreloc.map_format import SURFACE
+from slamreloc.map_lock import map_write_lock
+from slamreloc.map_write import check_map_target, save_map
 from slamreloc.progress import console
 from slamreloc.rgbd import registered_depths
 from slamreloc.regressor.checkpoint import checkpoint_path
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
-from slamreloc.scene_map import (SURFACE, MapDatabase, SceneMap, check_map_target,
-                                 map_write_lock, save_map)
+from slamreloc.scene_map import MapDatabase, SceneMap
 from slamreloc.surface import SurfaceConfig, dataset_surface
 from slamreloc.types import Features, Frame
 

@@ -6,7 +6,8 @@ from pathlib import Path
 
 from slamreloc.datasets import Dataset, load_dataset, read_image
 from slamreloc.errors import InputError
-from slamreloc.evaluate import evaluate_frames, summarize, write_json, write_tum
+from slamreloc.evaluate import evaluate_frames, summarize, write_tum
+from slamreloc.fileio import write_json
 from slamreloc.geometry import Rigid3, tum_line
 from slamreloc.localizer import make_localizer
 from slamreloc.scene_map import SceneMap
@@ -45,7 +46,7 @@ def evaluate_method(scene_map: SceneMap, dataset_dir: Path, split: str = "test",
     summary["map"] = {"parameters": scene_map.regressor.num_parameters(),
                       "size_bytes": scene_map.size_bytes(),
                       "database_bytes": scene_map.database_bytes(),
-                      "n_database_descriptors": int(scene_map.meta["labels"]["n_labelled"])}
+                      "n_database_descriptors": scene_map.info.n_labelled}
     summary["device"] = localizer.device.type
     summary["dataset"] = {"root": str(Path(dataset_dir).resolve()), "split": split}
     summary["per_query"] = [

@@ -1,4 +1,5 @@
-"""Depth in the RGB camera's pixels: registered depth as it is, unregistered depth warped.
+"""Depth maps: the camera that took them, their back-projection to points, and depth in the
+RGB camera's pixels (registered depth as it is, unregistered depth warped).
 
 7-Scenes' depth comes from the Kinect's other camera (585 px focal length, not registered to
 the RGB images). With the rig calibration (`Dataset.rgb_from_depth`) each depth pixel is
@@ -10,12 +11,45 @@ world_from_cam, so a keypoint's label is world_from_cam * (its depth in the RGB 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from slamreloc.datasets import Dataset, read_depth
 from slamreloc.geometry import Rigid3, project
-from slamreloc.slam.odometry import DepthSampling, backproject, depth_camera
 from slamreloc.types import Camera, Frame
+
+
+@dataclass(frozen=True)
+class DepthSampling:
+    """Back-projection of a depth map: every `stride`-th pixel, depths in [min_m, max_m]."""
+
+    stride: int = 4
+    min_m: float = 0.2
+    max_m: float = 4.0
+
+
+def depth_camera(camera: Camera, depth_shape: tuple[int, int],
+                 depth_intrinsics: tuple[float, float, float, float] | None) -> Camera:
+    """The camera that took the depth map: given intrinsics (7-Scenes: 585, 585, 320, 240 at
+    640x480), else the RGB camera scaled to the depth size (registered depth)."""
+    h, w = depth_shape
+    if depth_intrinsics is None:
+        return camera.scaled_to(w, h)
+    fx, fy, cx, cy = depth_intrinsics
+    return Camera(640, 480, fx, fy, cx, cy).scaled_to(w, h)
+
+
+def backproject(depth: np.ndarray, camera: Camera, sampling: DepthSampling) -> np.ndarray:
+    """(N, 3) float64 points in the camera frame (OpenCV axes, metres)."""
+    s = sampling.stride
+    d = depth[::s, ::s]
+    v, u = np.nonzero((d > sampling.min_m) & (d < sampling.max_m))
+    z = d[v, u].astype(np.float64)
+    x = (u * s - camera.cx) / camera.fx * z
+    y = (v * s - camera.cy) / camera.fy * z
+    return np.stack([x, y, z], axis=1)
+
 
 WARP_SAMPLING = DepthSampling(stride=1, min_m=0.2, max_m=8.0)  # every valid depth pixel
 

@@ -23,7 +23,7 @@ from slamreloc.datasets import Dataset, read_depth
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, rotation_angle_deg
 from slamreloc.progress import track
-from slamreloc.slam.odometry import DepthSampling, backproject, depth_camera
+from slamreloc.rgbd import DepthSampling, backproject, depth_camera
 from slamreloc.types import Camera, Frame
 
 

@@ -81,7 +81,7 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
 def viewer_case(scene_dir, tmp_path_factory):
     """A synthetic map folder with trajectories and reports for the viewer's tests (built once
     for both viewer test modules)."""
-    from tests.test_viewer_support import build_case
+    from tests.viewer_support import build_case
 
     return build_case(scene_dir, tmp_path_factory.mktemp("viewer"))
 

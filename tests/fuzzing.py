@@ -1,7 +1,8 @@
 """Fuzzing helpers: hypothesis strategies that damage valid files, a hang guard, case counters.
 
-The counters are printed at the end of the pytest run (conftest's terminal summary) and
-written to `<pytest basetemp>/fuzz_counts.json`.
+The counters (one per executed case) are checked against the fuzzing budget by
+tests/test_fuzz_inputs.py's last test, printed at the end of the pytest run (conftest's terminal
+summary) and written to `<pytest basetemp>/fuzz_counts.json`.
 """
 
 from __future__ import annotations

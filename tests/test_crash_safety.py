@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 
 from slamreloc.errors import InputError
-from slamreloc.scene_map import _exchange, SceneMap
+from slamreloc.map_write import _exchange
+from slamreloc.scene_map import SceneMap
 from tests import fuzzing
 from tests.test_map_format import make_map
 
@@ -106,7 +107,7 @@ def test_rename_exchange_swaps_atomically_here(tmp_path):
     assert (a / "x").read_text() == "b" and (b / "x").read_text() == "a"
 
 
-HOLD_LOCK = ("import sys, time; from slamreloc.scene_map import map_write_lock\n"
+HOLD_LOCK = ("import sys, time; from slamreloc.map_lock import map_write_lock\n"
              "with map_write_lock(sys.argv[1]):\n"
              "    print('locked', flush=True); time.sleep(float(sys.argv[2]))\n")
 
@@ -130,7 +131,7 @@ def test_second_writer_fails_cleanly_while_one_writes(tmp_path):
 
 RACE = ("import sys, time; from pathlib import Path\n"
         "from slamreloc.errors import InputError\n"
-        "from slamreloc.scene_map import map_write_lock\n"
+        "from slamreloc.map_lock import map_write_lock\n"
         "from tests.test_map_format import make_map\n"
         "out, tag, sync = Path(sys.argv[1]), sys.argv[2], Path(sys.argv[3])\n"
         "(sync / tag).touch()  # imports done: wait for the other writer, then go together\n"

@@ -23,8 +23,10 @@ import torch
 import slamreloc
 from slamreloc.errors import InputError
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
-from slamreloc.scene_map import (DATABASE, FORMAT_VERSION, LEGACY_WEIGHTS, META, WEIGHTS,
-                                 MapDatabase, SceneMap, migrate_map, save_map)
+from slamreloc.map_format import (DATABASE, FORMAT_VERSION, LABELLED, LEGACY_WEIGHTS, META, NEW,
+                                  PROVENANCE, PSEUDO, WEIGHTS, sha256_file)
+from slamreloc.map_write import migrate_map, save_map
+from slamreloc.scene_map import MapDatabase, SceneMap
 
 FIXTURES = Path(__file__).parent / "data" / "maps"
 PROBE = np.linspace(-1, 1, 5 * 8, dtype=np.float32).reshape(5, 8)  # descriptors to predict
@@ -134,6 +136,38 @@ def test_a_map_records_its_format_and_writer(tmp_path):
     assert not (tmp_path / "m" / LEGACY_WEIGHTS).exists()
 
 
+def test_provenance_is_checksummed_and_read_through_the_map(tmp_path):
+    """An updated map's provenance.npz is listed with its checksum and read by the map's own
+    reader, also when the regressor is not built (the viewer's open)."""
+    model, db, meta = _fixture_parts()
+    source = np.array([LABELLED] * 15 + [PSEUDO] * 3 + [NEW] * 2, np.int8)
+    quality = np.linspace(0.1, 1.0, len(source)).astype(np.float32)
+    root = save_map(tmp_path / "m", meta, model, db,
+                    extra={PROVENANCE: {"source": source, "quality": quality}})
+    assert set(json.loads((root / META).read_text())["files"]) == {WEIGHTS, DATABASE, PROVENANCE}
+    m = SceneMap.load(root, regressor=False)
+    assert m.regressor is None and len(m.database.points) == len(source)
+    np.testing.assert_array_equal(m.provenance.source, source)
+    np.testing.assert_array_equal(m.provenance.quality, quality)
+    assert SceneMap.load(make_map(tmp_path / "plain")).provenance is None
+    np.savez(root / PROVENANCE, source=source[::-1], quality=quality)
+    with pytest.raises(InputError, match=f"{PROVENANCE}: contents do not match the checksum"):
+        SceneMap.load(root, regressor=False).provenance  # noqa: B018
+    for arrays, message in (({"source": source[:-1], "quality": quality[:-1]}, "expected the 20"),
+                            ({"source": source + 3, "quality": quality}, "codes other than"),
+                            ({"source": source}, "missing array 'quality'")):
+        root = save_map(tmp_path / "m", meta, model, db, extra={PROVENANCE: arrays})
+        with pytest.raises(InputError, match=message):
+            SceneMap.load(root, regressor=False).provenance  # noqa: B018
+
+
+def test_opening_without_the_regressor_still_checks_the_weights(tmp_path):
+    root = make_map(tmp_path / "m")
+    (root / WEIGHTS).write_bytes(np.random.default_rng(0).bytes(4096))
+    with pytest.raises(InputError, match=f"{WEIGHTS}: contents do not match"):
+        SceneMap.load(root, regressor=False)
+
+
 def test_a_newer_format_is_refused_naming_both_versions(tmp_path):
     root = make_map(tmp_path / "m")
     meta = json.loads((root / META).read_text())
@@ -219,9 +253,7 @@ def test_pickle_payload_in_npz_is_refused_and_never_run(tmp_path, name, key):
     assert target.exists()
     target.unlink()
     meta = json.loads((root / META).read_text())
-    from slamreloc.scene_map import _sha256
-
-    meta["files"][name] = _sha256(root / name)  # even with a matching checksum
+    meta["files"][name] = sha256_file(root / name)  # even with a matching checksum
     (root / META).write_text(json.dumps(meta))
     with pytest.raises(InputError, match="refused: .*pickled Python objects"):
         SceneMap.load(root).database  # noqa: B018

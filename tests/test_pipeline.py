@@ -154,7 +154,7 @@ def test_demo_leaves_scene_map_and_report(scene_dir, tmp_path):
     """The demo's steps on the small scene (the full-size demo is the README's `make demo`)."""
     import shutil
 
-    from slamreloc.demo import run_demo
+    from slamreloc.cli.demo import run_demo
     from tests.conftest import SMALL_SCENE, small_map_config
 
     shutil.copytree(scene_dir, tmp_path / "scene")  # reuse the session's rendering

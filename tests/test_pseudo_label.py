@@ -13,10 +13,10 @@ import pytest
 
 from slamreloc import precision
 from slamreloc.datasets import load_dataset
+from slamreloc.map_format import PROVENANCE
 from slamreloc.pipeline import evaluate_method
 from slamreloc.pseudo_label import PseudoLabelConfig, update_map
 from slamreloc.pseudo_label.register import Database
-from slamreloc.pseudo_label.update import PROVENANCE
 from slamreloc.scene_map import SceneMap
 
 

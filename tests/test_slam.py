@@ -9,9 +9,9 @@ import sys
 
 import numpy as np
 import pytest
-from slamreloc.plugins.relocalization import RelocalizationConfig
 
 from slamreloc.slam.run import SlamRunConfig, run_slam
+from tests.fault_injection import FaultInjectingRelocalization
 
 CONTRACT = {"ate_rmse_m", "ate_rmse_aligned_m", "ate_rmse_odometry_only_m", "n_kidnaps",
             "n_recovered", "median_frames_to_recover", "n_loop_closures",
@@ -93,12 +93,16 @@ def test_wrong_relocalizations_are_rejected(clean_kidnap_run, kidnap_scene, smal
     hook): every wrong one rejected, no false anchor, and the ATE within 10 % of the clean
     run. The ATE is compared as the median over the seeds: which correct results the hook
     destroys moves a single run's ATE (about 3 mm here) by +-10 % on its own."""
+    from slamreloc.datasets import load_dataset
+
     clean, _ = clean_kidnap_run
+    depth_k = load_dataset(kidnap_scene).depth_intrinsics
     ates = []
     for seed in (1, 2, 3):
-        config = SlamRunConfig(**KIDNAP, progress=False, plugin_options={
-            "config": RelocalizationConfig(inject_wrong_fraction=0.2, inject_seed=seed)})
-        r, _, _ = run_slam(kidnap_scene, small_map.root, config)
+        faulty = FaultInjectingRelocalization(small_map.root, depth_intrinsics=depth_k,
+                                              wrong_fraction=0.2, seed=seed)
+        r, _, _ = run_slam(kidnap_scene, small_map.root, SlamRunConfig(**KIDNAP, progress=False),
+                           [faulty])
         stats = r["relocalization"]
         assert stats["n_injected"] >= 3, stats
         assert stats["n_injected_rejected"] >= 0.9 * stats["n_injected"]

@@ -15,11 +15,14 @@ import numpy as np
 import pytest
 
 from slamreloc.errors import InputError
+from slamreloc.map_format import LABELLED, NEW
+from slamreloc.scene_map import SceneMap
 from slamreloc.viewer import ViewerInputs, build_scene, load_scene_data, make_server
 from slamreloc.viewer import colors as palette
 from slamreloc.viewer.gui import report_table
-from slamreloc.viewer.loaders import read_trajectory, voxel_downsample
-from tests.test_viewer_support import BIG_ERROR, FAILED, POINTS_PER_FRAME, build_map_folder
+from slamreloc.viewer.map_view import voxel_downsample
+from slamreloc.viewer.trajectories import read_trajectory
+from tests.viewer_support import BIG_ERROR, FAILED, pseudo_label_map
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -213,18 +216,46 @@ def test_slam_events_and_graph_edges_by_type_and_status(viewer_case):
         assert any(t.startswith("recovery") for t in labels)
 
 
-def test_pseudo_labelled_points_and_frames_in_their_own_colours(viewer_case, tmp_path):
-    out, _, n_train = build_map_folder(viewer_case.scene, tmp_path / "updated", with_pseudo=True)
-    with scene(ViewerInputs(out)) as (server, h):
+@pytest.fixture(scope="module")
+def updated_map(small_map, scene_dir, tmp_path_factory):
+    """The demo's `map_updated/` and `report_pseudo_label.json`, by the real pseudo-label."""
+    new_map, report = pseudo_label_map(small_map.root, scene_dir,
+                                       tmp_path_factory.mktemp("updated"))
+    return new_map, report, json.loads(report.read_text())
+
+
+def test_updated_map_shows_the_updates_frames_and_pseudo_labels(updated_map):
+    """What the updater writes (provenance.npz, the report's poses) is what the viewer shows:
+    every pseudo-labelled point flagged, every registered frame drawn."""
+    new_map, report, rep = updated_map
+    source = SceneMap.load(new_map, regressor=False).provenance.source
+    n_flagged = int((source != LABELLED).sum())
+    assert n_flagged == rep["n_database_after"] - rep["n_database_before"]
+    assert n_flagged == rep["n_pseudo_labels"] > 0 and (source == NEW).any()
+    assert rep["n_frames_registered"] == len(rep["poses"]) > 0
+    data = load_scene_data(ViewerInputs(new_map, reports=[report], max_points=10 ** 9))
+    assert data.map.voxel_size == 0 and int(data.map.pseudo.sum()) == n_flagged
+    assert [f.name for f in data.map.pseudo_frames] == list(rep["poses"])
+    for frame in data.map.pseudo_frames:
+        np.testing.assert_allclose(frame.world_from_cam.matrix(), rep["poses"][frame.name],
+                                   atol=1e-6)
+    [shown] = data.pseudo_labels
+    assert [f.name for f in shown.frames] == list(rep["poses"])
+    with scene(ViewerInputs(new_map, reports=[report], max_points=10 ** 9)) as (server, h):
         n = nodes(server)
         added = n["/map/pseudo_points"]
-        assert len(added.points) == POINTS_PER_FRAME
+        assert len(added.points) == n_flagged
         assert (added.colors == palette.PSEUDO_POINTS).all()
-        assert len(n["/map/points"].points) == (n_train - 1) * POINTS_PER_FRAME
-        assert len(n["/map/pseudo_frames"].points) == 2 * 8
+        assert len(n["/map/points"].points) == rep["n_database_before"]
+        assert len(n["/map/pseudo_frames"].points) == 8 * rep["n_frames_registered"]
+        assert len(n["/pseudo_label/00/frames"].points) == 8 * len(rep["poses"])
         assert "points added by the update" in h.layers
-    with scene(ViewerInputs(viewer_case.map_dir)) as (server, h):  # absent: no such layer
-        assert "/map/pseudo_points" not in nodes(server)
+
+
+def test_a_map_never_updated_has_no_update_layers(viewer_case):
+    with scene(ViewerInputs(viewer_case.map_dir)) as (server, h):
+        assert h.data.map.pseudo is None and h.data.map.pseudo_frames == []
+        assert not [k for k in nodes(server) if "pseudo" in k]
 
 
 def test_frame_slider_moves_marker_image_and_text(viewer_case):

@@ -18,9 +18,8 @@ from urllib.parse import urlparse
 import numpy as np
 import pytest
 
-from slamreloc.viewer import browser as browser_helpers
-from slamreloc.viewer.browser import (chromium_context, dismiss_notifications, drawn_fraction,
-                                      find_chromium)
+from tests import browser as browser_helpers
+from tests.browser import chromium_context, dismiss_notifications, drawn_fraction, find_chromium
 from tests.conftest import sigint_as_from_a_terminal
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -45,10 +45,10 @@ class MapView:
     color_source: str  # "image" | "height"
     frames: list[FrameView]  # training cameras
     camera: Camera | None
-    pseudo: np.ndarray | None = None  # (N,) bool: point added by a map update (pseudo-label)
-    pseudo_frames: list[FrameView] = field(default_factory=list)
+    pseudo: np.ndarray | None = None  # (N,) bool: a map update's pseudo-label (None: never
+    # updated), provenance source PSEUDO or NEW
+    pseudo_frames: list[FrameView] = field(default_factory=list)  # frames an update added
     voxel_size: float = 0.0
-    meta: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -133,8 +133,7 @@ class SlamReport:
 class PseudoLabelReport:
     path: Path
     data: dict
-    frames: list[FrameView]
-    points: np.ndarray | None = None  # (N, 3) points the update added, when the report lists them
+    frames: list[FrameView]  # the registered frames at their estimated poses
 
 
 @dataclass

@@ -14,7 +14,7 @@ import numpy as np
 from slamreloc.geometry import Rigid3
 from slamreloc.viewer import colors as palette
 from slamreloc.viewer.layers import Geometry, Layer, TrajectoryNodes, wxyz
-from slamreloc.viewer.loaders import read_rgb
+from slamreloc.viewer.images import read_rgb
 
 PANEL_WIDTH = 320
 

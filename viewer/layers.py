@@ -164,13 +164,6 @@ def add_pseudo_frames(server, frames, g: Geometry, name: str) -> Layer | None:
         thickness=1.5, thickness_units="screen")])
 
 
-def add_points(server, name: str, points: np.ndarray, color, g: Geometry, label: str) -> Layer:
-    cols = np.tile(np.uint8(color), (len(points), 1))
-    return Layer(label, [server.scene.add_point_cloud(
-        name, points, cols, point_size=g.point_size * 1.5, point_shape="rounded",
-        precision=_precision(points))])
-
-
 # ---------------------------------------------------------------- trajectories
 @dataclass
 class TrajectoryNodes:

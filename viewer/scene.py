@@ -9,7 +9,7 @@ import numpy as np
 from slamreloc.viewer import colors as palette
 from slamreloc.viewer import gui, layers
 from slamreloc.viewer.data import FrameView, QueryView, SceneData
-from slamreloc.viewer.loaders import estimate_up
+from slamreloc.viewer.map_view import estimate_up
 
 
 @dataclass
@@ -155,11 +155,6 @@ def build_scene(server, data: SceneData) -> SceneHandles:
         if layer is not None:
             layer.name = f"pseudo-labelled frames: {r.path.name}"
             h.add_layer(layer)
-        if r.points is not None and len(r.points):
-            layer = layers.add_points(server, f"/pseudo_label/{i:02d}/points", r.points,
-                                      palette.PSEUDO_POINTS, g, f"added points: {r.path.name}")
-            h.add_layer(layer)
-            point_nodes += layer.nodes
 
     marker = server.scene.add_camera_frustum(
         "/current_frame", fov=g.fov, aspect=g.aspect, scale=g.frustum_scale * 1.3,

@@ -25,6 +25,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.viewer.data import GraphEdge, SlamEvent, SlamReport, Trajectory
+from slamreloc.viewer.trajectories import read_trajectory
 
 TYPE_ALIASES = {
     "relocalization": "relocalization", "reloc": "relocalization", "relocalisation":
@@ -103,8 +104,6 @@ class _Locator:
 def read_slam_report(path: Path, data: dict, trajectories: list[Trajectory]) -> SlamReport:
     traj = None
     if isinstance(data.get("trajectory"), str):
-        from slamreloc.viewer.loaders import read_trajectory
-
         candidate = (Path(path).parent / data["trajectory"])
         if candidate.is_file():
             traj = read_trajectory(candidate, kind="estimate")

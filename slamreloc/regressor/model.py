@@ -12,6 +12,8 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
+from slamreloc.regressor.regions import kmeans, nearest_centres
+
 PRESETS: dict[str, dict] = {
     # the paper's two MLPs, plain xyz regression
     "paper": {"hidden": (512, 1024, 1024, 512)},  # ~2.3 M parameters with 256-d input
@@ -104,15 +106,7 @@ class SceneCoordinateRegressor(nn.Module):
     def set_clusters(self, points_normalised: torch.Tensor, generator: torch.Generator,
                      iterations: int = 20) -> torch.Tensor:
         """k-means of the (normalised) training points; returns each point's cluster."""
-        k, n, dev = len(self.centres), len(points_normalised), points_normalised.device
-        start = (torch.randperm(n, generator=generator, device=dev)[:k] if n >= k else
-                 torch.randint(n, (k,), generator=generator, device=dev))  # tiny maps
-        self.centres.copy_(points_normalised[start])
-        for _ in range(iterations):  # Lloyd's; empty clusters keep their centre
-            assign = self.assign_clusters(points_normalised)
-            count = torch.bincount(assign, minlength=k).float()
-            total = torch.zeros_like(self.centres).index_add_(0, assign, points_normalised)
-            self.centres[count > 0] = total[count > 0] / count[count > 0, None]
+        self.centres.copy_(kmeans(points_normalised, len(self.centres), generator, iterations))
         assign = self.assign_clusters(points_normalised)
         self.offset_scale.copy_((points_normalised - self.centres[assign]).norm(dim=1).mean()
                                 .clamp_min(1e-6))
@@ -121,8 +115,7 @@ class SceneCoordinateRegressor(nn.Module):
     @torch.no_grad()
     def assign_clusters(self, points_normalised: torch.Tensor) -> torch.Tensor:
         """Index of the nearest cluster centre for each (normalised) point."""
-        return torch.cat([torch.cdist(chunk, self.centres).argmin(1)
-                          for chunk in points_normalised.split(65536)])
+        return nearest_centres(points_normalised, self.centres)[1]
 
     def hidden(self, desc_normalised: torch.Tensor) -> torch.Tensor:
         return self.mlp[:-1](desc_normalised)

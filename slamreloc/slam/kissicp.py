@@ -7,8 +7,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slamreloc.geometry import Rigid3
-from slamreloc.slam.odometry import (DepthSampling, Odometry, OdometryStep, backproject,
-                                     depth_camera, occupied_fraction)
+from slamreloc.rgbd import DepthSampling, backproject, depth_camera
+from slamreloc.slam.odometry import Odometry, OdometryStep, occupied_fraction
 from slamreloc.types import Camera
 
 

@@ -40,37 +40,6 @@ class Odometry:
         """Forget the model; external odometry (a trajectory file) cannot be reset: no-op."""
 
 
-@dataclass(frozen=True)
-class DepthSampling:
-    """Back-projection of a depth map: every `stride`-th pixel, depths in [min_m, max_m]."""
-
-    stride: int = 4
-    min_m: float = 0.2
-    max_m: float = 4.0
-
-
-def depth_camera(camera: Camera, depth_shape: tuple[int, int],
-                 depth_intrinsics: tuple[float, float, float, float] | None) -> Camera:
-    """The camera that took the depth map: given intrinsics (7-Scenes: 585, 585, 320, 240 at
-    640x480), else the RGB camera scaled to the depth size (registered depth)."""
-    h, w = depth_shape
-    if depth_intrinsics is None:
-        return camera.scaled_to(w, h)
-    fx, fy, cx, cy = depth_intrinsics
-    return Camera(640, 480, fx, fy, cx, cy).scaled_to(w, h)
-
-
-def backproject(depth: np.ndarray, camera: Camera, sampling: DepthSampling) -> np.ndarray:
-    """(N, 3) float64 points in the camera frame (OpenCV axes, metres)."""
-    s = sampling.stride
-    d = depth[::s, ::s]
-    v, u = np.nonzero((d > sampling.min_m) & (d < sampling.max_m))
-    z = d[v, u].astype(np.float64)
-    x = (u * s - camera.cx) / camera.fx * z
-    y = (v * s - camera.cy) / camera.fy * z
-    return np.stack([x, y, z], axis=1)
-
-
 def occupied_fraction(points: np.ndarray, model: np.ndarray, cell_m: float) -> float:
     """Share of `points` falling in a cell of size `cell_m` that holds a `model` point."""
     if len(points) == 0 or len(model) == 0:

@@ -9,7 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamreloc.geometry import Rigid3
-from slamreloc.slam.odometry import Odometry, OdometryStep, depth_camera
+from slamreloc.rgbd import depth_camera
+from slamreloc.slam.odometry import Odometry, OdometryStep
 from slamreloc.types import Camera
 
 

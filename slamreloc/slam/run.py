@@ -3,19 +3,19 @@ optionally kidnapping the camera, and score the result (report + TUM trajectory)
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from slamreloc.datasets import load_dataset, read_depth, read_image
+from slamreloc.datasets import load_dataset
 from slamreloc.errors import InputError
+from slamreloc.map_format import META, is_map
 from slamreloc.progress import track
 from slamreloc.slam.backend import BackendConfig, SlamBackend
 from slamreloc.slam.events import load_plugin
+from slamreloc.slam.feed import feed_all, read_frames
 from slamreloc.slam.kissicp import KissIcpConfig, KissIcpOdometry
 from slamreloc.slam.odometry import Odometry
 from slamreloc.slam.report import build_report
-
 
 
 @dataclass
@@ -65,8 +65,8 @@ def make_odometry(name: str, depth_intrinsics) -> Odometry:
 def run_slam(dataset_dir: Path, map_dir: Path, config: SlamRunConfig = SlamRunConfig(),
              plugins: list | None = None) -> tuple[dict, SlamBackend, list]:
     """Returns (report, backend, processed frames)."""
-    if not (Path(map_dir) / "slamreloc_map.json").is_file():
-        raise InputError(f"{map_dir}: not a slamreloc map (no slamreloc_map.json)")
+    if not is_map(map_dir):
+        raise InputError(f"{map_dir}: not a slamreloc map (no {META})")
     dataset = load_dataset(dataset_dir)
     frames = dataset.frames(config.split)
     if not frames:
@@ -79,16 +79,10 @@ def run_slam(dataset_dir: Path, map_dir: Path, config: SlamRunConfig = SlamRunCo
                                **config.plugin_options)]
     backend = SlamBackend(odometry, plugins, config.backend)
     kept, jumps = kidnap_schedule(len(frames), config.kidnap_every, config.kidnap_skip)
-    processed, t_backend = [frames[i] for i in kept], 0.0
-    for frame in track(processed, "slam", enabled=config.progress):
-        if frame.depth_path is None and not external:
-            raise InputError(f"{frame.image_path}: no depth image for depth odometry")
-        depth = (None if external else
-                 read_depth(frame.depth_path, dataset.depth_units_per_metre))
-        t0 = time.perf_counter()
-        backend.process(read_image(frame.image_path), depth, frame.camera,
-                        timestamp=frame.timestamp)
-        t_backend += time.perf_counter() - t0
+    processed = [frames[i] for i in kept]
+    inputs = read_frames(dataset, processed, image=True, depth=not external)
+    t_backend = feed_all(backend, track(inputs, "slam", total=len(processed),
+                                        enabled=config.progress))
     backend.finish()
     report = build_report(backend, processed, jumps, plugins, config, t_backend)
     return report, backend, processed

@@ -1,11 +1,14 @@
-"""Inputs for the viewer tests, built fast from the synthetic scene: a map folder in the real
+"""Inputs for the viewer tests, built from the synthetic scene: a map folder in the real
 format (points back-projected from registered depth at integer keypoints, so each point's
 image colour is known exactly), an estimated trajectory with a names sidecar, an `evaluate`
-report with failures, and a `slam` report with events and graph edges. No test lives here."""
+report with failures, and a `slam` report with events and graph edges; and a map updated by
+the real `slamreloc pseudo-label` with its report. No test lives here."""
 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,11 +37,10 @@ class ViewerCase:
     estimate_error_m: np.ndarray  # (n_query,) position error of each estimate (nan: failed)
 
 
-def build_map_folder(scene: Path, out: Path, seed: int = 0, with_pseudo: bool = False):
-    import torch  # noqa: F401 - save_map writes regressor weights
-
+def build_map_folder(scene: Path, out: Path, seed: int = 0):
+    from slamreloc.map_write import save_map
     from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
-    from slamreloc.scene_map import MapDatabase, save_map
+    from slamreloc.scene_map import MapDatabase
 
     ds = load_dataset(scene)
     frames = ds.frames("train")
@@ -70,15 +72,22 @@ def build_map_folder(scene: Path, out: Path, seed: int = 0, with_pseudo: bool = 
             "labels": {"n_labelled": len(db.points)}, "camera": frames[0].camera.to_dict(),
             "dataset": {"root": str(Path(scene).resolve()), "kind": ds.kind, "split": "train"}}
     save_map(out, meta, model, db)
-    if with_pseudo:  # mark the last frame's points and the last two frames as an update's
-        with np.load(out / "database.npz") as z:
-            arrays = dict(z)
-        pseudo = np.zeros(len(db.points), bool)
-        pseudo[-POINTS_PER_FRAME:] = True
-        fp = np.zeros(len(frames), bool)
-        fp[-2:] = True
-        np.savez(out / "database.npz", **arrays, pseudo=pseudo, frame_pseudo=fp)
     return out, np.concatenate(cols), len(frames)
+
+
+def pseudo_label_map(map_dir: Path, scene: Path, out: Path) -> tuple[Path, Path]:
+    """What `slamreloc demo` leaves: MAP updated from the scene's `unlabelled` sequence by the
+    real `slamreloc pseudo-label` (one fine-tuning epoch), and its report. Returns (new map,
+    report)."""
+    out.mkdir(parents=True, exist_ok=True)
+    new_map, report = out / "map_updated", out / "report_pseudo_label.json"
+    run = subprocess.run([sys.executable, "-m", "slamreloc.cli", "pseudo-label", str(map_dir),
+                          str(scene), "--out", str(new_map), "--report", str(report),
+                          "--split", "unlabelled", "--epochs", "1", "--device", "cpu"],
+                         capture_output=True, text=True, timeout=600,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert run.returncode == 0, run.stderr
+    return new_map, report
 
 
 def perturb(pose: Rigid3, offset_m: float, rng) -> Rigid3:

@@ -1,53 +1,18 @@
-"""The `slamreloc` command line (typer + rich). Bad input: one line on stderr, exit status 2."""
+"""The `slamreloc` commands. Each imports the pipeline it runs only when it runs; the choices
+of its options come from the registries (`slamreloc.cli.choices`)."""
 
 from __future__ import annotations
 
-import sys
 from dataclasses import replace
-from enum import Enum
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
 
-from slamreloc.errors import Interrupted, SlamrelocError
+from slamreloc.cli.choices import Arch, Device, FeatureName, Method, Precision, Update
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Camera relocalization with a lightweight scene-coordinate regressor.")
-
-
-class Split(str, Enum):
-    train = "train"
-    test = "test"
-    all = "all"
-
-
-class FeatureName(str, Enum):
-    sift = "sift"
-    superpoint = "superpoint"
-
-
-class Arch(str, Enum):
-    paper = "paper"
-    tiny = "tiny"
-    wide = "wide"
-
-
-class Method(str, Enum):
-    regressor = "regressor"
-    matching = "matching"
-
-
-class Precision(str, Enum):
-    auto = "auto"
-    fp32 = "fp32"
-    bf16 = "bf16"
-
-
-class Device(str, Enum):
-    auto = "auto"
-    cpu = "cpu"
-    cuda = "cuda"
 
 
 @app.command("map")
@@ -131,11 +96,6 @@ def localize(
         raise typer.Exit(2)
 
 
-class Update(str, Enum):
-    finetune = "finetune"
-    retrain = "retrain"
-
-
 @app.command("pseudo-label")
 def pseudo_label_cmd(
     map_dir: Annotated[Path, typer.Argument(metavar="MAP", help="map folder to update")],
@@ -160,7 +120,7 @@ def pseudo_label_cmd(
 
     DATASET's poses are never read except to score the report (as are --truth's)."""
     from slamreloc.datasets import load_dataset
-    from slamreloc.evaluate import write_json
+    from slamreloc.fileio import write_json
     from slamreloc.progress import console
     from slamreloc.pseudo_label import PseudoLabelConfig, update_map
 
@@ -187,7 +147,7 @@ def demo(
     port: Annotated[int, typer.Option(help="viewer port")] = 8080,
 ) -> None:
     """The main job on the embedded synthetic scene: render, map, train, relocalize, report."""
-    from slamreloc.demo import run_demo
+    from slamreloc.cli.demo import run_demo
 
     run_demo(workdir, viewer=not no_viewer, port=port)
 
@@ -209,7 +169,7 @@ def slam(
 ) -> None:
     """Track a split with odometry, relocalize after tracking loss and at keyframes, optimise
     the pose graph in the map frame; report ATE, recoveries and loop closures."""
-    from slamreloc.slam.cli_stage import run_slam_command
+    from slamreloc.cli.slam_stage import run_slam_command
 
     run_slam_command(dataset, map_dir, report, split, kidnap_every, kidnap_skip, odometry,
                      trajectory)
@@ -242,34 +202,8 @@ def view(
 def _print_map(scene_map) -> None:
     from slamreloc.progress import console
 
-    lab, reg = scene_map.meta["labels"], scene_map.meta["regressor"]
-    console.print(f"[green]map written[/green] to {scene_map.root}: {reg['arch']} regressor "
-                  f"({reg['parameters'] / 1e6:.2f} M parameters, trained in "
-                  f"{scene_map.meta['train'].get('precision', '?')}, "
-                  f"{scene_map.size_bytes() / 1e6:.1f} MB), trained on {lab['n_labelled']} "
-                  "labelled keypoints")
-
-
-def main() -> None:
-    import warnings
-
-    warnings.formatwarning = lambda message, *args, **kwargs: f"warning: {message}\n"
-    try:
-        app()
-    except Interrupted as err:
-        print(f"interrupted: {err}", file=sys.stderr)
-        sys.exit(130)
-    except (SlamrelocError, ValueError, OSError) as err:
-        # one line, whatever the message holds (some libraries' messages span lines)
-        print(f"error: {' '.join(str(err).split()) or type(err).__name__}", file=sys.stderr)
-        sys.exit(2)
-    except MemoryError:
-        print("error: out of memory", file=sys.stderr)
-        sys.exit(2)
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        sys.exit(130)
-
-
-if __name__ == "__main__":
-    main()
+    info = scene_map.info
+    console.print(f"[green]map written[/green] to {scene_map.root}: {info.regressor_arch} "
+                  f"regressor ({info.n_parameters / 1e6:.2f} M parameters, trained in "
+                  f"{info.train.precision}, {scene_map.size_bytes() / 1e6:.1f} MB), trained on "
+                  f"{info.n_labelled} labelled keypoints")

@@ -2,8 +2,8 @@
 Chromium; measures the time from loading the page until the scene is drawn, and the server's
 memory.
 
-    python -m slamreloc.viewer.benchmark [--points 500000] [--frustums 1000] [--fresh-browser]
-        [--profile] [--out shot.png]
+    python -m benchmarks.viewer_benchmark [--points 500000] [--frustums 1000] [--fresh-browser]
+        [--profile] [--out shot.png]          (from the repository root: it uses tests/browser.py)
 
 The map is synthetic (a box-shaped room of coloured points, cameras on a loop with textured
 thumbnails), built in memory: what is measured is the viewer, not the map's I/O. The time is
@@ -24,8 +24,8 @@ import numpy as np
 
 from slamreloc.geometry import look_at
 from slamreloc.types import Camera
-from slamreloc.viewer.browser import canvas_shot, chromium_context, drawn_fraction
 from slamreloc.viewer.data import FrameView, MapView, SceneData, ViewerInputs
+from tests.browser import canvas_shot, chromium_context, drawn_fraction
 
 
 def rss_mb() -> float:

@@ -1,6 +1,6 @@
 """Headless Chromium on the viewer's page (Debian's `chromium`, driven by Playwright): software
-WebGL (SwiftShader), no network besides the page itself. Used by the browser test, the
-benchmark and scripts/viewer_screenshot.py."""
+WebGL (SwiftShader), no network besides the page itself. Used by the browser test,
+benchmarks/viewer_benchmark.py and scripts/viewer_screenshot.py."""
 
 from __future__ import annotations
 

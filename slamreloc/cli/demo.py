@@ -5,14 +5,15 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from slamreloc.cli.slam_stage import print_slam_summary, run_slam_command
 from slamreloc.datasets import load_dataset
-from slamreloc.evaluate import print_summary, write_json
+from slamreloc.evaluate import print_summary
+from slamreloc.fileio import write_json
 from slamreloc.geometry import NAMES_SUFFIX
 from slamreloc.mapping import MapConfig, build_map
 from slamreloc.pipeline import run_evaluation
 from slamreloc.progress import console, make_progress
 from slamreloc.regressor.train import TrainConfig
-from slamreloc.slam.cli_stage import print_slam_summary, run_slam_command
 from slamreloc.synthetic import SceneConfig, render_scene
 
 # Settings sized for a 2-core CPU without native bf16: the whole demo within 10 minutes. The

@@ -8,7 +8,7 @@ from pathlib import Path
 from rich.table import Table
 
 from slamreloc.errors import InputError
-from slamreloc.evaluate import write_json
+from slamreloc.fileio import write_json
 from slamreloc.geometry import write_tum_trajectory
 from slamreloc.progress import console
 from slamreloc.slam.poses import final_trajectory
@@ -18,14 +18,15 @@ from slamreloc.slam.run import SlamRunConfig, run_slam
 def run_slam_command(dataset: Path, map_dir: Path, report: Path, split: str = "test",
                      kidnap_every: int = 0, kidnap_skip: int = 20, odometry: str = "auto",
                      trajectory: Path | None = None, progress: bool = True,
-                     plugin_options: dict | None = None) -> dict:
-    """plugin_options: keyword arguments of the relocalization plugin (benchmarks, tests)."""
+                     plugin_options: dict | None = None, plugins: list | None = None) -> dict:
+    """plugin_options: keyword arguments of the relocalization plugin (benchmarks, tests);
+    plugins: the backend's plugins instead of that one (benchmarks: a test-harness plugin)."""
     if kidnap_every < 0 or kidnap_skip < 0:
         raise InputError("--kidnap-every and --kidnap-skip must be >= 0")
     config = SlamRunConfig(split=split, odometry=odometry, kidnap_every=kidnap_every,
                            kidnap_skip=kidnap_skip, progress=progress,
                            plugin_options=plugin_options or {})
-    result, backend, frames = run_slam(dataset, map_dir, config)
+    result, backend, frames = run_slam(dataset, map_dir, config, plugins)
     if trajectory is not None:
         poses = final_trajectory(backend)
         keep = [i for i, p in enumerate(poses) if p is not None]

@@ -1,0 +1,111 @@
+"""The updated map: per-point provenance (`provenance.npz`: source and quality weight per
+database row; read from the map being updated, written with the new one), the regressor update
+(fine-tune or retrain) and the atomic write of NEW_MAP."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from slamreloc.errors import InputError
+from slamreloc.map_format import LABELLED, PROVENANCE, SURFACE
+from slamreloc.map_write import check_map_target, save_map
+from slamreloc.pseudo_label.config import PseudoLabelConfig
+from slamreloc.pseudo_label.finetune import finetune_regressor
+from slamreloc.regressor.model import SceneCoordinateRegressor
+from slamreloc.regressor.train import TrainConfig, train_regressor
+from slamreloc.scene_map import MapDatabase, SceneMap
+from slamreloc.surface import Surface
+
+
+@dataclass
+class PseudoLabels:
+    """What registration and extension produced, before the regressor update."""
+
+    old: SceneMap
+    map_dir: Path
+    db: MapDatabase  # the map's labels + the new ones
+    weights: np.ndarray  # per database row
+    source: np.ndarray  # per database row: LABELLED, PSEUDO, NEW
+    report: dict
+    surface: Surface | None = None  # the map's surface, grown by the registered frames
+
+
+def base_provenance(old: SceneMap) -> tuple[np.ndarray, np.ndarray]:
+    """The map's own per-row source and weight: its provenance.npz (read and checked by the
+    core) if it was itself updated, else all labelled, weight 1."""
+    provenance = old.provenance
+    if provenance is None:
+        n = len(old.database.points)
+        return np.full(n, LABELLED, np.int8), np.ones(n, np.float32)
+    return provenance.source, provenance.quality
+
+
+def _save(out: Path, meta: dict, model, db: MapDatabase, provenance: dict,
+          surface: Surface | None) -> Path:
+    """The map's own atomic, locked write, with provenance.npz (and the surface) inside it."""
+    extra = {PROVENANCE: provenance}
+    if surface is not None:
+        extra[SURFACE] = surface.to_arrays()
+    return save_map(out, meta, model, db, extra=extra)
+
+
+def write_updated_map(labels: PseudoLabels, out: Path,
+                      config: PseudoLabelConfig = PseudoLabelConfig(),
+                      progress: bool = True) -> tuple[SceneMap, dict]:
+    """Update the regressor (fine-tune or retrain) and write NEW_MAP; returns it and the
+    report (with the update's stats and timing)."""
+    out = Path(out)
+    if out.resolve() == labels.map_dir.resolve():
+        raise InputError(f"{out}: the new map must not replace the map it updates")
+    check_map_target(out)
+    old, db, rep = labels.old, labels.db, dict(labels.report)
+    rep["timings_s"] = dict(rep["timings_s"])
+    map_epochs = old.info.train.epochs
+    t0 = time.perf_counter()
+    if config.update == "finetune":
+        # a fresh copy of the old weights: the old map's files and object stay as they were
+        model = SceneMap.load(labels.map_dir).regressor
+        epochs = config.epochs or max(1, round(config.finetune_epoch_fraction * map_epochs))
+        train_stats = finetune_regressor(model, db.descriptors, db.points, labels.weights,
+                                         replace(config.finetune, epochs=epochs), config.device,
+                                         progress)
+    else:
+        model = SceneCoordinateRegressor(old.regressor.config)
+        # the map's own training settings, except its precision: that was resolved for the
+        # machine that trained it (bf16 recorded on an AMX machine would be emulated, ~30x
+        # slower, on an AVX2-only one); this machine chooses its own
+        tc = replace(old.info.train, precision=TrainConfig.precision,
+                     epochs=config.epochs or map_epochs)
+        train_stats = {"mode": "retrain", **train_regressor(
+            model, db.descriptors, db.points, tc, config.device, progress,
+            weights=labels.weights)}
+    rep["timings_s"]["update_s"] = time.perf_counter() - t0
+    rep["timings_s"]["total_s"] = rep["timings_s"]["pseudo_label_s"] + rep["timings_s"]["update_s"]
+    rep["update"] = train_stats
+    rep["new_map"] = str(out.resolve())
+    meta = {k: v for k, v in old.meta.items() if k not in ("format", "version", "frame_names")}
+    meta["labels"] = {**old.meta.get("labels", {}), "n_labelled": int(len(db.points)),
+                      "n_labelled_map": int(len(old.database.points)),
+                      "n_pseudo": rep["n_inherited_labels"],
+                      "n_triangulated": rep["n_triangulated_labels"]}
+    meta["train"] = {**old.meta.get("train", {}), "update": train_stats}
+    meta["pseudo_label"] = {
+        "source_map": str(labels.map_dir.resolve()), "dataset": rep["dataset"],
+        "n_frames": rep["n_frames"], "n_frames_registered": rep["n_frames_registered"],
+        "n_inherited_labels": rep["n_inherited_labels"],
+        "n_triangulated_labels": rep["n_triangulated_labels"],
+        "n_new_points": rep["n_new_points"], "update": config.update,
+        "provenance": f"{PROVENANCE}: source per database row (0 labelled, 1 inherited "
+                      "pseudo-label, 2 triangulated from registered frames), quality weight",
+        "history": old.meta.get("pseudo_label", {}).get("history", [])
+        + [str(labels.map_dir.resolve())],
+    }
+    if labels.surface is not None:
+        meta["surface"] = {**old.meta.get("surface", {}), "n_points": len(labels.surface.points)}
+    _save(out, meta, model, db, {"source": labels.source, "quality": labels.weights},
+          labels.surface)
+    return SceneMap.load(out), rep

@@ -1,0 +1,5 @@
+"""`python -m slamreloc.cli`: the `slamreloc` command."""
+
+from slamreloc.cli import main
+
+main()

@@ -1,0 +1,114 @@
+"""The write lock of a map folder, and the clean-up of what a killed writer left beside it.
+
+A writer holds an exclusive lock on `.NAME.lock` beside MAP (removed when it is done;
+`build_map` and `update_map` take it at their start); a second writer fails at once. A killed
+writer's temporary `.NAME.tmp-PID` and moved-aside `.NAME.old-PID` folders are removed at the
+next save or load of that map (a map moved aside and never replaced is put back first).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import shutil
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from slamreloc.errors import InputError
+from slamreloc.map_format import is_map
+
+_HELD: set[str] = set()  # maps whose write lock this process holds
+
+
+def _lock_path(out: Path) -> Path:
+    return out.parent / f".{out.name}.lock"
+
+
+def _leftovers(out: Path) -> list[Path]:
+    if not out.parent.is_dir():
+        return []
+    return sorted([*out.parent.glob(f".{out.name}.tmp-*"), *out.parent.glob(f".{out.name}.old-*")])
+
+
+@contextmanager
+def map_write_lock(out: str | Path) -> Iterator[None]:
+    """Hold the exclusive write lock of map folder `out` (re-entrant within a process).
+
+    A second process asking for it gets InputError at once. On entry, the leftovers of a
+    killed writer are cleaned up (and a map it had moved aside is put back)."""
+    out = Path(out)
+    key = os.path.abspath(out)
+    if key in _HELD:
+        yield
+        return
+    out.parent.mkdir(parents=True, exist_ok=True)
+    lock = _lock_path(out)
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            os.close(fd)
+            raise InputError(f"{out}: another process (pid {holder}) is writing this map; "
+                             "try again when it has finished") from None
+        # the holder before us removes the lock file on release: make sure ours is the
+        # file at the path, not one it has just unlinked
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(lock))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        _HELD.add(key)
+        try:
+            _recover(out)
+            yield
+        finally:
+            _HELD.discard(key)
+            lock.unlink(missing_ok=True)  # while still holding it (see above)
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def _recover(out: Path) -> None:
+    """Under the lock: put back a map a killed writer had moved aside; remove its leftovers."""
+    olds = [p for p in _leftovers(out) if ".old-" in p.name and is_map(p)]
+    if olds and not out.exists():
+        newest = max(olds, key=lambda p: p.stat().st_mtime)
+        os.replace(newest, out)
+        fsync_dir(out.parent)
+    for p in _leftovers(out):
+        shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+
+
+def clean_leftovers(root: Path, wait_s: float = 10.0) -> None:
+    """For readers: if a killed writer left debris beside `root`, clean it (best effort)."""
+    if not _leftovers(root):
+        return
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            with map_write_lock(root):
+                return
+        except InputError:  # a live writer: it cleans up itself; wait if the map is moved
+            if root.exists() or time.monotonic() > deadline:
+                return
+            time.sleep(0.05)
+        except OSError:  # read-only location: nothing to do
+            return
+
+
+def fsync_dir(path: Path) -> None:
+    """Make a folder's entries (renames, new files) durable."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

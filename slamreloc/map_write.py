@@ -1,0 +1,137 @@
+"""Crash-safe writing of a map folder (the format is map_format.py's).
+
+The new map is written into `.NAME.tmp-PID` beside MAP and swapped in with one atomic
+`renameat2(RENAME_EXCHANGE)` (two renames where the file system lacks it; a crash between them
+is rolled back at the next start), all under the map's write lock (map_lock.py).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import errno
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from slamreloc import __version__
+from slamreloc.errors import InputError
+from slamreloc.map_format import (DATABASE, FORMAT_VERSION, MAP_FORMAT, META, WEIGHTS, is_map,
+                                  sha256_file)
+from slamreloc.map_lock import fsync_dir, map_write_lock
+from slamreloc.map_weights import weight_arrays
+from slamreloc.regressor.model import SceneCoordinateRegressor
+from slamreloc.scene_map import MapDatabase, SceneMap
+
+
+def check_map_target(out: Path) -> None:
+    """Raise unless `out` is absent, an empty folder, or a slamreloc map (to be replaced)."""
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not is_map(out))):
+        raise InputError(f"{out}: exists and is not a slamreloc map; refusing to overwrite it")
+
+
+def _crash_point(name: str) -> None:
+    """Test hook: SLAMRELOC_TEST_CRASH_AT=name kills this process here (as kill -9 would)."""
+    if os.environ.get("SLAMRELOC_TEST_CRASH_AT") == name:
+        os.kill(os.getpid(), 9)
+
+
+def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> str:
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+        f.flush()
+        os.fsync(f.fileno())
+    return sha256_file(path)
+
+
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Atomically swap two paths (Linux renameat2 RENAME_EXCHANGE); False if unsupported."""
+    if os.environ.get("SLAMRELOC_NO_RENAME_EXCHANGE"):
+        return False
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL, errno.EOPNOTSUPP, errno.ENOTSUP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def _swap_in(tmp: Path, out: Path) -> None:
+    """Make the complete map `tmp` appear at `out`; `out`'s old contents end at `tmp` (or an
+    .old sibling) to be removed. At every instant `out` is a complete map, except in the
+    two-rename fallback, whose gap `_recover` repairs."""
+    if not out.exists():
+        os.replace(tmp, out)
+    elif not _exchange(tmp, out):
+        old = out.parent / f".{out.name}.old-{os.getpid()}"
+        os.replace(out, old)
+        _crash_point("between-renames")
+        os.replace(tmp, out)
+        fsync_dir(out.parent)
+        shutil.rmtree(old, ignore_errors=True)
+    fsync_dir(out.parent)
+
+
+def save_map(out: str | Path, meta: dict, model: SceneCoordinateRegressor, db: MapDatabase,
+             extra: dict[str, dict[str, np.ndarray]] | None = None) -> Path:
+    """Write a map atomically: into a temporary sibling folder, then swap it in for `out`.
+    `extra`: more array files (name -> arrays, no pickle) written into the map with it.
+
+    Refuses to replace an existing non-empty folder that is not a slamreloc map, and fails at
+    once if another process is writing `out`."""
+    out = Path(out)
+    with map_write_lock(out):
+        check_map_target(out)
+        tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        try:
+            files = {
+                WEIGHTS: _write_npz(tmp / WEIGHTS, weight_arrays(model)),
+                DATABASE: _write_npz(tmp / DATABASE, {
+                    "descriptors": db.descriptors.astype(np.float16),
+                    "points": db.points.astype(np.float32),
+                    "keypoints": db.keypoints.astype(np.float32),
+                    "frame_index": db.frame_index.astype(np.int32),
+                    "world_from_cam": np.asarray(db.world_from_cam, np.float64)}),
+            }
+            for name, arrays in (extra or {}).items():
+                files[name] = _write_npz(tmp / name, arrays)
+            _crash_point("files-written")
+            body = {k: v for k, v in meta.items() if k not in (
+                "format", "version", "format_version", "slamreloc_version", "files",
+                "frame_names")}
+            full = {"format": MAP_FORMAT, "format_version": FORMAT_VERSION,
+                    "slamreloc_version": __version__, **body, "files": files,
+                    "frame_names": list(db.frame_names)}
+            with open(tmp / META, "w") as f:
+                f.write(json.dumps(full, indent=1))
+                f.flush()
+                os.fsync(f.fileno())
+            fsync_dir(tmp)
+            _crash_point("before-swap")
+            _swap_in(tmp, out)
+            _crash_point("after-swap")
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
+def migrate_map(path: str | Path) -> Path:
+    """Rewrite an older-format map in place in the current format (atomically)."""
+    old = SceneMap.load(path)
+    if old.format_version == FORMAT_VERSION:
+        return old.root
+    return save_map(old.root, old.meta, old.regressor, old.database)

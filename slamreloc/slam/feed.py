@@ -1,0 +1,69 @@
+"""Feeding a dataset's frames to `SlamBackend`: read what the backend needs of each frame (the
+RGB image, the depth map) and step the backend, one frame at a time.
+
+Depth is handed over as stored, in metres in the depth camera's pixels: the odometry front ends
+place it with the dataset's depth intrinsics (`Dataset.depth_intrinsics`, None when depth is
+registered to the image), so nothing is warped here.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from slamreloc.datasets import Dataset, read_depth, read_image
+from slamreloc.errors import InputError
+from slamreloc.geometry import Rigid3
+from slamreloc.slam.backend import SlamBackend, StepResult
+from slamreloc.types import Camera, Frame
+
+
+@dataclass(frozen=True)
+class FrameInput:
+    """One frame as `SlamBackend.process` takes it: RGB uint8 (or None), depth in metres in the
+    depth camera's pixels (or None), the RGB camera, the timestamp (seconds) and, for a backend
+    without an odometry front end, the frame's pose in your odometry frame."""
+
+    camera: Camera
+    timestamp: float
+    image: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    odometry_world_from_cam: Rigid3 | None = None
+
+
+@dataclass(frozen=True)
+class FedFrame:
+    """The backend's result for one frame and the seconds `process` took (reading excluded)."""
+
+    result: StepResult
+    backend_s: float
+
+
+def read_frames(dataset: Dataset, frames: Iterable[Frame], image: bool = True,
+                depth: bool = True) -> Iterator[FrameInput]:
+    """Each frame's inputs, read lazily: the image if `image` (relocalization plugins, open3d's
+    hybrid odometry), the depth if `depth` (depth odometry; InputError for a frame without)."""
+    for frame in frames:
+        if depth and frame.depth_path is None:
+            raise InputError(f"{frame.image_path}: no depth image for depth odometry")
+        yield FrameInput(
+            frame.camera, frame.timestamp,
+            read_image(frame.image_path) if image else None,
+            read_depth(frame.depth_path, dataset.depth_units_per_metre) if depth else None)
+
+
+def feed(backend: SlamBackend, inputs: Iterable[FrameInput]) -> Iterator[FedFrame]:
+    """Step `backend` with each input, in order, yielding each result as it is processed."""
+    for inp in inputs:
+        t0 = time.perf_counter()
+        result = backend.process(inp.image, inp.depth, inp.camera, inp.odometry_world_from_cam,
+                                 inp.timestamp)
+        yield FedFrame(result, time.perf_counter() - t0)
+
+
+def feed_all(backend: SlamBackend, inputs: Iterable[FrameInput]) -> float:
+    """Step `backend` with every input; returns the seconds spent in `process`."""
+    return sum(fed.backend_s for fed in feed(backend, inputs))

@@ -1,0 +1,231 @@
+"""The import graph of the installed package runs one way and has no cycle.
+
+Layers, lowest first: the core (every `slamreloc.*` module outside the others), the SLAM backend
+(`slamreloc.slam`), the wings (`slamreloc.plugins`, `slamreloc.pseudo_label`,
+`slamreloc.viewer`), the command line (`slamreloc.cli`). A module imports only from its own
+layer or lower ones, and a wing imports no other wing (the viewer reads what the updater writes
+through the core's readers). Every import counts, the function-local ones included. The modules
+are found by walking the source folders that pyproject.toml's package-dir maps into the
+`slamreloc` namespace, so files that move are checked where they land.
+"""
+
+from __future__ import annotations
+
+import ast
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+CORE, SLAM, WING, CLI = 0, 1, 2, 3
+LAYER_NAMES = {CORE: "core", SLAM: "slam", WING: "wing", CLI: "cli"}
+WINGS = ("slamreloc.plugins", "slamreloc.pseudo_label", "slamreloc.viewer")
+
+
+@dataclass(frozen=True)
+class Import:
+    source: str  # importing module
+    target: str  # imported module (the deepest one of the package that exists)
+    where: str  # file:line
+
+
+def package_dirs() -> dict[str, Path]:
+    """Top-level source folder of every package pyproject.toml maps (`slamreloc.viewer` ->
+    viewer/)."""
+    setup = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    return {name: ROOT / folder for name, folder in setup["package-dir"].items()}
+
+
+def discover_modules() -> dict[str, Path]:
+    """Dotted name -> file of every module in the package (`__init__.py` is its package)."""
+    dirs = package_dirs()
+    modules: dict[str, Path] = {}
+    for name, folder in dirs.items():
+        for path in sorted(folder.rglob("*.py")):
+            rel = path.relative_to(folder).with_suffix("").parts
+            dotted = ".".join((name, *rel))
+            if dotted.endswith(".__init__"):
+                dotted = dotted[: -len(".__init__")]
+            # a subfolder that another package-dir entry owns is that package's, not this one's
+            owner = max((n for n, d in dirs.items() if path.is_relative_to(d)),
+                        key=lambda n: len(dirs[n].parts))
+            if owner == name:
+                modules[dotted] = path
+    return modules
+
+
+def resolve(name: str, modules: dict[str, Path]) -> str | None:
+    """The deepest module of `name` that exists in the package (None outside it)."""
+    parts = name.split(".")
+    for n in range(len(parts), 0, -1):
+        candidate = ".".join(parts[:n])
+        if candidate in modules:
+            return candidate
+    return None
+
+
+def imports_of(module: str, path: Path, modules: dict[str, Path],
+               root: Path = ROOT) -> list[Import]:
+    """Every import statement of the module (any depth in the file), resolved to modules of
+    the package; `from pkg import name` counts as `pkg.name` when that is a module."""
+    is_package = path.name == "__init__.py"
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = module.split(".")
+                anchor = anchor[: len(anchor) - node.level + (1 if is_package else 0)]
+                base = ".".join([*anchor, *([base] if base else [])])
+            names = [f"{base}.{alias.name}" for alias in node.names]
+        else:
+            continue
+        where = f"{path.relative_to(root)}:{node.lineno}"
+        for name in names:
+            target = resolve(name, modules)
+            if target is not None and target != module:
+                out.append(Import(module, target, where))
+    return out
+
+
+def layer(module: str) -> int:
+    if module == "slamreloc.cli" or module.startswith("slamreloc.cli."):
+        return CLI
+    if any(module == w or module.startswith(w + ".") for w in WINGS):
+        return WING
+    if module == "slamreloc.slam" or module.startswith("slamreloc.slam."):
+        return SLAM
+    return CORE
+
+
+def wing(module: str) -> str | None:
+    return next((w for w in WINGS if module == w or module.startswith(w + ".")), None)
+
+
+def layer_violations(imports: list[Import]) -> list[str]:
+    bad = []
+    for imp in imports:
+        src, dst = layer(imp.source), layer(imp.target)
+        if dst > src:
+            bad.append(f"{imp.where}: {imp.source} ({LAYER_NAMES[src]}) imports {imp.target} "
+                       f"({LAYER_NAMES[dst]})")
+        elif src == dst == WING and wing(imp.source) != wing(imp.target):
+            bad.append(f"{imp.where}: wing {imp.source} imports another wing's {imp.target}")
+    return bad
+
+
+def cycles(imports: list[Import]) -> list[list[Import]]:
+    """One cycle of imports (as its edges) per strongly connected component (Tarjan)."""
+    graph: dict[str, list[Import]] = {}
+    for imp in imports:
+        graph.setdefault(imp.source, []).append(imp)
+        graph.setdefault(imp.target, [])
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    components: list[set[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for imp in graph[v]:
+            w = imp.target
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = set()
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.add(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                components.append(component)
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return [cycle_in(component, graph) for component in components]
+
+
+def cycle_in(component: set[str], graph: dict[str, list[Import]]) -> list[Import]:
+    """A closed path of imports through a strongly connected component (breadth-first from its
+    first module back to itself)."""
+    start = min(component)
+    came: dict[str, Import] = {}
+    frontier = [start]
+    while frontier:
+        nxt = []
+        for v in frontier:
+            for imp in graph[v]:
+                if imp.target not in component or imp.target in came:
+                    continue
+                came[imp.target] = imp
+                if imp.target == start:
+                    path, node = [], start
+                    while True:
+                        path.append(came[node])
+                        node = came[node].source
+                        if node == start:
+                            return path[::-1]
+                nxt.append(imp.target)
+        frontier = nxt
+    raise AssertionError(f"{sorted(component)} is not strongly connected")
+
+
+def all_imports() -> list[Import]:
+    modules = discover_modules()
+    return sorted({imp for module, path in modules.items()
+                   for imp in imports_of(module, path, modules)}, key=lambda i: i.where)
+
+
+def test_the_walk_sees_every_layer():
+    """The walk finds modules of every layer and the imports between them (the rules below are
+    not checked on an empty graph)."""
+    imports = all_imports()
+    seen = {layer(m) for imp in imports for m in (imp.source, imp.target)}
+    assert seen == {CORE, SLAM, WING, CLI}
+    assert any(layer(i.source) == WING and layer(i.target) == SLAM for i in imports)
+
+
+def test_imports_run_one_way():
+    bad = layer_violations(all_imports())
+    assert not bad, "imports against the layers (core <- slam <- wings <- cli):\n" + "\n".join(bad)
+
+
+def test_no_import_cycle():
+    found = cycles(all_imports())
+    assert not found, "import cycles:\n" + "\n".join(
+        " -> ".join([c[0].source, *(f"{i.target} ({i.where})" for i in c)]) for c in found)
+
+
+def test_a_bad_import_is_reported_with_its_line(tmp_path):
+    """The checks name the file and line of each import against the layers (a function-local
+    one, a relative one, one wing into another, a wing into the CLI) and of a cycle."""
+    sources = {"slamreloc.a": "import os\n\ndef f():\n    from slamreloc.slam import b\n",
+               "slamreloc.slam.b": "from slamreloc.a import f\n",
+               "slamreloc.viewer.c": "from ..pseudo_label import d\nimport slamreloc.cli\n",
+               "slamreloc.pseudo_label.d": "from slamreloc.slam.b import x\n",
+               "slamreloc.cli": ""}
+    modules = {name: tmp_path / f"{name}.py" for name in sources}
+    for name, text in sources.items():
+        modules[name].write_text(text)
+    imports = [imp for m, p in modules.items()
+               for imp in imports_of(m, p, modules, root=tmp_path)]
+    assert layer_violations(imports) == [
+        "slamreloc.a.py:4: slamreloc.a (core) imports slamreloc.slam.b (slam)",
+        "slamreloc.viewer.c.py:1: wing slamreloc.viewer.c imports another wing's "
+        "slamreloc.pseudo_label.d",
+        "slamreloc.viewer.c.py:2: slamreloc.viewer.c (wing) imports slamreloc.cli (cli)"]
+    (cycle,) = cycles(imports)
+    assert [(i.source, i.target, i.where) for i in cycle] == [
+        ("slamreloc.a", "slamreloc.slam.b", "slamreloc.a.py:4"),
+        ("slamreloc.slam.b", "slamreloc.a", "slamreloc.slam.b.py:1")]
