@@ -12,9 +12,12 @@ are found by walking the source folders that pyproject.toml's package-dir maps i
 from __future__ import annotations
 
 import ast
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+
+import pytest
+
+tomllib = pytest.importorskip("tomllib", reason="reads pyproject.toml with Python 3.11's tomllib")
 
 ROOT = Path(__file__).resolve().parents[1]
 CORE, SLAM, WING, CLI = 0, 1, 2, 3
