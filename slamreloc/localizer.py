@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from slamreloc.features import make_extractor
-from slamreloc.features.matcher import match_descriptors
+from slamreloc.features.matcher import LOCALIZER_DB_CHUNK, match_descriptors
 from slamreloc.precision import autocast, resolve_precision
 from slamreloc.pnp import PnPConfig, PoseEstimate, estimate_pose
 from slamreloc.regressor.train import resolve_device
@@ -114,7 +114,8 @@ class MatchingLocalizer(Localizer):
 
     def correspondences(self, feats):
         m = match_descriptors(feats.descriptors, self.db_desc, self.ratio, mutual=False,
-                              db_points=self.db_points, same_point_m=self.same_point_m)
+                              db_points=self.db_points, same_point_m=self.same_point_m,
+                              db_chunk=LOCALIZER_DB_CHUNK)
         return feats.keypoints[m[:, 0]], self.db_points[m[:, 1]]
 
 
