@@ -29,21 +29,22 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-
-from slamreloc.datasets import Dataset, load_dataset
-from slamreloc.errors import InputError
-from slamreloc.extract import extract_frames
-from slamreloc.features import make_extractor
-from slamreloc.labels import LabelConfig
-from slamreloc.map_format import LABELLED, NEW, PSEUDO
-from slamreloc.map_lock import map_write_lock
-from slamreloc.map_write import check_map_target
 from slamreloc.pseudo_label.config import UPDATES, PseudoLabelConfig
 from slamreloc.pseudo_label.merge import count_new_points
 from slamreloc.pseudo_label.rounds import register_sequence
 from slamreloc.pseudo_label.score import map_views, score
 from slamreloc.pseudo_label.smooth import smooth_poses
 from slamreloc.pseudo_label.write import PseudoLabels, base_provenance, write_updated_map
+
+from slamreloc.datasets import Dataset, load_dataset
+from slamreloc.errors import InputError
+from slamreloc.extract import extract_frames
+from slamreloc.features import make_extractor
+from slamreloc.fileio import check_outputs
+from slamreloc.labels import LabelConfig
+from slamreloc.map_format import LABELLED, NEW, PSEUDO
+from slamreloc.map_lock import map_write_lock
+from slamreloc.map_write import check_map_target
 from slamreloc.rgbd import registered_depths
 from slamreloc.scene_map import MapDatabase, SceneMap
 from slamreloc.surface import extend_surface, frame_cloud
@@ -74,6 +75,8 @@ def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
         raise InputError(f"unknown update '{config.update}' (known: {', '.join(UPDATES)})")
     if config.rounds < 1:
         raise InputError(f"--rounds must be at least 1, got {config.rounds}")
+    if config.epochs is not None and config.epochs < 1:
+        raise InputError(f"--epochs must be at least 1, got {config.epochs}")
     old = SceneMap.load(map_dir)
     base = old.database
     if split is None:
@@ -173,8 +176,9 @@ def update_map(map_dir: Path, dataset: Dataset, out: Path, split: str | None = N
     writer of it fails at once, not after the work."""
     map_dir, out = Path(map_dir), Path(out)
     SceneMap.load(map_dir)  # fail early on a bad map or target, before the work
-    if out.resolve() == map_dir.resolve():
-        raise InputError(f"{out}: the new map must not replace the map it updates")
+    check_outputs({"the new map": out}, {"the map it updates": map_dir,
+                                         "the dataset": dataset.root, "--truth": truth},
+                  folders=("the new map",))
     with map_write_lock(out):
         check_map_target(out)
         labels = pseudo_label(map_dir, dataset, split, config, truth, progress)

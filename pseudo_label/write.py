@@ -9,12 +9,12 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-
-from slamreloc.errors import InputError
-from slamreloc.map_format import LABELLED, PROVENANCE, SURFACE
-from slamreloc.map_write import check_map_target, save_map
 from slamreloc.pseudo_label.config import PseudoLabelConfig
 from slamreloc.pseudo_label.finetune import finetune_regressor
+
+from slamreloc.fileio import check_outputs
+from slamreloc.map_format import LABELLED, PROVENANCE, SURFACE
+from slamreloc.map_write import check_map_target, save_map
 from slamreloc.regressor.model import SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
 from slamreloc.scene_map import MapDatabase, SceneMap
@@ -59,8 +59,8 @@ def write_updated_map(labels: PseudoLabels, out: Path,
     """Update the regressor (fine-tune or retrain) and write NEW_MAP; returns it and the
     report (with the update's stats and timing)."""
     out = Path(out)
-    if out.resolve() == labels.map_dir.resolve():
-        raise InputError(f"{out}: the new map must not replace the map it updates")
+    check_outputs({"the new map": out}, {"the map it updates": labels.map_dir},
+                  folders=("the new map",))
     check_map_target(out)
     old, db, rep = labels.old, labels.db, dict(labels.report)
     rep["timings_s"] = dict(rep["timings_s"])

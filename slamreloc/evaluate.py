@@ -42,6 +42,7 @@ def evaluate_frames(localizer: Localizer, frames: list[Frame], progress: bool = 
     unposed = next((f for f in frames if f.world_from_cam is None), None)
     if unposed is not None:  # before the work, not after it
         raise InputError(f"{unposed.image_path}: query frame has no ground-truth pose")
+    localizer.extractor.check_frames(frames)
     results = []
     for frame in track(frames, f"localizing ({localizer.method})", enabled=progress):
         image = read_image(frame.image_path)

@@ -12,6 +12,7 @@ from slamreloc.types import Features, Frame
 
 def extract_frames(frames: list[Frame], extractor: Extractor, progress: bool = True,
                    workers: int = 2) -> list[Features]:
+    extractor.check_frames(frames)
     with ThreadPoolExecutor(workers) as pool:
         results = pool.map(lambda f: extractor(read_image(f.image_path)), frames)
         return list(track(results, "extracting features", total=len(frames), enabled=progress))

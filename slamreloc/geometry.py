@@ -17,6 +17,7 @@ from slamreloc.errors import InputError
 from slamreloc.fileio import atomic_file
 
 RIGID_TOL = 1e-3  # max |R^T R - I| and |det R - 1| accepted for a pose read from a file
+MAX_COORDINATE = 1e9  # metres: beyond any map, and squares stay far from overflow
 
 
 @dataclass(frozen=True)
@@ -38,6 +39,8 @@ class Rigid3:
             raise InputError(f"{source}: expected a 4x4 matrix, got shape {m.shape}")
         if not np.all(np.isfinite(m)):
             raise InputError(f"{source}: matrix has non-finite values")
+        if np.abs(m[:3, 3]).max() > MAX_COORDINATE:
+            raise InputError(f"{source}: translation beyond {MAX_COORDINATE:g} m")
         if m.shape == (4, 4) and not np.allclose(m[3], [0, 0, 0, 1], atol=tol):
             raise InputError(f"{source}: last row is {m[3].tolist()}, not [0 0 0 1]")
         rot = m[:3, :3]
@@ -191,6 +194,8 @@ def parse_tum_line(line: str, source: str = "trajectory",
     scale = np.abs(quat).max() if np.all(np.isfinite(quat)) else 0.0
     if not np.all(np.isfinite(vals)) or scale < 1e-12:
         raise InputError(f"{source}: invalid pose values in line {line.strip()[:120]!r}")
+    if np.abs(vals[:3]).max() > MAX_COORDINATE:
+        raise InputError(f"{source}: translation beyond {MAX_COORDINATE:g} m")
     quat = quat / scale  # no overflow in the norm of huge values
     return parts[0], Rigid3.from_qt(quat / np.linalg.norm(quat), vals[:3])
 

@@ -25,7 +25,6 @@ refused with a message naming both versions.
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import zipfile
 from dataclasses import fields
@@ -35,6 +34,10 @@ import numpy as np
 
 from slamreloc import __version__
 from slamreloc.errors import InputError
+from slamreloc.fileio import read_bytes
+from slamreloc.geometry import MAX_COORDINATE
+from slamreloc.jsonio import parse_json
+from slamreloc.types import camera_problem
 from slamreloc.regressor.model import RegressorConfig
 
 MAP_FORMAT = "slamreloc-map"
@@ -54,18 +57,16 @@ def is_map(path: str | Path) -> bool:
     return (Path(path) / META).is_file()
 
 
+def check_is_map(path: str | Path) -> None:
+    """InputError unless `path` is a map folder (it holds the metadata file)."""
+    if not is_map(path):
+        raise InputError(f"{path}: not a slamreloc map (no {META})")
+
+
 def read_meta(root: Path) -> dict:
     """slamreloc_map.json, checked against the schema; `format_version` is always set."""
     path = Path(root) / META
-    try:
-        size = path.stat().st_size
-        if size > MAX_META_BYTES:
-            raise InputError(f"{path}: {size} bytes, too large for map metadata")
-        meta = json.loads(path.read_bytes())
-    except (ValueError, RecursionError) as err:  # JSONDecodeError, UnicodeDecodeError
-        raise InputError(f"{path}: not valid JSON ({one_line(err)})") from None
-    except OSError as err:
-        raise InputError(f"{path}: cannot read ({err.strerror or err})") from None
+    meta = parse_json(read_bytes(path, "map metadata", MAX_META_BYTES), path)
     if not isinstance(meta, dict):
         raise InputError(f"{path}: expected a JSON object, got {type(meta).__name__}")
     if meta.get("format") != MAP_FORMAT:
@@ -114,10 +115,10 @@ def _check_schema(meta: dict, path: Path) -> None:
         if not 0 < need(cam, key, int, "camera.") <= 1 << 16:
             raise InputError(f"{path}: 'camera.{key}' must be in 1..65536, got {cam[key]}")
     for key in ("fx", "fy", "cx", "cy"):
-        if not math.isfinite(need(cam, key, float, "camera.")):
-            raise InputError(f"{path}: 'camera.{key}' must be finite, got {cam[key]}")
-    if cam["fx"] <= 0 or cam["fy"] <= 0:
-        raise InputError(f"{path}: camera focal lengths must be positive")
+        need(cam, key, float, "camera.")
+    problem = camera_problem(*(cam[k] for k in ("width", "height", "fx", "fy", "cx", "cy")))
+    if problem:
+        raise InputError(f"{path}: 'camera': {problem}")
     extra = set(cam) - {"width", "height", "fx", "fy", "cx", "cy"}
     if extra:
         raise InputError(f"{path}: unknown camera key '{sorted(extra)[0]}'")
@@ -158,6 +159,10 @@ def _check_feature_options(feats: dict, path: Path) -> None:
             raise InputError(f"{path}: 'features.{key}' has the wrong type ({_short(val)})")
     if _is_int(feats.get("max_keypoints")) and not 0 < feats["max_keypoints"] <= 1 << 20:
         raise InputError(f"{path}: 'features.max_keypoints' out of range")
+    try:
+        config_cls(**{k: v for k, v in feats.items() if k != "name"})  # the options' ranges
+    except InputError as err:
+        raise InputError(f"{path}: 'features': {err}") from None
 
 
 def _check_regressor_config(cfg: dict, path: Path) -> None:
@@ -220,6 +225,9 @@ def read_npz(path: Path, what: str) -> dict[str, np.ndarray]:
         size = path.stat().st_size
         with zipfile.ZipFile(path) as zf:  # refuse compression bombs before numpy reads
             for info in zf.infolist():
+                if not info.filename.endswith(".npy"):  # numpy would hand back raw bytes
+                    raise InputError(f"{path}: member {info.filename[:80]!r} is not a numpy "
+                                     "array (.npy); a map's archives hold arrays only")
                 if info.file_size > MAX_ARRAY_BYTES or info.file_size > 100 * size + (1 << 20):
                     raise InputError(f"{path}: member {info.filename!r} claims "
                                      f"{info.file_size} bytes; refusing to read it")
@@ -261,6 +269,8 @@ def check_database(arrays: dict[str, np.ndarray], path: Path, dim: int,
 
     check(desc, "descriptors", (None, dim), "f")
     check(pts, "points", (m, 3), "f")
+    if len(pts) and np.abs(pts).max() > MAX_COORDINATE:
+        raise InputError(f"{path}: 'points' beyond {MAX_COORDINATE:g} m")
     check(kps, "keypoints", (m, 2), "f")
     check(idx, "frame_index", (m,), "iu")
     check(poses, "world_from_cam", (None, 4, 4), "f")

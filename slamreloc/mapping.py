@@ -12,15 +12,16 @@ from slamreloc.datasets import Dataset
 from slamreloc.errors import InputError
 from slamreloc.extract import extract_frames
 from slamreloc.features import make_extractor
+from slamreloc.fileio import check_outputs
 from slamreloc.labels import LabelConfig, LabelSet, build_labels
 from slamreloc.map_format import SURFACE
 from slamreloc.map_lock import map_write_lock
 from slamreloc.map_write import check_map_target, save_map
 from slamreloc.progress import console
-from slamreloc.rgbd import registered_depths
 from slamreloc.regressor.checkpoint import checkpoint_path
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
+from slamreloc.rgbd import registered_depths
 from slamreloc.scene_map import MapDatabase, SceneMap
 from slamreloc.surface import SurfaceConfig, dataset_surface
 from slamreloc.types import Features, Frame
@@ -61,6 +62,7 @@ def build_map(dataset: Dataset, out: Path, split: str = "train", config: MapConf
 
 def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progress: bool,
                resume: bool) -> SceneMap:
+    check_outputs({"the map": out}, {"the dataset": dataset.root}, folders=("the map",))
     check_map_target(out)  # fail before the work, not after it
     ckpt = checkpoint_path(out)
     if resume and not ckpt.is_file():

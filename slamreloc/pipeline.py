@@ -7,12 +7,14 @@ from pathlib import Path
 from slamreloc.datasets import Dataset, load_dataset, read_image
 from slamreloc.errors import InputError
 from slamreloc.evaluate import evaluate_frames, summarize, write_tum
-from slamreloc.fileio import write_json
+from slamreloc.fileio import check_outputs, write_json
 from slamreloc.geometry import Rigid3, tum_line
+from slamreloc.images import image_header
 from slamreloc.localizer import make_localizer
+from slamreloc.map_format import check_is_map
 from slamreloc.scene_map import SceneMap
 from slamreloc.surface import frame_cloud, refine_pose
-from slamreloc.types import Camera, Frame
+from slamreloc.types import Camera, Frame, camera_problem
 
 
 def depth_refiner(scene_map: SceneMap, dataset: Dataset):
@@ -61,6 +63,9 @@ def run_evaluation(map_dir: Path, dataset_dir: Path, report: Path, split: str = 
                    plot: Path | None = None, device: str = "cpu", progress: bool = True,
                    depth: bool = False) -> dict:
     """Localize a split, write REPORT.json (and TUM poses / a plot); returns the report."""
+    check_is_map(map_dir)  # what the inputs are, then where the outputs may go
+    check_outputs({"--report": report, "--poses": poses, "--plot": plot},
+                  {"the map": map_dir, "the dataset": dataset_dir})
     summary, results, frames = evaluate_method(SceneMap.load(map_dir), dataset_dir, split,
                                                method, device, progress, depth)
     write_json(report, summary)
@@ -76,11 +81,19 @@ def run_evaluation(map_dir: Path, dataset_dir: Path, report: Path, split: str = 
 def localize_images(map_dir: Path, images: list[Path], intrinsics=None,
                     method: str = "regressor"):
     """Yield (line, status) per image: a TUM line plus inlier count ("ok"), `# name: not
-    localized` ("failed"), or `# name: error: ...` for an unreadable image ("error")."""
+    localized` ("failed"), or `error: ...` for an image that cannot be read or is out of
+    bounds ("error"). `intrinsics`: (fx, fy, cx, cy) in pixels, else the map's camera scaled
+    to each image."""
+    if intrinsics is not None:
+        problem = camera_problem(1, 1, *intrinsics)
+        if problem:
+            raise InputError(f"--intrinsics: {problem}")
     scene_map = SceneMap.load(map_dir)
     localizer = make_localizer(scene_map, method)
     for path in images:
         try:
+            header = image_header(path)  # bounds checked before anything is decoded
+            localizer.extractor.check_size(header.width, header.height, path)
             image = read_image(path)
         except InputError as err:
             yield f"error: {err}", "error"

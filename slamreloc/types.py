@@ -23,8 +23,9 @@ class Camera:
     cy: float
 
     def __post_init__(self) -> None:
-        if min(self.width, self.height) <= 0 or min(self.fx, self.fy) <= 0:
-            raise InputError(f"intrinsics must be positive, got {self}")
+        problem = camera_problem(self.width, self.height, self.fx, self.fy, self.cx, self.cy)
+        if problem:
+            raise InputError(f"invalid camera: {problem}")
 
     @property
     def K(self) -> np.ndarray:  # noqa: N802 - the usual name
@@ -46,6 +47,33 @@ class Camera:
     def to_dict(self) -> dict:
         return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
                 "cx": self.cx, "cy": self.cy}
+
+
+MAX_INTRINSIC = 1e7  # pixels: beyond any real camera (a 65536-pixel image at 0.4 degrees)
+
+
+def _show(v) -> str:
+    if isinstance(v, (int, float, np.number)) and not isinstance(v, bool):
+        return f"{float(v):g}" if abs(float(v)) < 1e16 or not float(v).is_integer() \
+            else str(int(v))
+    return repr(v)[:40]
+
+
+def camera_problem(width, height, fx, fy, cx, cy) -> str | None:
+    """What is wrong with pinhole intrinsics (None when nothing): sizes whole numbers in
+    1..65536, fx and fy in [1, 1e7] pixels, cx and cy finite within +-1e7 pixels."""
+    for name, v in (("width", width), ("height", height)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 < v <= 1 << 16:
+            return f"{name} must be a whole number of pixels in 1..65536, got {_show(v)}"
+    for name, v in (("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy)):
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or \
+                not abs(float(v)) <= MAX_INTRINSIC:  # False for NaN
+            return (f"{name} must be a finite number within +-{MAX_INTRINSIC:g} pixels, got "
+                    f"{_show(v)}")
+    if fx < 1 or fy < 1:
+        return (f"focal lengths must be positive (at least 1 pixel), got fx={_show(fx)}, "
+                f"fy={_show(fy)}")
+    return None
 
 
 @dataclass

@@ -48,6 +48,29 @@ def no_hang(seconds: float = 20.0):
         signal.signal(signal.SIGALRM, old)
 
 
+def run_cli(argv: list[str], hang_s: float = 60.0) -> tuple[int, str]:
+    """`slamreloc ARGV` in this process: (exit status, stderr)."""
+    import io
+    import sys
+    from contextlib import redirect_stderr, redirect_stdout
+
+    from slamreloc import cli
+
+    err, out = io.StringIO(), io.StringIO()
+    old = sys.argv
+    sys.argv = ["slamreloc", *argv]
+    try:
+        with redirect_stderr(err), redirect_stdout(out), no_hang(hang_s):
+            try:
+                cli.main()
+                code = 0
+            except SystemExit as exit_:
+                code = exit_.code if isinstance(exit_.code, int) else 1
+    finally:
+        sys.argv = old
+    return code, err.getvalue()
+
+
 def total_cases() -> int:
     return sum(COUNTS.values())
 

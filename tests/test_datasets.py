@@ -36,9 +36,10 @@ def test_redkitchen_layout():
 
 
 def test_invalid_depth_values_read_as_zero(tmp_path):
-    raw = np.array([[0, 1000], [65535, 2500]], np.uint16)
+    raw = np.tile(np.array([[0, 1000], [65535, 2500]], np.uint16), (8, 8))  # 16 x 16 pixels
     cv2.imwrite(str(tmp_path / "d.png"), raw)
-    np.testing.assert_allclose(read_depth(tmp_path / "d.png"), [[0, 1.0], [0, 2.5]])
+    np.testing.assert_allclose(read_depth(tmp_path / "d.png"),
+                               np.tile([[0, 1.0], [0, 2.5]], (8, 8)))
 
 
 def test_synthetic_scene_is_detected(scene_dir):

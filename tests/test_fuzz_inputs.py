@@ -16,15 +16,12 @@ cases") and written to `<pytest basetemp>/fuzz_counts.json`.
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import os
 import shutil
 import struct
-import sys
 import tempfile
-from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import cv2
@@ -44,7 +41,7 @@ from slamreloc.scene_map import MapDatabase, SceneMap
 from tests import fuzzing
 from tests.colmap_project import write_colmap_project
 from tests.fuzzing import (COUNTS, damaged_bytes, damaged_json, damaged_text, fuzz_settings,
-                           no_hang)
+                           no_hang, run_cli)
 
 # cases per test; CI must run at least BUDGET of them in all (test_fuzz_budget_ran counts)
 PLANNED = {"sevenscenes": 400, "tum": 300, "colmap": 400, "pose": 300, "trajectory": 400,
@@ -625,21 +622,7 @@ def test_fuzz_legacy_weights_ran():
 # --- the command line, in process --------------------------------------------------------------
 
 def _cli(argv: list[str]) -> tuple[int, str]:
-    from slamreloc import cli
-
-    err, out = io.StringIO(), io.StringIO()
-    old = sys.argv
-    sys.argv = ["slamreloc", *argv]
-    try:
-        with redirect_stderr(err), redirect_stdout(out), no_hang(60):
-            try:
-                cli.main()
-                code = 0
-            except SystemExit as exit_:
-                code = exit_.code if isinstance(exit_.code, int) else 1
-    finally:
-        sys.argv = old
-    return code, err.getvalue()
+    return run_cli(argv, 60)
 
 
 def check_cli_outcome(code: int, stderr: str, fmt: str) -> None:

@@ -131,8 +131,10 @@ def test_bad_inputs_give_one_line_errors(small_map, scene_dir, tmp_path):
         (("localize", small_map.root, tmp_path / "missing.png"), "missing.png: image file not found"),
         (("map", scene_dir, "--out", not_a_map, "--epochs", "1"), "not a slamreloc map"),
         (("map", tmp_path, "--out", tmp_path / "m"), "not a known dataset layout"),
+        (("localize", small_map.root, scene_dir / "intrinsics.txt", "--intrinsics", "300", "300",
+          "1", "1"), "not a readable image"),
         (("localize", small_map.root, scene_dir / "intrinsics.txt", "--intrinsics", "0", "1", "1",
-          "1"), "not a readable image"),
+          "1"), "--intrinsics: focal lengths must be positive"),
     ]
     for args, message in cases:
         res = cli(*args)
@@ -147,7 +149,7 @@ def test_non_positive_intrinsics_are_rejected(small_map, scene_dir):
     query = load_dataset(scene_dir).frames("test")[0]
     res = cli("localize", small_map.root, query.image_path, "--intrinsics", "0", "262", "160",
               "120")
-    assert res.returncode == 2 and "intrinsics must be positive" in res.stderr
+    assert res.returncode == 2 and "--intrinsics: focal lengths must be positive" in res.stderr
 
 
 def test_demo_leaves_scene_map_and_report(scene_dir, tmp_path):

@@ -118,7 +118,7 @@ def test_cli_and_bad_inputs(updated, small_map, scene_dir, tmp_path):
     new_map, _, _ = updated
     cases = [
         (("pseudo-label", small_map.root, scene_dir, "--out", small_map.root, "--report",
-          tmp_path / "r.json"), "must not replace the map it updates"),
+          tmp_path / "r.json"), "--out is the map, which this command only reads"),
         (("pseudo-label", tmp_path, scene_dir, "--out", tmp_path / "n", "--report",
           tmp_path / "r.json"), "not a slamreloc map"),
         (("pseudo-label", small_map.root, scene_dir, "--out", tmp_path / "n", "--report",

@@ -303,7 +303,7 @@ def test_bad_input_is_one_line_error(viewer_case, tmp_path):
         load_scene_data(ViewerInputs(viewer_case.map_dir, [tmp_path / "missing.txt"]))
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
-    with pytest.raises(InputError, match="not valid JSON"):
+    with pytest.raises(InputError, match="bad.json: not valid JSON"):
         load_scene_data(ViewerInputs(viewer_case.map_dir, reports=[bad]))
     bad_traj = tmp_path / "bad.txt"
     bad_traj.write_text("0 1 2 3 0 0 0\n")

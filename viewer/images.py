@@ -26,15 +26,16 @@ def frames_by_name(dataset) -> dict:
 
 
 def read_rgb(path: Path | None, width: int | None = None) -> np.ndarray | None:
-    """RGB uint8 image (resized to `width` when given), or None if it cannot be read."""
-    import cv2
+    """RGB uint8 image (resized to `width` when given), or None if it cannot be read (the
+    core's reader: the same bounds and checks as every command's)."""
+    from slamreloc.images import read_image
 
     if path is None:
         return None
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
+    try:
+        img = read_image(path)
+    except InputError:
         return None
-    img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     return fit_width(img, width) if width else img
 
 

@@ -12,7 +12,8 @@ from slamreloc.scene_map import SceneMap
 from slamreloc.viewer.data import SceneData, ViewerInputs
 from slamreloc.viewer.images import open_dataset
 from slamreloc.viewer.map_view import load_map
-from slamreloc.viewer.reports import read_evaluate, read_json, read_pseudo_label, report_kind
+from slamreloc.viewer.reports import (read_evaluate, read_json, read_pseudo_label,
+                                      recorded_dataset, report_kind)
 from slamreloc.viewer.slam_report import read_slam_report
 from slamreloc.viewer.trajectories import (attach_truth, read_trajectory, truth_by_stamp,
                                            truth_trajectory)
@@ -45,8 +46,7 @@ def load_scene_data(inputs: ViewerInputs) -> SceneData:
     for path, data in reports:
         kind = report_kind(data)
         if kind == "evaluate":
-            recorded = data.get("dataset", {}).get("root") if isinstance(
-                data.get("dataset"), dict) else None
+            recorded = recorded_dataset(path, data)
             ds = dataset if inputs.dataset or not recorded else (open_dataset(recorded) or dataset)
             scene.evaluations.append(read_evaluate(path, data, ds, trajectories))
         elif kind == "slam":

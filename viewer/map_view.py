@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
 from slamreloc.map_format import DATABASE, LABELLED
 from slamreloc.scene_map import SceneMap
@@ -35,6 +36,8 @@ def voxel_downsample(points: np.ndarray, max_points: int) -> tuple[np.ndarray, f
     """Indices of at most `max_points` points, one per voxel (the voxel grows until they fit),
     and the voxel size used (0 when nothing was dropped)."""
     n = len(points)
+    if max_points < 1:
+        raise InputError(f"--max-points must be at least 1, got {max_points}")
     if n <= max_points:
         return np.arange(n), 0.0
     lo, hi = points.min(axis=0), points.max(axis=0)

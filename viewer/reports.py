@@ -3,29 +3,23 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
-
-import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
+from slamreloc.jsonio import Json
+from slamreloc.jsonio import read_json as read_json_file
 from slamreloc.viewer.data import (EvalReport, FrameView, PseudoLabelReport, QueryView,
                                    Trajectory)
 from slamreloc.viewer.images import frames_by_name
 
 
 def read_json(path: str | Path) -> dict:
+    """A report: a JSON object (bounded size and depth, finite numbers; `slamreloc.jsonio`)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: report not found")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise InputError(f"{path}: not valid JSON ({err})") from None
-    if not isinstance(data, dict):
-        raise InputError(f"{path}: not a report (expected a JSON object)")
-    return data
+    return read_json_file(path, "JSON")
 
 
 def report_kind(data: dict) -> str:
@@ -38,12 +32,17 @@ def report_kind(data: dict) -> str:
     return "other"
 
 
+def recorded_dataset(path: Path, data: dict) -> str | None:
+    """The dataset folder an evaluate report records (`dataset.root`), if any."""
+    field = Json(data, path).get("dataset")
+    return None if field is None else field.opt_str("root")
+
+
 def read_evaluate(path: Path, data: dict, dataset, trajectories: list[Trajectory]) -> EvalReport:
     """Per query: its error, and its estimated pose from the trajectories given with the
     report (`evaluate --poses` writes them; the report holds errors only)."""
-    per_query = data.get("per_query", [])
-    if not isinstance(per_query, list):
-        raise InputError(f"{path}: 'per_query' is not a list")
+    report = Json(data, path)
+    per_query = report.get("per_query")
     by_name = frames_by_name(dataset)
     estimates = {}
     for traj in trajectories:
@@ -51,33 +50,25 @@ def read_evaluate(path: Path, data: dict, dataset, trajectories: list[Trajectory
             if name:
                 estimates.setdefault(name, pose)
     queries, missing = [], 0
-    for i, q in enumerate(per_query):
-        if not isinstance(q, dict) or "name" not in q:
-            raise InputError(f"{path}: per_query[{i}] has no 'name'")
-        name = str(q["name"])
+    for q in [] if per_query is None else per_query.list():
+        name = q.child("name").str()
         frame = by_name.get(name)
-        t_err = q.get("translation_error_m")
+        t_err = q.opt_number("translation_error_m")
+        r_err = q.opt_number("rotation_error_deg")
+        inliers = q.opt_int("num_inliers")
         est = estimates.get(name) if t_err is not None else None
         missing += int(t_err is not None and est is None)
-        queries.append(QueryView(name, est, frame.world_from_cam if frame else None,
-                                 None if t_err is None else float(t_err),
-                                 None if q.get("rotation_error_deg") is None
-                                 else float(q["rotation_error_deg"]),
-                                 q.get("num_inliers"), frame.image_path if frame else None))
+        queries.append(QueryView(name, est, frame.world_from_cam if frame else None, t_err,
+                                 r_err, inliers, frame.image_path if frame else None))
     return EvalReport(path, data, queries, missing)
 
 
 def read_pseudo_label(path: Path, data: dict) -> PseudoLabelReport:
     """The registered frames: the report's `poses`, {frame name: 4x4 world_from_cam}."""
-    poses = data.get("poses", {})
-    if not isinstance(poses, dict):
-        raise InputError(f"{path}: 'poses' is not an object of frame name -> 4x4 world_from_cam")
+    poses = Json(data, path).get("poses")
     frames = []
-    for name, matrix in poses.items():
-        where = f"{path}: poses[{name!r}]"
-        try:
-            m = np.array(matrix, dtype=float)
-        except (TypeError, ValueError):
-            raise InputError(f"{where}: not a 4x4 matrix of numbers") from None
-        frames.append(FrameView(name, Rigid3.from_matrix(m, tol=1e-2, source=where)))
+    for name, matrix in [] if poses is None else poses.items():
+        m = matrix.array((4, 4))
+        frames.append(FrameView(name, Rigid3.from_matrix(
+            m, tol=1e-2, source=f"{path}: {matrix.where}")))
     return PseudoLabelReport(path, data, frames)

@@ -8,6 +8,7 @@ import signal
 import threading
 from collections.abc import Callable
 
+from slamreloc.errors import InputError
 from slamreloc.viewer.data import SceneData, ViewerInputs
 from slamreloc.viewer.loaders import load_scene_data
 from slamreloc.viewer.scene import SceneHandles, build_scene
@@ -35,9 +36,22 @@ def address(server, host: str) -> str:
     return f"http://{shown}:{server.get_port()}"
 
 
+def check_address(host: str, port: int) -> None:
+    """InputError unless `host` resolves and `port` is a TCP port (before anything is read)."""
+    import socket
+
+    if not 0 < port < 65536:
+        raise InputError(f"--port {port}: must be in 1..65535")
+    try:
+        socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except (OSError, UnicodeError) as err:
+        raise InputError(f"--host {host[:80]!r}: cannot resolve it ({err})") from None
+
+
 def start(inputs: ViewerInputs, data: SceneData | None = None) -> tuple[object, SceneHandles]:
     """Read the inputs (InputError before any port is bound), start the server, build the
     scene. Returns (server, handles); stop with `handles.stop(); server.stop()`."""
+    check_address(inputs.host, inputs.port)
     data = data if data is not None else load_scene_data(inputs)
     server = make_server(inputs.host, inputs.port)
     try:

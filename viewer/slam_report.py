@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
+from slamreloc.jsonio import Json
 from slamreloc.viewer.data import GraphEdge, SlamEvent, SlamReport, Trajectory
 from slamreloc.viewer.trajectories import read_trajectory
 
@@ -39,45 +40,49 @@ TYPE_ALIASES = {
 IGNORED = {"frame", "new_keyframe", "keyframe"}
 
 
-def _accepted(e: dict) -> bool:
-    if "accepted" in e:
-        return bool(e["accepted"])
-    if "rejected" in e:
-        return not bool(e["rejected"])
-    status = str(e.get("status", e.get("info", {}).get("status", "") if isinstance(
-        e.get("info"), dict) else "")).lower()
+def _first(e: Json, *keys: str) -> Json | None:
+    """The first of `keys` (aliases of one field) that `e` holds."""
+    return next((e.child(k) for k in keys if e.has(k)), None)
+
+
+def _accepted(e: Json) -> bool:
+    if e.has("accepted"):
+        return e.child("accepted").bool()
+    if e.has("rejected"):
+        return not e.child("rejected").bool()
+    info = e.get("info")
+    status = e.opt_str("status") or (info.opt_str("status") if info is not None else None)
     if status:
-        return status not in ("rejected", "failed", "refused")
-    if isinstance(e.get("info"), dict) and "accepted" in e["info"]:
-        return bool(e["info"]["accepted"])
+        return status.lower() not in ("rejected", "failed", "refused")
+    if info is not None and info.has("accepted"):
+        return info.child("accepted").bool()
     return True
 
 
-def _int(v) -> int | None:
-    try:
-        return None if v is None else int(v)
-    except (TypeError, ValueError):
-        return None
+def _opt_int(field: Json | None) -> int | None:
+    return None if field is None else field.int()
 
 
-def _float(v) -> float | None:
-    try:
-        return None if v is None else float(v)
-    except (TypeError, ValueError):
-        return None
-
-
-def _position(e: dict, source: str) -> np.ndarray | None:
-    if e.get("world_from_cam") is not None:
-        m = np.asarray(e["world_from_cam"], dtype=float)
+def _position(e: Json) -> np.ndarray | None:
+    if e.has("world_from_cam"):
+        field = e.child("world_from_cam")
+        m = field.array((len(field.value) if isinstance(field.value, list) else 4, 4))
         if m.shape not in ((4, 4), (3, 4)):
-            raise InputError(f"{source}: world_from_cam is not a 4x4 matrix")
+            raise e._fail("must be a 4x4 matrix", "world_from_cam")
         return m[:3, 3].copy()
     for key in ("position", "pose", "tum"):
-        v = e.get(key)
-        if isinstance(v, (list, tuple)) and len(v) in (3, 7):
-            return np.asarray(v[:3], dtype=float)
+        if e.has(key):
+            v = e.child(key)
+            n = len(v.value) if isinstance(v.value, list) else 0
+            return v.array((7 if n == 7 else 3,))[:3]
     return None
+
+
+def _end(e: Json, positions: tuple[str, ...], indices: tuple[str, ...], locate):
+    field = _first(e, *positions)
+    if field is not None:
+        return field.array((3,))
+    return locate(_opt_int(_first(e, *indices)), None)
 
 
 class _Locator:
@@ -102,53 +107,50 @@ class _Locator:
 
 
 def read_slam_report(path: Path, data: dict, trajectories: list[Trajectory]) -> SlamReport:
+    report = Json(data, path)
     traj = None
-    if isinstance(data.get("trajectory"), str):
-        candidate = (Path(path).parent / data["trajectory"])
+    name = report.opt_str("trajectory")
+    if name:
+        candidate = Path(path).parent / name
         if candidate.is_file():
-            traj = read_trajectory(candidate, kind="estimate")
+            try:
+                traj = read_trajectory(candidate, kind="estimate")
+            except InputError as err:
+                raise InputError(f"{path}: its 'trajectory' {err}") from None
     if traj is None:
         traj = next((t for t in trajectories if t.kind == "estimate"), None)
     locate = _Locator(traj)
 
-    raw_events = data.get("events", [])
-    if not isinstance(raw_events, list):
-        raise InputError(f"{path}: 'events' is not a list")
     events = []
-    for i, e in enumerate(raw_events):
-        if not isinstance(e, dict):
-            raise InputError(f"{path}: events[{i}] is not an object")
-        raw_type = str(e.get("type", e.get("kind", "other"))).lower()
+    raw_events = report.get("events")
+    for e in [] if raw_events is None else raw_events.list():
+        e.obj()
+        kind_field = _first(e, "type", "kind")
+        raw_type = "other" if kind_field is None else kind_field.str().lower()
         if raw_type in IGNORED:
             continue
         kind = TYPE_ALIASES.get(raw_type, "other")
-        frame, stamp = _int(e.get("frame", e.get("index"))), _float(e.get("timestamp"))
-        pos = _position(e, f"{path}: events[{i}]")
+        frame, stamp = _opt_int(_first(e, "frame", "index")), e.opt_number("timestamp")
+        pos = _position(e)
         if pos is None:
             pos = locate(frame, stamp)
         events.append(SlamEvent(frame, stamp, kind, _accepted(e), pos, raw_type))
     known_kidnaps = {ev.frame for ev in events if ev.type == "kidnap"}
-    for f in data.get("kidnap_frames", data.get("kidnaps", [])) or []:
-        f = _int(f)
-        if f is not None and f not in known_kidnaps:
+    kidnaps = _first(report, "kidnap_frames", "kidnaps")
+    for f in [] if kidnaps is None else kidnaps.list():
+        f = f.int()
+        if f not in known_kidnaps:
             events.append(SlamEvent(f, None, "kidnap", True, locate(f, None), "kidnap"))
 
-    raw_edges = data.get("graph_edges", data.get("edges", []))
-    if not isinstance(raw_edges, list):
-        raise InputError(f"{path}: 'graph_edges' is not a list")
     edges = []
-    for i, e in enumerate(raw_edges):
-        if not isinstance(e, dict):
-            raise InputError(f"{path}: graph_edges[{i}] is not an object")
-        a = e.get("a", e.get("from_position"))
-        b = e.get("b", e.get("to_position"))
-        a = np.asarray(a, float)[:3] if isinstance(a, (list, tuple)) else locate(
-            _int(e.get("from", e.get("i"))), None)
-        b = np.asarray(b, float)[:3] if isinstance(b, (list, tuple)) else locate(
-            _int(e.get("to", e.get("j"))), None)
+    raw_edges = _first(report, "graph_edges", "edges")
+    for e in [] if raw_edges is None else raw_edges.list():
+        e.obj()
+        a = _end(e, ("a", "from_position"), ("from", "i"), locate)
+        b = _end(e, ("b", "to_position"), ("to", "j"), locate)
         if a is None or b is None:
             continue
-        kind = str(e.get("type", e.get("kind", "other"))).lower()
+        kind_field = _first(e, "type", "kind")
+        kind = "other" if kind_field is None else kind_field.str().lower()
         edges.append(GraphEdge(TYPE_ALIASES.get(kind, kind), a, b, _accepted(e)))
     return SlamReport(path, data, events, edges, traj)
-

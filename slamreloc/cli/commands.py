@@ -10,9 +10,25 @@ from typing import Annotated, Optional
 import typer
 
 from slamreloc.cli.choices import Arch, Device, FeatureName, Method, Precision, Update
+from slamreloc.errors import InputError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Camera relocalization with a lightweight scene-coordinate regressor.")
+
+
+@app.callback()
+def options(
+    limit: Annotated[Optional[list[str]], typer.Option(
+        "--limit", metavar="NAME=VALUE",
+        help="change a bound on untrusted input, before the command: max_image_pixels, "
+             "max_feature_bytes, max_image_bytes, max_json_bytes, ... (docs/formats.md, "
+             "'Input bounds'; also SLAMRELOC_<NAME> variables)")] = None,
+) -> None:
+    """Camera relocalization with a lightweight scene-coordinate regressor."""
+    if limit:
+        from slamreloc.limits import parse_limits, set_limits
+
+        set_limits(**parse_limits(limit))
 
 
 @app.command("map")
@@ -37,6 +53,8 @@ def map_cmd(
     from slamreloc.datasets import load_dataset
     from slamreloc.mapping import MapConfig, build_map
 
+    if epochs is not None and epochs < 1:
+        raise InputError(f"--epochs must be at least 1, got {epochs}")
     config = MapConfig(features=features.value, device=device.value)
     if arch is not None:
         config.arch = arch.value
@@ -120,9 +138,15 @@ def pseudo_label_cmd(
 
     DATASET's poses are never read except to score the report (as are --truth's)."""
     from slamreloc.datasets import load_dataset
-    from slamreloc.fileio import write_json
+    from slamreloc.fileio import check_outputs, write_json
+    from slamreloc.map_format import check_is_map
     from slamreloc.progress import console
     from slamreloc.pseudo_label import PseudoLabelConfig, update_map
+
+    check_is_map(map_dir)  # what the inputs are, then where the outputs may go
+    check_outputs({"--report": report, "--out": out},
+                  {"the map": map_dir, "the dataset": dataset, "--truth": truth},
+                  folders=("--out",))
 
     config = PseudoLabelConfig(rounds=rounds, update=update.value, epochs=epochs,
                                device=device.value)

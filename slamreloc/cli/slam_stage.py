@@ -8,8 +8,9 @@ from pathlib import Path
 from rich.table import Table
 
 from slamreloc.errors import InputError
-from slamreloc.fileio import write_json
+from slamreloc.fileio import check_outputs, write_json
 from slamreloc.geometry import write_tum_trajectory
+from slamreloc.map_format import check_is_map
 from slamreloc.progress import console
 from slamreloc.slam.poses import final_trajectory
 from slamreloc.slam.run import SlamRunConfig, run_slam
@@ -23,6 +24,10 @@ def run_slam_command(dataset: Path, map_dir: Path, report: Path, split: str = "t
     plugins: the backend's plugins instead of that one (benchmarks: a test-harness plugin)."""
     if kidnap_every < 0 or kidnap_skip < 0:
         raise InputError("--kidnap-every and --kidnap-skip must be >= 0")
+    check_is_map(map_dir)  # what the inputs are, then where the outputs may go
+    odometry_file = odometry if odometry not in ("auto", "kiss-icp", "open3d") else None
+    check_outputs({"--report": report, "--trajectory": trajectory},
+                  {"the dataset": dataset, "the map": map_dir, "--odometry": odometry_file})
     config = SlamRunConfig(split=split, odometry=odometry, kidnap_every=kidnap_every,
                            kidnap_skip=kidnap_skip, progress=progress,
                            plugin_options=plugin_options or {})

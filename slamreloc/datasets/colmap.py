@@ -31,7 +31,7 @@ from slamreloc.datasets.colmap_check import check_model
 from slamreloc.datasets.io import check_frame_files, read_text
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
-from slamreloc.types import Camera, Frame
+from slamreloc.types import Camera, Frame, camera_problem
 
 MODEL_DIRS = ("sparse/0", "sparse")
 FILES = ("cameras", "images")
@@ -94,12 +94,13 @@ def pinhole_camera(cam, source: str) -> Camera:
                          f"{' with distortion' if model in PINHOLE_MODELS else ''}; slamreloc "
                          "needs undistorted pinhole images (PINHOLE or SIMPLE_PINHOLE): run "
                          "`colmap image_undistorter` first")
-    fx, fy = float(cam.focal_length_x), float(cam.focal_length_y)
-    if not (fx > 0 and fy > 0):  # NaN too (finiteness was checked with the file)
-        raise InputError(f"{source}: camera {cam.camera_id} has focal length {fx}, {fy}; it "
-                         "must be positive")
-    return Camera(int(cam.width), int(cam.height), fx, fy,
-                  float(cam.principal_point_x) - 0.5, float(cam.principal_point_y) - 0.5)
+    values = (int(cam.width), int(cam.height), float(cam.focal_length_x),
+              float(cam.focal_length_y), float(cam.principal_point_x) - 0.5,
+              float(cam.principal_point_y) - 0.5)
+    problem = camera_problem(*values)
+    if problem:
+        raise InputError(f"{source}: camera {cam.camera_id}: {problem}")
+    return Camera(*values)
 
 
 def _image_path(images_dir: Path, name: str, source: Path) -> Path:

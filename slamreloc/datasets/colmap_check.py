@@ -131,13 +131,26 @@ def _walk_images(r: _Binary) -> dict[int, tuple[str, int]]:
     n = r.count(73, "images")
     for i in range(n):
         what = f"image {i + 1} of {n}"
-        image_id, *_pose, cam_id = r.take("<I7dI", what)
+        image_id, *pose, cam_id = r.take("<I7dI", what)
+        _check_image_pose(r.path, image_id, pose)
         name = r.name(f"the name of {what}")
         (n_points,) = r.take("<Q", what)
         r.skip(24 * n_points, f"the points of {what}")
         _add_image(out, r.path, image_id, name, cam_id)
     r.end()
     return out
+
+
+def _check_image_pose(where, image_id: int, pose) -> None:
+    """QW QX QY QZ TX TY TZ: finite, and a unit quaternion (COLMAP writes them normalised; a
+    zero or far-from-unit one is damage, which normalising would turn into a made-up pose)."""
+    if not all(math.isfinite(v) for v in pose) or max(abs(v) for v in pose[4:]) > 1e9:
+        raise InputError(f"{where}: image {image_id} has a non-finite pose or a translation "
+                         "beyond 1e9")
+    norm = math.sqrt(sum(v * v for v in pose[:4]))
+    if abs(norm - 1.0) > 1e-3:
+        raise InputError(f"{where}: image {image_id} has a quaternion of norm {norm:.6g}, not a "
+                         "unit quaternion (QW QX QY QZ)")
 
 
 def _add_image(out: dict, path, image_id: int, name: str, cam_id: int) -> None:
@@ -232,8 +245,8 @@ def _read_images_text(path: Path) -> dict[int, tuple[str, int]]:
             raise InputError(f"{path}:{line}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID "
                              f"NAME (10 fields), got {len(words)}")
         image_id = int(_number(path, line, words[0], "IMAGE_ID", integer=True))
-        for w in words[1:8]:
-            _number(path, line, w, "a pose value")
+        pose = [_number(path, line, w, "a pose value") for w in words[1:8]]
+        _check_image_pose(f"{path}:{line}", image_id, pose)
         cam_id = int(_number(path, line, words[8], "CAMERA_ID", integer=True))
         points = lines[i].split() if i < len(lines) else []
         i += 1

@@ -7,7 +7,6 @@
 
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 
@@ -15,6 +14,8 @@ from slamreloc.datasets.base import Dataset
 from slamreloc.datasets.io import (check_frame_files, image_size, read_intrinsics, read_pose,
                                    read_text)
 from slamreloc.errors import InputError
+from slamreloc.fileio import read_bytes
+from slamreloc.jsonio import parse_json
 from slamreloc.types import Camera, Frame
 
 DEFAULT_K = (525.0, 525.0, 320.0, 240.0)
@@ -52,10 +53,7 @@ def _read_scene_json(root: Path) -> dict:
     path = root / "scene.json"
     if not path.is_file():
         return {}
-    try:
-        scene = json.loads(read_text(path, "scene description", 1 << 24))
-    except (ValueError, RecursionError) as err:
-        raise InputError(f"{path}: not valid JSON ({err})") from None
+    scene = parse_json(read_bytes(path, "scene description", 1 << 24), path)
     if not isinstance(scene, dict):
         raise InputError(f"{path}: expected a JSON object, got {type(scene).__name__}")
     if not isinstance(scene.get("depth_registered", False), bool):

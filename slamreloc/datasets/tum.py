@@ -8,7 +8,7 @@ image nearest in time (within 20 ms); without a pose it is kept, unposed.
 
 from __future__ import annotations
 
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
@@ -34,6 +34,9 @@ def _read_list(path: Path, n_fields: int) -> list[list[str]]:
         if len(parts) != n_fields:
             raise InputError(f"{path}:{i}: expected {n_fields} fields, got {len(parts)}")
         parse_stamp(parts[0], f"{path}:{i}")
+        rel = PurePosixPath(parts[1])
+        if rel.is_absolute() or ".." in rel.parts:
+            raise InputError(f"{path}:{i}: {parts[1][:80]!r} points outside the dataset folder")
         rows.append(parts)
     return rows
 
@@ -61,6 +64,10 @@ def load_tum(root: Path) -> Dataset:
         camera = Camera(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
     else:
         camera = Camera(width, height, 525.0, 525.0, 319.5, 239.5)
+    names = [Path(rel).stem for _, rel in rgb]
+    if len(set(names)) != len(names):
+        dup = next(n for n in names if names.count(n) > 1)
+        raise InputError(f"{root / 'rgb.txt'}: image {dup!r} is listed more than once")
     frames = []
     for stamp, rel in rgb:
         t = float(stamp)

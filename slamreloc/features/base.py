@@ -1,4 +1,5 @@
-"""The base class every local-feature extractor shares (a default config, one entry point)."""
+"""The base class every local-feature extractor shares (a default config, one entry point, the
+memory bound on the images it works on)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ from typing import ClassVar
 
 import numpy as np
 
+from slamreloc.errors import InputError
+from slamreloc.limits import limits
 from slamreloc.types import Features
 
 
@@ -14,7 +17,16 @@ from slamreloc.types import Features
 class ExtractorConfig:
     """Options common to all extractors; subclasses add their own fields."""
 
-    max_keypoints: int = 2048
+    max_keypoints: int = 2048  # 0: no limit (SuperPoint)
+
+    def __post_init__(self) -> None:
+        self.check_range("max_keypoints", 0, 1 << 20)
+
+    def check_range(self, name: str, low: float, high: float) -> None:
+        """InputError unless option `name` is a number in [low, high]."""
+        v = getattr(self, name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not low <= v <= high:
+            raise InputError(f"feature option {name} must be in {low}..{high}, got {v!r}")
 
 
 class Extractor:
@@ -23,6 +35,8 @@ class Extractor:
     name: ClassVar[str] = ""
     dim: ClassVar[int] = 0
     Config: ClassVar[type[ExtractorConfig]] = ExtractorConfig
+    # peak memory per working pixel (bytes), measured (BENCHMARKS.md, "Input bounds")
+    bytes_per_pixel: ClassVar[int] = 64
 
     def __init__(self, config: ExtractorConfig | None = None, **overrides) -> None:
         config = config or self.Config()
@@ -30,9 +44,35 @@ class Extractor:
 
     def __call__(self, image: np.ndarray) -> Features:
         """image: (H, W, 3) uint8 RGB or (H, W) uint8 grey. Returns at most max_keypoints."""
+        self.check_size(image.shape[1], image.shape[0], "image")
         if image.ndim == 3:
             image = _to_grey(image)
         return self.extract_grey(image)
+
+    def working_pixels(self, width: int, height: int) -> int:
+        """Pixels of the image the extractor works on for a width x height input."""
+        return width * height
+
+    def check_size(self, width: int, height: int, source) -> None:
+        """InputError (naming `source`) unless features of a width x height image fit in
+        `max_feature_bytes` of memory; checked before any pixel is touched."""
+        need = self.working_pixels(width, height) * self.bytes_per_pixel
+        limit = limits().max_feature_bytes
+        if need > limit:
+            raise InputError(f"{source}: {self.name} features of a {width}x{height} image need "
+                             f"~{need / 1e9:.1f} GB of memory, over the {limit / 1e9:.1f} GB "
+                             "limit (raise it with `slamreloc --limit max_feature_bytes=N` or "
+                             "SLAMRELOC_MAX_FEATURE_BYTES)")
+
+    def check_frames(self, frames) -> None:
+        """`check_size` for each image size among `frames` (dataset frames), naming the first
+        frame of that size; before a long run starts."""
+        seen = set()
+        for frame in frames:
+            size = (frame.camera.width, frame.camera.height)
+            if size not in seen:
+                seen.add(size)
+                self.check_size(*size, frame.image_path)
 
     def extract_grey(self, grey: np.ndarray) -> Features:
         raise NotImplementedError

@@ -23,11 +23,21 @@ class SiftConfig(ExtractorConfig):
     # full-resolution pixels either way.
     upsample: bool = False
 
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.check_range("contrast_threshold", 1e-6, 1.0)
+        self.check_range("edge_threshold", 1e-3, 1e3)
+        self.check_range("n_octave_layers", 1, 16)
+
 
 class Sift(Extractor):
     name = "sift"
     dim = 128
     Config = SiftConfig
+    bytes_per_pixel = 60  # OpenCV's float pyramid: 58 B per working pixel at 12 and 48 MP
+
+    def working_pixels(self, width: int, height: int) -> int:
+        return width * height * (4 if self.config.upsample else 1)
 
     def __init__(self, config: SiftConfig | None = None, **overrides) -> None:
         super().__init__(config, **overrides)

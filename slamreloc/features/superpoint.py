@@ -166,11 +166,18 @@ class SuperPointConfig(ExtractorConfig):
     remove_borders: int = 4
     device: str = "cpu"  # "cpu", "cuda", "cuda:1", or "auto" (cuda when available)
 
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.check_range("nms_radius", 0, 64)
+        self.check_range("detection_threshold", 0.0, 1.0)
+        self.check_range("remove_borders", 0, 64)
+
 
 class SuperPoint(Extractor):
     name = "superpoint"
     dim = 256
     Config = SuperPointConfig
+    bytes_per_pixel = 750  # float32 activations of the full-resolution layers (1.9 MP: 744 B)
 
     def __init__(self, config: SuperPointConfig | None = None, **overrides) -> None:
         super().__init__(config, **overrides)

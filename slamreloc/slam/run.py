@@ -8,7 +8,7 @@ from pathlib import Path
 
 from slamreloc.datasets import load_dataset
 from slamreloc.errors import InputError
-from slamreloc.map_format import META, is_map
+from slamreloc.map_format import check_is_map
 from slamreloc.progress import track
 from slamreloc.slam.backend import BackendConfig, SlamBackend
 from slamreloc.slam.events import load_plugin
@@ -65,8 +65,7 @@ def make_odometry(name: str, depth_intrinsics) -> Odometry:
 def run_slam(dataset_dir: Path, map_dir: Path, config: SlamRunConfig = SlamRunConfig(),
              plugins: list | None = None) -> tuple[dict, SlamBackend, list]:
     """Returns (report, backend, processed frames)."""
-    if not is_map(map_dir):
-        raise InputError(f"{map_dir}: not a slamreloc map (no {META})")
+    check_is_map(map_dir)
     dataset = load_dataset(dataset_dir)
     frames = dataset.frames(config.split)
     if not frames:
@@ -77,6 +76,10 @@ def run_slam(dataset_dir: Path, map_dir: Path, config: SlamRunConfig = SlamRunCo
     if plugins is None:
         plugins = [load_plugin("relocalization", map_dir=map_dir, depth_intrinsics=depth_k,
                                **config.plugin_options)]
+    for plugin in plugins:  # before the run: images its features would not fit in memory for
+        localizer = getattr(plugin, "localizer", None)
+        if localizer is not None:
+            localizer.extractor.check_frames(frames)
     backend = SlamBackend(odometry, plugins, config.backend)
     kept, jumps = kidnap_schedule(len(frames), config.kidnap_every, config.kidnap_skip)
     processed = [frames[i] for i in kept]

@@ -1,0 +1,268 @@
+"""Decoding images and depth maps from untrusted bytes, within the bounds of `slamreloc.limits`.
+
+Nothing reaches a decoder before its header has been read and checked: the encoded size, the
+width x height against `max_image_pixels` (a 48 KB PNG can claim 20000 x 20000 pixels and ask
+the decoder for 1.2 GB), the smallest usable side, a PNG's chunk structure and CRCs, a JPEG's
+end marker and scan count. Formats: PNG and JPEG (headers parsed here), BMP, TIFF, WebP and
+PNM (headers read by Pillow, which decodes nothing on open); anything else is refused. Every
+error is an `InputError` naming the source (a file, or a request on the wire).
+"""
+
+from __future__ import annotations
+
+import io
+import struct
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from slamreloc.errors import InputError
+from slamreloc.fileio import read_bytes
+from slamreloc.limits import limits
+
+INVALID_DEPTH = (0, 65535)  # raw uint16 values that mean "no measurement"
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+JPEG_MAGIC = b"\xff\xd8"
+# formats Pillow reads the header of and OpenCV decodes (Pillow's format name -> shown name)
+OTHER_FORMATS = {"BMP": "BMP", "TIFF": "TIFF", "WEBP": "WebP", "PPM": "PNM"}
+PILLOW_MODES = {"1": (1, 1), "L": (1, 8), "P": (3, 8), "RGB": (3, 8), "RGBA": (4, 8),
+                "LA": (2, 8), "CMYK": (4, 8), "I;16": (1, 16), "I;16B": (1, 16),
+                "I;16L": (1, 16), "I": (1, 32), "F": (1, 32)}
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    """What an encoded image says of itself, before any pixel is decoded."""
+
+    width: int
+    height: int
+    channels: int
+    bits: int  # per sample
+    format: str  # PNG, JPEG, BMP, TIFF, WebP, PNM
+
+
+def _png_chunks(data: bytes, source, what: str, verify_crc: bool):
+    """Yield (type, payload) of each PNG chunk; raise on any structural defect."""
+    pos = len(PNG_MAGIC)
+    while True:
+        if pos + 8 > len(data):
+            raise InputError(f"{source}: not a readable {what} (PNG truncated)")
+        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        end = pos + 12 + length
+        if end > len(data):
+            raise InputError(f"{source}: not a readable {what} (PNG truncated)")
+        payload = data[pos + 8:pos + 8 + length]
+        if verify_crc and zlib.crc32(kind + payload) != struct.unpack(">I", data[end - 4:end])[0]:
+            raise InputError(f"{source}: not a readable {what} (PNG chunk {kind!r} is corrupt)")
+        yield kind, payload
+        if kind == b"IEND":
+            return
+        pos = end
+
+
+def _png_header(data: bytes, source, what: str) -> ImageHeader:
+    if len(data) < 33 or data[12:16] != b"IHDR":
+        raise InputError(f"{source}: not a readable {what} (PNG without a header)")
+    width, height, bits, colour = struct.unpack(">IIBB", data[16:26])
+    channels = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}.get(colour)
+    if channels is None or bits not in (1, 2, 4, 8, 16):
+        raise InputError(f"{source}: not a readable {what} (bad PNG header)")
+    return ImageHeader(width, height, channels, bits, "PNG")
+
+
+def _jpeg_header(data: bytes, source, what: str) -> ImageHeader:
+    pos = 2
+    while pos + 4 <= len(data):
+        if data[pos] != 0xFF:
+            break
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            pos += 2
+            continue
+        length = struct.unpack(">H", data[pos + 2:pos + 4])[0]
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            if pos + 10 > len(data):
+                break
+            bits, height, width, channels = struct.unpack(">BHHB", data[pos + 4:pos + 10])
+            if channels not in (1, 3, 4):
+                break
+            return ImageHeader(width, height, channels, bits, "JPEG")
+        if length < 2:
+            break
+        pos += 2 + length
+    raise InputError(f"{source}: not a readable {what} (no JPEG frame header found)")
+
+
+def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
+    import warnings
+
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # DecompressionBombWarning: we check sizes below
+            with Image.open(io.BytesIO(data)) as img:  # parses the header, decodes nothing
+                fmt, (width, height), mode = img.format, img.size, img.mode
+    except Exception as err:  # noqa: BLE001 - Pillow's parsers raise many kinds on bad bytes
+        kind = "unknown format" if "cannot identify" in str(err) else type(err).__name__
+        raise InputError(f"{source}: not a readable {what} ({kind}; PNG, JPEG, BMP, TIFF, "
+                         "WebP and PNM are read)") from None
+    if fmt not in OTHER_FORMATS:
+        raise InputError(f"{source}: {fmt} is not a supported {what} format (PNG, JPEG, BMP, "
+                         "TIFF, WebP and PNM are read)")
+    channels, bits = PILLOW_MODES.get(mode, (4, 8))
+    return ImageHeader(width, height, channels, bits, OTHER_FORMATS[fmt])
+
+
+def encoded_header(data: bytes, source, what: str = "image") -> ImageHeader:
+    """The header of an encoded image (PNG, JPEG, BMP, TIFF, WebP, PNM), checked against the
+    bounds; decodes nothing. `source` names the file or request in errors."""
+    if len(data) == 0:
+        raise InputError(f"{source}: not a readable {what} (empty or corrupt: 0 bytes)")
+    if data.startswith(PNG_MAGIC):
+        header = _png_header(data, source, what)
+    elif data.startswith(JPEG_MAGIC):
+        header = _jpeg_header(data, source, what)
+    else:
+        header = _pillow_header(data, source, what)
+    check_image_size(header.width, header.height, source, what)
+    return header
+
+
+def check_image_size(width: int, height: int, source, what: str = "image") -> None:
+    """InputError unless width x height is within `min_image_side` and `max_image_pixels`."""
+    lim = limits()
+    if min(width, height) < lim.min_image_side:
+        raise InputError(f"{source}: {what} is {width}x{height} pixels; at least "
+                         f"{lim.min_image_side} pixels a side are needed")
+    if width * height > lim.max_image_pixels:
+        raise InputError(f"{source}: {what} is {width}x{height} = {width * height / 1e6:.1f} "
+                         f"MP, over the {lim.max_image_pixels / 1e6:.1f} MP limit (raise it "
+                         "with `slamreloc --limit max_image_pixels=N` or "
+                         "SLAMRELOC_MAX_IMAGE_PIXELS)")
+
+
+def check_encoded_image(data: bytes, source, what: str = "image") -> ImageHeader:
+    """The checked header of a complete encoded image: refuse an empty, truncated, (PNG)
+    corrupted, oversized or (JPEG) over-scanned one."""
+    lim = limits()
+    if len(data) > lim.max_image_bytes:
+        raise InputError(f"{source}: {len(data)} bytes, over the {lim.max_image_bytes} byte "
+                         f"limit for an encoded {what} (max_image_bytes)")
+    header = encoded_header(data, source, what)
+    if header.format == "PNG":
+        for _ in _png_chunks(data, source, what, verify_crc=True):
+            pass
+    elif header.format == "JPEG":
+        if b"\xff\xd9" not in data[-64:]:
+            raise InputError(f"{source}: not a readable {what} (JPEG truncated: no end marker)")
+        scans = data.count(b"\xff\xda")  # SOS markers (entropy-coded data stuffs 0xFF as FF00)
+        if scans > lim.max_jpeg_scans:
+            raise InputError(f"{source}: JPEG with {scans} scans, over the "
+                             f"{lim.max_jpeg_scans} scan limit (max_jpeg_scans)")
+    return header
+
+
+def decode_image(data: bytes, source, flags: int = cv2.IMREAD_COLOR,
+                 what: str = "image") -> np.ndarray:
+    """Decode checked bytes with OpenCV (`flags` as cv2.imdecode's); the array as decoded
+    (BGR for colour)."""
+    header = check_encoded_image(data, source, what)
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    if img is None or img.size == 0:
+        raise InputError(f"{source}: not a readable {what} (empty or corrupt)")
+    if (img.shape[1], img.shape[0]) != (header.width, header.height):
+        raise InputError(f"{source}: not a readable {what} (decoded {img.shape[1]}x"
+                         f"{img.shape[0]}, its header says {header.width}x{header.height})")
+    return img
+
+
+def decode_rgb(data: bytes, source) -> np.ndarray:
+    """RGB uint8 (H, W, 3) from encoded bytes (a 16-bit image is scaled to 8 bits)."""
+    img = decode_image(data, source, cv2.IMREAD_COLOR)
+    if img.dtype != np.uint8:
+        img = cv2.convertScaleAbs(img, alpha=255.0 / 65535.0)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def _file_bytes(path: Path, what: str) -> bytes:
+    return read_bytes(path, what, limits().max_image_bytes)
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """RGB uint8 (H, W, 3) from an image file."""
+    return decode_rgb(_file_bytes(Path(path), "image"), Path(path))
+
+
+def read_depth(path: str | Path, units_per_metre: float = 1000.0,
+               size: tuple[int, int] | None = None) -> np.ndarray:
+    """float32 depth in metres (H, W) from a 16-bit single-channel image; invalid pixels (raw
+    0 or 65535) are 0. `size` (width, height): the size the depth must have."""
+    path = Path(path)
+    raw = decode_image(_file_bytes(path, "depth"), path, cv2.IMREAD_ANYDEPTH, "depth")
+    if raw.ndim != 2:
+        raise InputError(f"{path}: depth must be a single-channel image, got shape {raw.shape}")
+    if raw.dtype != np.uint16:
+        raise InputError(f"{path}: depth must be 16-bit (uint16), got {raw.dtype}")
+    if size is not None and (raw.shape[1], raw.shape[0]) != tuple(size):
+        raise InputError(f"{path}: depth is {raw.shape[1]}x{raw.shape[0]}, its image is "
+                         f"{size[0]}x{size[1]}")
+    depth = raw.astype(np.float32) / units_per_metre
+    depth[np.isin(raw, INVALID_DEPTH)] = 0.0
+    return depth
+
+
+def image_header(path: str | Path, what: str = "image") -> ImageHeader:
+    """The checked header of an image file, reading as little of it as the format allows."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: {what} file not found")
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1 << 16)
+            rest = f.peek(1) if hasattr(f, "peek") else b""
+            if head.startswith(PNG_MAGIC) or not rest:
+                return encoded_header(head, path, what)
+            if head.startswith(JPEG_MAGIC):
+                try:  # the frame header is near the start unless large EXIF blocks precede it
+                    return encoded_header(head, path, what)
+                except InputError:
+                    pass
+            size = path.stat().st_size  # other formats' parsers want the whole file (bounded)
+            if size > limits().max_image_bytes:
+                raise InputError(f"{path}: {size} bytes, over the {limits().max_image_bytes} "
+                                 f"byte limit for an encoded {what} (max_image_bytes)")
+            head += f.read()
+    except OSError as err:
+        raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None
+    return encoded_header(head, path, what)
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of an image, from its header."""
+    header = image_header(path)
+    return header.width, header.height
+
+
+def check_frame_files(image_path: Path, size: tuple[int, int], depth_path: Path | None = None,
+                      check_depth: bool = False) -> None:
+    """At dataset load: the image has the dataset's size; registered depth (if asked) is a
+    16-bit single-channel image of the same size. Reads headers only."""
+    got = image_size(image_path)
+    if got != tuple(size):
+        raise InputError(f"{image_path}: image is {got[0]}x{got[1]}, the dataset's images are "
+                         f"{size[0]}x{size[1]}")
+    if check_depth and depth_path is not None:
+        h = image_header(depth_path, "depth")
+        if h.channels != 1 or h.bits != 16:
+            raise InputError(f"{depth_path}: depth must be a 16-bit single-channel image, got "
+                             f"{h.channels} channel(s) of {h.bits} bits")
+        if (h.width, h.height) != tuple(size):
+            raise InputError(f"{depth_path}: depth is {h.width}x{h.height}, its image is "
+                             f"{size[0]}x{size[1]} (registered depth must match)")

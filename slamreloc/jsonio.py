@@ -1,0 +1,189 @@
+"""Reading JSON from untrusted files: bounded size and nesting, finite numbers only, and typed
+access to fields whose errors name the file and the field (`report.json: events[3].frame must
+be a whole number, got "abc"`).
+
+`read_json` is the one JSON reader of the package (map metadata, scene descriptions, reports);
+`Json` wraps a parsed value for typed reading.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slamreloc.errors import InputError
+from slamreloc.fileio import read_bytes
+from slamreloc.limits import limits
+
+
+def _refuse_constant(name: str):
+    raise ValueError(f"{name} is not a number JSON allows")
+
+
+def _depth(value: Any, limit: int) -> int:
+    """Nesting depth of arrays and objects (iterative: no recursion to exhaust)."""
+    deepest, stack = 0, [(value, 1)]
+    while stack:
+        v, d = stack.pop()
+        if isinstance(v, (list, dict)):
+            deepest = max(deepest, d)
+            if deepest > limit:
+                return deepest
+            stack.extend((c, d + 1) for c in (v.values() if isinstance(v, dict) else v))
+    return deepest
+
+
+def parse_json(data: bytes | str, source, what: str = "JSON") -> Any:
+    """A parsed JSON value: InputError (naming `source`) on invalid JSON, NaN / Infinity,
+    nesting deeper than `max_json_depth`."""
+    lim = limits()
+    if len(data) > lim.max_json_bytes:
+        raise InputError(f"{source}: {len(data)} bytes, over the {lim.max_json_bytes} byte "
+                         f"limit for {what} (max_json_bytes)")
+    # the C parser recurses once per level: refuse deep nesting before it does
+    depth = 0
+    for ch in (data.encode() if isinstance(data, str) else data)[: 1 << 16]:
+        depth += 1 if ch in b"[{" else -1 if ch in b"]}" else 0
+        if depth > lim.max_json_depth:
+            raise InputError(f"{source}: {what} is nested more than {lim.max_json_depth} "
+                             "levels deep (max_json_depth)")
+    try:
+        value = json.loads(data, parse_constant=_refuse_constant)
+    except RecursionError:
+        raise InputError(f"{source}: {what} is nested too deeply") from None
+    except ValueError as err:  # JSONDecodeError, UnicodeDecodeError, NaN / Infinity
+        raise InputError(f"{source}: not valid {what} ({' '.join(str(err).split())[:200]})"
+                         ) from None
+    if _depth(value, lim.max_json_depth) > lim.max_json_depth:
+        raise InputError(f"{source}: {what} is nested more than {lim.max_json_depth} levels "
+                         "deep (max_json_depth)")
+    return value
+
+
+def read_json(path: str | Path, what: str = "JSON") -> dict:
+    """The JSON object in a file (bounded by `max_json_bytes` and `max_json_depth`)."""
+    path = Path(path)
+    value = parse_json(read_bytes(path, what, limits().max_json_bytes), path, what)
+    if not isinstance(value, dict):
+        raise InputError(f"{path}: {what} must be a JSON object, got {_kind(value)}")
+    return value
+
+
+def _kind(value: Any) -> str:
+    return {dict: "an object", list: "a list", str: "a string", bool: "true/false",
+            type(None): "null"}.get(type(value), "a number")
+
+
+def _short(value: Any) -> str:
+    text = json.dumps(value) if isinstance(value, (str, int, float, bool, type(None))) else \
+        _kind(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+class Json:
+    """A parsed JSON value and where it came from (`source`: the file; `where`: the field path),
+    read through typed accessors that raise InputError naming both."""
+
+    def __init__(self, value: Any, source, where: str = "") -> None:
+        self.value, self.source, self.where = value, source, where
+
+    def _fail(self, problem: str, key: str | int | None = None) -> InputError:
+        where = self._path(key)
+        return InputError(f"{self.source}: {where + ' ' if where else ''}{problem}")
+
+    def _path(self, key: str | int | None) -> str:
+        if key is None:
+            return self.where
+        return f"{self.where}[{key}]" if isinstance(key, int) else (
+            f"{self.where}.{key}" if self.where else str(key))
+
+    def has(self, key: str) -> bool:
+        return isinstance(self.value, dict) and self.value.get(key) is not None
+
+    def child(self, key: str | int) -> Json:
+        container = self.value
+        if isinstance(key, str) and not isinstance(container, dict):
+            raise self._fail(f"must be an object, got {_kind(container)}")
+        try:
+            return Json(container[key], self.source, self._path(key))
+        except (KeyError, IndexError, TypeError):
+            raise self._fail("is missing", key) from None
+
+    def get(self, key: str) -> Json | None:
+        """The field, or None where it is absent or null."""
+        if not isinstance(self.value, dict):
+            raise self._fail(f"must be an object, got {_kind(self.value)}")
+        return None if self.value.get(key) is None else self.child(key)
+
+    # --- typed values ---------------------------------------------------------------------
+    def obj(self) -> dict:
+        if not isinstance(self.value, dict):
+            raise self._fail(f"must be an object, got {_kind(self.value)}")
+        return self.value
+
+    def items(self) -> list[tuple[str, Json]]:
+        return [(k, self.child(k)) for k in self.obj()]
+
+    def list(self) -> list[Json]:
+        if not isinstance(self.value, list):
+            raise self._fail(f"must be a list, got {_kind(self.value)}")
+        return [self.child(i) for i in range(len(self.value))]
+
+    def str(self) -> str:
+        if not isinstance(self.value, str):
+            raise self._fail(f"must be a string, got {_short(self.value)}")
+        return self.value
+
+    def bool(self) -> bool:
+        if not isinstance(self.value, bool):
+            raise self._fail(f"must be true or false, got {_short(self.value)}")
+        return self.value
+
+    def number(self) -> float:
+        v = self.value
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise self._fail(f"must be a finite number, got {_short(v)}")
+        return float(v)
+
+    def int(self) -> int:
+        v = self.value
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self._fail(f"must be a whole number, got {_short(v)}")
+        return v
+
+    def array(self, shape: tuple[int | None, ...]) -> np.ndarray:
+        """A float64 array of finite numbers with `shape` (only the first size may be None:
+        any length)."""
+        def ok(v, dims) -> bool:
+            if not dims:
+                return isinstance(v, (int, float)) and not isinstance(v, bool) \
+                    and math.isfinite(v)
+            return isinstance(v, list) and (dims[0] is None or len(v) == dims[0]) and \
+                all(ok(c, dims[1:]) for c in v)
+
+        if not ok(self.value, shape):
+            want = "x".join("N" if s is None else str(s) for s in shape)
+            raise self._fail(f"must be a {want} array of finite numbers")
+        return np.array(self.value, dtype=np.float64).reshape(
+            (len(self.value), *shape[1:]) if shape else ())
+
+    # --- optional fields --------------------------------------------------------------------
+    def opt_number(self, key: str) -> float | None:
+        field = self.get(key)
+        return None if field is None else field.number()
+
+    def opt_int(self, key: str) -> int | None:
+        field = self.get(key)
+        return None if field is None else field.int()
+
+    def opt_str(self, key: str) -> str | None:
+        field = self.get(key)
+        return None if field is None else field.str()
+
+    def opt_bool(self, key: str) -> bool | None:
+        field = self.get(key)
+        return None if field is None else field.bool()

@@ -1,0 +1,94 @@
+"""Bounds on untrusted input, checked before anything is allocated for it.
+
+Every reader takes its bound from here, so one setting covers the CLI, the Python API and a
+service: the image decoder checks `max_image_pixels` against the header before it decodes, a
+feature extractor checks the pixels it will work on, JSON readers check size and nesting depth.
+
+Raise a bound with the CLI's global option (`slamreloc --max-image-pixels 50000000 localize
+...`), the environment (`SLAMRELOC_MAX_IMAGE_PIXELS=50000000`), or `set_limits(...)` in Python.
+The defaults keep every command under ~2 GB of memory on any input (BENCHMARKS.md, "Input
+bounds"); docs/formats.md lists them.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, fields, replace
+
+from slamreloc.errors import InputError
+
+ENV_PREFIX = "SLAMRELOC_"
+
+
+@dataclass(frozen=True)
+class InputLimits:
+    """Bounds on one input. Pixels count width x height (channels aside); bytes are file sizes
+    on disk or on the wire."""
+
+    max_image_pixels: int = 1 << 24  # 16.8 MP (4096 x 4096): decoded and worked-on images
+    min_image_side: int = 16  # pixels: smaller images cannot hold a feature
+    max_image_bytes: int = 256 << 20  # an encoded image file
+    max_feature_bytes: int = 3 << 29  # 1.5 GiB: a feature extractor's working memory
+    max_jpeg_scans: int = 256  # progressive JPEG: decode time grows with the scan count
+    max_json_bytes: int = 16 << 20  # a report, a map's metadata, scene.json
+    max_json_depth: int = 64  # nesting of JSON arrays and objects
+    max_text_bytes: int = 1 << 30  # trajectories, COLMAP text models, split lists
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+                raise InputError(f"limit {f.name} must be a positive integer, got {value!r}")
+
+
+def _from_environment() -> InputLimits:
+    overrides = {}
+    for f in fields(InputLimits):
+        name = ENV_PREFIX + f.name.upper()
+        text = os.environ.get(name)
+        if text is None:
+            continue
+        try:
+            overrides[f.name] = int(float(text))
+        except ValueError:
+            raise InputError(f"environment variable {name}: not a number ({text!r})") from None
+    return InputLimits(**overrides)
+
+
+_current: InputLimits | None = None
+
+
+def limits() -> InputLimits:
+    """The bounds in force: the defaults, overridden by SLAMRELOC_<NAME> environment variables
+    and then by `set_limits`."""
+    global _current
+    if _current is None:
+        _current = _from_environment()
+    return _current
+
+
+def set_limits(**overrides: int) -> InputLimits:
+    """Replace some bounds (e.g. `set_limits(max_image_pixels=50_000_000)`); returns them all."""
+    global _current
+    _current = replace(limits(), **overrides)
+    return _current
+
+
+def parse_limits(items: list[str]) -> dict[str, int]:
+    """`["max_image_pixels=5e7", ...]` (the CLI's `--limit NAME=VALUE`) -> set_limits' kwargs."""
+    names = [f.name for f in fields(InputLimits)]
+    out = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        name = name.strip().replace("-", "_")
+        if not sep or name not in names:
+            raise InputError(f"--limit {item!r}: expected NAME=VALUE with NAME one of "
+                             f"{', '.join(names)}")
+        try:
+            value = float(text)
+        except ValueError:
+            raise InputError(f"--limit {item!r}: {text!r} is not a number") from None
+        if not value.is_integer() or value <= 0:
+            raise InputError(f"--limit {item!r}: must be a positive whole number")
+        out[name] = int(value)
+    return out
