@@ -191,6 +191,14 @@ def decode_rgb(data: bytes, source) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
+def pixel_colours(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(N, C) values of `image` at the pixels nearest to `xy` (N, 2; x right, y down; clipped
+    to the image)."""
+    h, w = image.shape[:2]
+    uv = np.round(np.asarray(xy, np.float64)).astype(np.int64)
+    return image[np.clip(uv[:, 1], 0, h - 1), np.clip(uv[:, 0], 0, w - 1)]
+
+
 def _file_bytes(path: Path, what: str) -> bytes:
     return read_bytes(path, what, limits().max_image_bytes)
 

@@ -348,13 +348,16 @@ def test_pseudo_label_never_writes_into_its_inputs(small_map, scene_dir, tmp_pat
 
 @st.composite
 def read_only_command(draw, map_dir: Path, scene: Path, case: Path) -> list[str]:
-    """A read-only command over the map and the scene, with outputs anywhere, inputs included
-    (where they must be refused)."""
+    """A read-only command over the map and the scene (evaluate, localize, slam, export, the
+    viewer's loader), with outputs anywhere, inputs included (where they must be refused)."""
     out_dir = draw(st.sampled_from([case, map_dir, scene, scene / "seq-02"]))
     name = draw(st.sampled_from(["r.json", META, "frame-000000.pose.txt", "new"]))
     out = out_dir / name
     images = sorted((scene / "seq-02").glob("*.color.png"))[:2]
-    kind = draw(st.sampled_from(["evaluate", "evaluate", "localize", "slam", "view-load"]))
+    kind = draw(st.sampled_from(["evaluate", "evaluate", "localize", "slam", "view-load",
+                                 "export"]))
+    if kind == "export":
+        return ["export", str(map_dir), "--dataset", str(scene), "--ply", str(out)]
     if kind == "evaluate":
         return ["evaluate", str(map_dir), str(scene), "--split", "seq-02", "--report", str(out),
                 "--method", draw(st.sampled_from(["regressor", "matching"]))]
@@ -383,7 +386,7 @@ def _damage(draw, root: Path) -> None:
                          + data[pos + 1:])
 
 
-@fuzz_settings(24)
+@fuzz_settings(30)
 @given(data=st.data())
 def test_fuzz_read_only_commands_leave_inputs_byte_identical(small_map, scene_dir, tmp_path_factory,
                                                              data):
@@ -595,3 +598,21 @@ def test_huge_translations_are_refused(tmp_path, t):
     (tmp_path / "t.txt").write_text(f"0 {t} 0 0 0 0 0 1\n")
     with pytest.raises(InputError, match="t.txt:1"):
         read_tum_trajectory(tmp_path / "t.txt")
+
+
+@pytest.mark.parametrize("kind", ["folder", "broken link"])
+def test_a_colour_image_that_is_not_a_file_is_named(scene_dir, tmp_path, kind):
+    """A frame is never dropped unsaid: a colour image name that is a folder or a link to
+    nothing is an error naming it."""
+    from slamreloc.datasets import load_dataset
+
+    root = tmp_path / "scene"
+    shutil.copytree(scene_dir, root, copy_function=os.link)
+    victim = sorted((root / "seq-02").glob("*.color.png"))[3]
+    victim.unlink()
+    if kind == "folder":
+        victim.mkdir()
+    else:
+        victim.symlink_to(tmp_path / "nothing.png")
+    with pytest.raises(InputError, match=victim.name):
+        load_dataset(root)

@@ -7,14 +7,15 @@ frames, and the frames that carry them)."""
 from __future__ import annotations
 
 import numpy as np
-
-from slamreloc.errors import InputError
-from slamreloc.geometry import Rigid3
-from slamreloc.map_format import DATABASE, LABELLED
-from slamreloc.scene_map import SceneMap
 from slamreloc.viewer import colors as palette
 from slamreloc.viewer.data import FrameView, MapView, ViewerInputs
 from slamreloc.viewer.images import fit_width, frames_by_name, read_rgb
+
+from slamreloc.errors import InputError
+from slamreloc.geometry import Rigid3
+from slamreloc.images import pixel_colours
+from slamreloc.map_format import DATABASE, LABELLED
+from slamreloc.scene_map import SceneMap
 
 
 def estimate_up(world_from_cam: np.ndarray) -> np.ndarray:
@@ -98,10 +99,7 @@ def load_map(inputs: ViewerInputs, scene_map: SceneMap, dataset=None) -> MapView
         if img is None:
             continue
         if len(idx):
-            h, w = img.shape[:2]
-            uv = np.round(keypoints[idx]).astype(int)
-            u, v = np.clip(uv[:, 0], 0, w - 1), np.clip(uv[:, 1], 0, h - 1)
-            colors[idx] = img[v, u]
+            colors[idx] = pixel_colours(img, keypoints[idx])
             coloured[idx] = True
         if i in with_image:
             frame.thumbnail = fit_width(img, inputs.thumbnail_width)

@@ -163,6 +163,29 @@ def pseudo_label_cmd(
 
 
 @app.command()
+def export(
+    map_dir: Annotated[Path, typer.Argument(metavar="MAP", help="map folder")],
+    colmap: Annotated[Optional[Path], typer.Option(
+        help="write a COLMAP text model (cameras, images, points3D) into this folder")] = None,
+    ply: Annotated[Optional[Path], typer.Option(help="write the coloured points (PLY)")] = None,
+    tum: Annotated[Optional[Path], typer.Option(
+        help="write the training poses (TUM, camera-to-world)")] = None,
+    dataset: Annotated[Optional[Path], typer.Option(
+        help="dataset for colours and image names (default: the one the map records)")] = None,
+) -> None:
+    """Export MAP's labelled points and training cameras to COLMAP, PLY and TUM."""
+    from slamreloc.export import export_map
+    from slamreloc.progress import console
+
+    s = export_map(map_dir, colmap, ply, tum, dataset)
+    written = ", ".join(str(p) for p in (colmap, ply, tum) if p is not None)
+    points = (f"{s['points']} points ({s['observations']} observations, colours "
+              f"{'from the images' if s['coloured_from_images'] else 'grey: no dataset'}), "
+              if "points" in s else "")
+    console.print(f"[green]exported[/green] {points}{s['frames']} cameras to {written}")
+
+
+@app.command()
 def demo(
     workdir: Annotated[Path, typer.Option(help="where the scene, map and reports go")] =
     Path("slamreloc-demo"),

@@ -79,7 +79,14 @@ def _camera(root: Path) -> Camera:
 
 
 def _is_image(path: Path) -> bool:
-    return path.suffix.lower() in IMAGE_SUFFIXES and path.is_file()
+    """A frame's colour image by its name; InputError where that name is not a file (a
+    folder, a link to nothing): the frame would otherwise vanish from the dataset unsaid."""
+    if path.suffix.lower() not in IMAGE_SUFFIXES:
+        return False
+    if not path.is_file():
+        raise InputError(f"{path}: named as a colour image but not a file (a folder or a "
+                         "broken link)")
+    return True
 
 
 def _sequence(seq_dir: Path, camera: Camera, registered: bool) -> list[Frame]:

@@ -1,0 +1,205 @@
+"""A map's labelled points and training cameras in the formats other tools read: a COLMAP text
+model (pycolmap, the COLMAP GUI), a coloured PLY point cloud (open3d, MeshLab, CloudCompare)
+and a TUM trajectory of the training poses (evo).
+
+Map frame, metres. The database holds one row per labelled keypoint; rows of one triangulated
+track share their world point exactly, so they become one COLMAP 3D point with a track of all
+their observations (depth labels: one observation each). Colours come from the training images
+when the map's dataset is at hand (the one it records, or `dataset`), else grey.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from slamreloc.errors import InputError
+from slamreloc.fileio import atomic_file
+from slamreloc.geometry import Rigid3, matrix_to_quat, write_tum_trajectory
+from slamreloc.images import pixel_colours, read_image
+from slamreloc.progress import track
+from slamreloc.scene_map import SceneMap
+
+GREY = 128
+
+
+@dataclass
+class ExportPoints:
+    """The map's distinct world points with their colours and observations."""
+
+    xyz: np.ndarray  # (P, 3) float64, map frame, metres
+    rgb: np.ndarray  # (P, 3) uint8
+    row_point: np.ndarray  # (M,) database row -> point index
+    error_px: np.ndarray  # (P,) mean reprojection error over the point's observations
+
+
+def frame_images(scene_map: SceneMap, dataset=None) -> tuple[Path | None, dict[str, Path]]:
+    """(dataset root, frame name -> image file), from `dataset` (a Dataset) or the one the map
+    records; (None, {}) when neither is at hand."""
+    if dataset is None:
+        root = scene_map.info.dataset_root
+        if root is None or not Path(root).is_dir():
+            return None, {}
+        from slamreloc.datasets import load_dataset
+
+        try:
+            dataset = load_dataset(root)
+        except InputError:
+            return None, {}
+    return Path(dataset.root), {f.name: f.image_path for f in dataset.frames("all")}
+
+
+def export_points(scene_map: SceneMap, images: dict[str, Path],
+                  progress: bool = True) -> ExportPoints:
+    db = scene_map.database
+    xyz, row_point = np.unique(np.asarray(db.points, np.float64), axis=0, return_inverse=True)
+    row_point = row_point.reshape(-1)
+    rgb = np.full((len(xyz), 3), GREY, np.uint8)
+    coloured = np.zeros(len(xyz), bool)
+    order = np.argsort(db.frame_index, kind="stable")
+    bounds = np.searchsorted(db.frame_index[order], np.arange(len(db.frame_names) + 1))
+    for i, name in enumerate(track(db.frame_names, "colouring points", enabled=progress)):
+        rows = order[bounds[i]:bounds[i + 1]]
+        rows = rows[~coloured[row_point[rows]]]
+        if len(rows) == 0 or name not in images:
+            continue
+        rgb[row_point[rows]] = pixel_colours(read_image(images[name]), db.keypoints[rows])
+        coloured[row_point[rows]] = True
+    # reprojection error of each observation with the map's camera
+    cam = scene_map.camera
+    cam_from_world = np.linalg.inv(np.asarray(db.world_from_cam, np.float64))[db.frame_index]
+    pc = np.einsum("nij,nj->ni", cam_from_world[:, :3, :3], xyz[row_point]) \
+        + cam_from_world[:, :3, 3]
+    z = np.maximum(pc[:, 2], 1e-9)
+    proj = np.stack([cam.fx * pc[:, 0] / z + cam.cx, cam.fy * pc[:, 1] / z + cam.cy], axis=1)
+    err = np.linalg.norm(proj - db.keypoints, axis=1)
+    error_px = np.bincount(row_point, err, len(xyz)) / np.maximum(
+        np.bincount(row_point, minlength=len(xyz)), 1)
+    return ExportPoints(xyz, rgb, row_point, error_px)
+
+
+def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
+                 images: dict[str, Path], root: Path | None = None) -> None:
+    """cameras.txt, images.txt, points3D.txt in `out`, written beside it and renamed into
+    place. Image names are the files' paths relative to the dataset root where known (a
+    COLMAP project's image folder), else the frame names."""
+    out = Path(out)
+    db = scene_map.database
+    cam = scene_map.camera
+    names = []
+    for name in db.frame_names:
+        path = images.get(name)
+        names.append(os.path.relpath(path, root) if path is not None and root is not None
+                     else name)
+    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    try:
+        # COLMAP's pixel centres are at +0.5 (slamreloc: OpenCV, at integers)
+        (tmp / "cameras.txt").write_text(
+            "# slamreloc map camera\n"
+            f"1 PINHOLE {cam.width} {cam.height} {float(cam.fx)!r} {float(cam.fy)!r} "
+            f"{float(cam.cx) + 0.5!r} {float(cam.cy) + 0.5!r}\n")
+        order = np.argsort(db.frame_index, kind="stable")
+        bounds = np.searchsorted(db.frame_index[order], np.arange(len(db.frame_names) + 1))
+        point2d_index = np.zeros(len(db.points), np.int64)
+        lines = ["# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME / POINTS2D[] as (X, Y, "
+                 "POINT3D_ID)"]
+        for i, name in enumerate(names):
+            cam_from_world = Rigid3.from_matrix(db.world_from_cam[i], tol=1e-2).inverse()
+            qx, qy, qz, qw = matrix_to_quat(cam_from_world.rotation).tolist()
+            tx, ty, tz = cam_from_world.translation.tolist()
+            lines.append(f"{i + 1} {qw!r} {qx!r} {qy!r} {qz!r} {tx!r} {ty!r} {tz!r} 1 {name}")
+            rows = order[bounds[i]:bounds[i + 1]]
+            point2d_index[rows] = np.arange(len(rows))
+            kp = db.keypoints[rows].astype(np.float64) + 0.5
+            lines.append(" ".join(f"{x!r} {y!r} {p + 1}" for (x, y), p in
+                                  zip(kp.tolist(), points.row_point[rows].tolist())))
+        (tmp / "images.txt").write_text("\n".join(lines) + "\n")
+        by_point = np.argsort(points.row_point, kind="stable")
+        starts = np.searchsorted(points.row_point[by_point], np.arange(len(points.xyz) + 1))
+        image_id = db.frame_index.astype(np.int64) + 1
+        with open(tmp / "points3D.txt", "w") as f:
+            f.write("# POINT3D_ID X Y Z R G B ERROR TRACK[] as (IMAGE_ID, POINT2D_IDX)\n")
+            for p in range(len(points.xyz)):
+                rows = by_point[starts[p]:starts[p + 1]]
+                x, y, z = points.xyz[p].tolist()
+                r, g, b = points.rgb[p].tolist()
+                track_text = " ".join(f"{im} {k}" for im, k in
+                                      zip(image_id[rows].tolist(), point2d_index[rows].tolist()))
+                f.write(f"{p + 1} {x!r} {y!r} {z!r} {r} {g} {b} {points.error_px[p]:.6f} "
+                        f"{track_text}\n")
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def write_ply(path: Path, points: ExportPoints) -> None:
+    """Binary little-endian PLY: x y z (float32, metres) and red green blue (uchar)."""
+    vertex = np.zeros(len(points.xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                              ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    for i, axis in enumerate("xyz"):
+        vertex[axis] = points.xyz[:, i]
+    for i, channel in enumerate(("red", "green", "blue")):
+        vertex[channel] = points.rgb[:, i]
+    header = ("ply\nformat binary_little_endian 1.0\ncomment slamreloc map points, map frame, "
+              f"metres\nelement vertex {len(vertex)}\nproperty float x\nproperty float y\n"
+              "property float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\n"
+              "end_header\n")
+    with atomic_file(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(header.encode("ascii"))
+            f.write(vertex.tobytes())
+
+
+def write_training_poses(scene_map: SceneMap, path: Path) -> None:
+    """The training cameras as a TUM trajectory (camera-to-world; stamps = frame index), with
+    the frame names in the `.names.txt` sidecar."""
+    db = scene_map.database
+    poses = [Rigid3.from_matrix(m, tol=1e-2) for m in db.world_from_cam]
+    write_tum_trajectory(path, range(len(poses)), poses,
+                         [f"slamreloc map {scene_map.root}: training cameras, map frame, "
+                          "camera-to-world", "stamp = frame index; names in the .names.txt file"],
+                         names=list(db.frame_names))
+
+
+def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = None,
+               tum: Path | None = None, dataset_dir: Path | None = None,
+               progress: bool = True) -> dict:
+    """Write the requested exports of the map at `map_dir`; returns a summary."""
+    from slamreloc.fileio import check_outputs
+    from slamreloc.map_format import check_is_map
+
+    if colmap is None and ply is None and tum is None:
+        raise InputError("export: nothing to write (give --colmap DIR, --ply FILE or --tum FILE)")
+    check_is_map(map_dir)
+    check_outputs({"--colmap": colmap, "--ply": ply, "--tum": tum},
+                  {"the map": map_dir, "--dataset": dataset_dir}, folders=("--colmap",))
+    if colmap is not None and Path(colmap).is_dir() and any(Path(colmap).iterdir()) and not (
+            Path(colmap) / "points3D.txt").is_file():
+        raise InputError(f"{colmap}: exists and is not a COLMAP model; refusing to replace it")
+    scene_map = SceneMap.load(map_dir, regressor=False)
+    dataset = None
+    if dataset_dir is not None:
+        from slamreloc.datasets import load_dataset
+
+        dataset = load_dataset(dataset_dir)
+    root, images = frame_images(scene_map, dataset)
+    summary = {"frames": len(scene_map.database.frame_names)}
+    if colmap is not None or ply is not None:
+        points = export_points(scene_map, images, progress)
+        summary.update(points=len(points.xyz), observations=len(points.row_point),
+                       coloured_from_images=bool(images))
+        if colmap is not None:
+            write_colmap(scene_map, Path(colmap), points, images, root)
+        if ply is not None:
+            write_ply(Path(ply), points)
+    if tum is not None:
+        write_training_poses(scene_map, Path(tum))
+    return summary
