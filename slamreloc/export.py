@@ -22,7 +22,7 @@ from slamreloc.fileio import atomic_file
 from slamreloc.geometry import Rigid3, matrix_to_quat, write_tum_trajectory
 from slamreloc.images import pixel_colours, read_image
 from slamreloc.progress import track
-from slamreloc.scene_map import SceneMap
+from slamreloc.scene_map import SceneMap, rows_by_frame
 
 GREY = 128
 
@@ -60,11 +60,9 @@ def export_points(scene_map: SceneMap, images: dict[str, Path],
     row_point = row_point.reshape(-1)
     rgb = np.full((len(xyz), 3), GREY, np.uint8)
     coloured = np.zeros(len(xyz), bool)
-    order = np.argsort(db.frame_index, kind="stable")
-    bounds = np.searchsorted(db.frame_index[order], np.arange(len(db.frame_names) + 1))
+    frame_rows = rows_by_frame(db.frame_index, len(db.frame_names))
     for i, name in enumerate(track(db.frame_names, "colouring points", enabled=progress)):
-        rows = order[bounds[i]:bounds[i + 1]]
-        rows = rows[~coloured[row_point[rows]]]
+        rows = frame_rows[i][~coloured[row_point[frame_rows[i]]]]
         if len(rows) == 0 or name not in images:
             continue
         rgb[row_point[rows]] = pixel_colours(read_image(images[name]), db.keypoints[rows])
@@ -104,8 +102,7 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
             "# slamreloc map camera\n"
             f"1 PINHOLE {cam.width} {cam.height} {float(cam.fx)!r} {float(cam.fy)!r} "
             f"{float(cam.cx) + 0.5!r} {float(cam.cy) + 0.5!r}\n")
-        order = np.argsort(db.frame_index, kind="stable")
-        bounds = np.searchsorted(db.frame_index[order], np.arange(len(db.frame_names) + 1))
+        frame_rows = rows_by_frame(db.frame_index, len(db.frame_names))
         point2d_index = np.zeros(len(db.points), np.int64)
         lines = ["# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME / POINTS2D[] as (X, Y, "
                  "POINT3D_ID)"]
@@ -114,19 +111,18 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
             qx, qy, qz, qw = matrix_to_quat(cam_from_world.rotation).tolist()
             tx, ty, tz = cam_from_world.translation.tolist()
             lines.append(f"{i + 1} {qw!r} {qx!r} {qy!r} {qz!r} {tx!r} {ty!r} {tz!r} 1 {name}")
-            rows = order[bounds[i]:bounds[i + 1]]
+            rows = frame_rows[i]
             point2d_index[rows] = np.arange(len(rows))
             kp = db.keypoints[rows].astype(np.float64) + 0.5
             lines.append(" ".join(f"{x!r} {y!r} {p + 1}" for (x, y), p in
                                   zip(kp.tolist(), points.row_point[rows].tolist())))
         (tmp / "images.txt").write_text("\n".join(lines) + "\n")
-        by_point = np.argsort(points.row_point, kind="stable")
-        starts = np.searchsorted(points.row_point[by_point], np.arange(len(points.xyz) + 1))
+        point_rows = rows_by_frame(points.row_point, len(points.xyz))  # rows of each point
         image_id = db.frame_index.astype(np.int64) + 1
         with open(tmp / "points3D.txt", "w") as f:
             f.write("# POINT3D_ID X Y Z R G B ERROR TRACK[] as (IMAGE_ID, POINT2D_IDX)\n")
             for p in range(len(points.xyz)):
-                rows = by_point[starts[p]:starts[p + 1]]
+                rows = point_rows[p]
                 x, y, z = points.xyz[p].tolist()
                 r, g, b = points.rgb[p].tolist()
                 track_text = " ".join(f"{im} {k}" for im, k in

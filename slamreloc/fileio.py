@@ -9,11 +9,11 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from slamreloc.errors import InputError
+
 
 def read_bytes(path: str | Path, what: str, limit: int) -> bytes:
     """The bytes of a file of at most `limit` bytes; InputError naming it otherwise."""
-    from slamreloc.errors import InputError
-
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: {what} file not found")
@@ -36,8 +36,6 @@ def check_outputs(outputs: dict[str, str | Path | None],
     other outputs, and absent or a regular file (a folder for the outputs named in `folders`):
     never a device, a pipe or a socket, which an atomic rename would replace. Symbolic links
     are followed."""
-    from slamreloc.errors import InputError
-
     ins = {what: Path(p).resolve() for what, p in inputs.items() if p is not None}
     seen: dict[Path, str] = {}
     for option, out in outputs.items():

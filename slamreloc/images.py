@@ -13,6 +13,7 @@ from __future__ import annotations
 import io
 import struct
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -169,11 +170,14 @@ def check_encoded_image(data: bytes, source, what: str = "image") -> ImageHeader
     return header
 
 
-def decode_image(data: bytes, source, flags: int = cv2.IMREAD_COLOR,
-                 what: str = "image") -> np.ndarray:
+def decode_image(data: bytes, source, flags: int = cv2.IMREAD_COLOR, what: str = "image",
+                 fits: Callable[[int, int, object], None] | None = None) -> np.ndarray:
     """Decode checked bytes with OpenCV (`flags` as cv2.imdecode's); the array as decoded
-    (BGR for colour)."""
+    (BGR for colour). `fits(width, height, source)`: a further check of the header's size
+    before decoding (a feature extractor's `check_size`)."""
     header = check_encoded_image(data, source, what)
+    if fits is not None:
+        fits(header.width, header.height, source)
     img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     if img is None or img.size == 0:
         raise InputError(f"{source}: not a readable {what} (empty or corrupt)")
@@ -183,9 +187,11 @@ def decode_image(data: bytes, source, flags: int = cv2.IMREAD_COLOR,
     return img
 
 
-def decode_rgb(data: bytes, source) -> np.ndarray:
-    """RGB uint8 (H, W, 3) from encoded bytes (a 16-bit image is scaled to 8 bits)."""
-    img = decode_image(data, source, cv2.IMREAD_COLOR)
+def decode_rgb(data: bytes, source,
+               fits: Callable[[int, int, object], None] | None = None) -> np.ndarray:
+    """RGB uint8 (H, W, 3) from encoded bytes (a 16-bit image is scaled to 8 bits); `fits` as
+    decode_image's."""
+    img = decode_image(data, source, cv2.IMREAD_COLOR, fits=fits)
     if img.dtype != np.uint8:
         img = cv2.convertScaleAbs(img, alpha=255.0 / 65535.0)
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
@@ -203,9 +209,10 @@ def _file_bytes(path: Path, what: str) -> bytes:
     return read_bytes(path, what, limits().max_image_bytes)
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """RGB uint8 (H, W, 3) from an image file."""
-    return decode_rgb(_file_bytes(Path(path), "image"), Path(path))
+def read_image(path: str | Path,
+               fits: Callable[[int, int, object], None] | None = None) -> np.ndarray:
+    """RGB uint8 (H, W, 3) from an image file; `fits` as decode_image's."""
+    return decode_rgb(_file_bytes(Path(path), "image"), Path(path), fits)
 
 
 def read_depth(path: str | Path, units_per_metre: float = 1000.0,

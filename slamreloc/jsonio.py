@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -39,18 +40,12 @@ def _depth(value: Any, limit: int) -> int:
 
 def parse_json(data: bytes | str, source, what: str = "JSON") -> Any:
     """A parsed JSON value: InputError (naming `source`) on invalid JSON, NaN / Infinity,
-    nesting deeper than `max_json_depth`."""
+    nesting deeper than `max_json_depth` (the parser itself stops at Python's recursion limit,
+    ~1000 levels: a RecursionError, refused the same way)."""
     lim = limits()
     if len(data) > lim.max_json_bytes:
         raise InputError(f"{source}: {len(data)} bytes, over the {lim.max_json_bytes} byte "
                          f"limit for {what} (max_json_bytes)")
-    # the C parser recurses once per level: refuse deep nesting before it does
-    depth = 0
-    for ch in (data.encode() if isinstance(data, str) else data)[: 1 << 16]:
-        depth += 1 if ch in b"[{" else -1 if ch in b"]}" else 0
-        if depth > lim.max_json_depth:
-            raise InputError(f"{source}: {what} is nested more than {lim.max_json_depth} "
-                             "levels deep (max_json_depth)")
     try:
         value = json.loads(data, parse_constant=_refuse_constant)
     except RecursionError:
@@ -172,18 +167,8 @@ class Json:
             (len(self.value), *shape[1:]) if shape else ())
 
     # --- optional fields --------------------------------------------------------------------
-    def opt_number(self, key: str) -> float | None:
+    def opt(self, key: str, read: Callable[[Json], Any]) -> Any:
+        """`read(field)` (e.g. `Json.number`) of the field `key`, or None where it is absent or
+        null."""
         field = self.get(key)
-        return None if field is None else field.number()
-
-    def opt_int(self, key: str) -> int | None:
-        field = self.get(key)
-        return None if field is None else field.int()
-
-    def opt_str(self, key: str) -> str | None:
-        field = self.get(key)
-        return None if field is None else field.str()
-
-    def opt_bool(self, key: str) -> bool | None:
-        field = self.get(key)
-        return None if field is None else field.bool()
+        return None if field is None else read(field)

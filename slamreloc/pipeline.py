@@ -9,7 +9,6 @@ from slamreloc.errors import InputError
 from slamreloc.evaluate import evaluate_frames, summarize, write_tum
 from slamreloc.fileio import check_outputs, write_json
 from slamreloc.geometry import Rigid3, tum_line
-from slamreloc.images import image_header
 from slamreloc.localizer import make_localizer
 from slamreloc.map_format import check_is_map
 from slamreloc.scene_map import SceneMap
@@ -92,9 +91,8 @@ def localize_images(map_dir: Path, images: list[Path], intrinsics=None,
     localizer = make_localizer(scene_map, method)
     for path in images:
         try:
-            header = image_header(path)  # bounds checked before anything is decoded
-            localizer.extractor.check_size(header.width, header.height, path)
-            image = read_image(path)
+            # the bounds, the extractor's included, are checked before anything is decoded
+            image = read_image(path, fits=localizer.extractor.check_size)
         except InputError as err:
             yield f"error: {err}", "error"
             continue

@@ -18,15 +18,35 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.map_format import (DATABASE, DB_KEYS, META, PROVENANCE, SURFACE, WEIGHTS,
-                                  check_database, check_digest, check_provenance, is_map,
-                                  read_meta, read_npz, weights_name)
+from slamreloc.map_format import (
+    DATABASE,
+    DB_KEYS,
+    META,
+    PROVENANCE,
+    SURFACE,
+    WEIGHTS,
+    check_database,
+    check_digest,
+    check_provenance,
+    is_map,
+    read_meta,
+    read_npz,
+    weights_name,
+)
 from slamreloc.map_lock import clean_leftovers
 from slamreloc.map_weights import read_regressor
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig
 from slamreloc.surface import Surface
 from slamreloc.types import Camera
+
+
+def rows_by_frame(frame_index: np.ndarray, n_frames: int) -> list[np.ndarray]:
+    """For each frame 0..n_frames-1, the indices of the rows whose `frame_index` is that
+    frame, in row order."""
+    order = np.argsort(frame_index, kind="stable")
+    bounds = np.searchsorted(frame_index[order], np.arange(n_frames + 1))
+    return [order[bounds[i]:bounds[i + 1]] for i in range(n_frames)]
 
 
 @dataclass

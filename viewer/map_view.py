@@ -15,7 +15,7 @@ from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
 from slamreloc.images import pixel_colours
 from slamreloc.map_format import DATABASE, LABELLED
-from slamreloc.scene_map import SceneMap
+from slamreloc.scene_map import SceneMap, rows_by_frame
 
 
 def estimate_up(world_from_cam: np.ndarray) -> np.ndarray:
@@ -89,10 +89,7 @@ def load_map(inputs: ViewerInputs, scene_map: SceneMap, dataset=None) -> MapView
                      .round().astype(int).tolist()) if frames else set()
     colors = np.zeros((len(points), 3), np.uint8)
     coloured = np.zeros(len(points), bool)
-    order = np.argsort(frame_index, kind="stable")
-    bounds = np.searchsorted(frame_index[order], np.arange(len(frames) + 1))
-    for i, frame in enumerate(frames):
-        idx = order[bounds[i]:bounds[i + 1]]
+    for i, (frame, idx) in enumerate(zip(frames, rows_by_frame(frame_index, len(frames)))):
         if frame.image_path is None or (len(idx) == 0 and i not in with_image):
             continue
         img = read_rgb(frame.image_path)

@@ -35,7 +35,7 @@ def report_kind(data: dict) -> str:
 def recorded_dataset(path: Path, data: dict) -> str | None:
     """The dataset folder an evaluate report records (`dataset.root`), if any."""
     field = Json(data, path).get("dataset")
-    return None if field is None else field.opt_str("root")
+    return None if field is None else field.opt("root", Json.str)
 
 
 def read_evaluate(path: Path, data: dict, dataset, trajectories: list[Trajectory]) -> EvalReport:
@@ -53,9 +53,9 @@ def read_evaluate(path: Path, data: dict, dataset, trajectories: list[Trajectory
     for q in [] if per_query is None else per_query.list():
         name = q.child("name").str()
         frame = by_name.get(name)
-        t_err = q.opt_number("translation_error_m")
-        r_err = q.opt_number("rotation_error_deg")
-        inliers = q.opt_int("num_inliers")
+        t_err = q.opt("translation_error_m", Json.number)
+        r_err = q.opt("rotation_error_deg", Json.number)
+        inliers = q.opt("num_inliers", Json.int)
         est = estimates.get(name) if t_err is not None else None
         missing += int(t_err is not None and est is None)
         queries.append(QueryView(name, est, frame.world_from_cam if frame else None, t_err,

@@ -51,7 +51,8 @@ def _accepted(e: Json) -> bool:
     if e.has("rejected"):
         return not e.child("rejected").bool()
     info = e.get("info")
-    status = e.opt_str("status") or (info.opt_str("status") if info is not None else None)
+    status = e.opt("status", Json.str) or (
+        info.opt("status", Json.str) if info is not None else None)
     if status:
         return status.lower() not in ("rejected", "failed", "refused")
     if info is not None and info.has("accepted"):
@@ -66,10 +67,8 @@ def _opt_int(field: Json | None) -> int | None:
 def _position(e: Json) -> np.ndarray | None:
     if e.has("world_from_cam"):
         field = e.child("world_from_cam")
-        m = field.array((len(field.value) if isinstance(field.value, list) else 4, 4))
-        if m.shape not in ((4, 4), (3, 4)):
-            raise e._fail("must be a 4x4 matrix", "world_from_cam")
-        return m[:3, 3].copy()
+        rows = 3 if isinstance(field.value, list) and len(field.value) == 3 else 4
+        return field.array((rows, 4))[:3, 3].copy()
     for key in ("position", "pose", "tum"):
         if e.has(key):
             v = e.child(key)
@@ -109,7 +108,7 @@ class _Locator:
 def read_slam_report(path: Path, data: dict, trajectories: list[Trajectory]) -> SlamReport:
     report = Json(data, path)
     traj = None
-    name = report.opt_str("trajectory")
+    name = report.opt("trajectory", Json.str)
     if name:
         candidate = Path(path).parent / name
         if candidate.is_file():
@@ -130,7 +129,8 @@ def read_slam_report(path: Path, data: dict, trajectories: list[Trajectory]) -> 
         if raw_type in IGNORED:
             continue
         kind = TYPE_ALIASES.get(raw_type, "other")
-        frame, stamp = _opt_int(_first(e, "frame", "index")), e.opt_number("timestamp")
+        frame = _opt_int(_first(e, "frame", "index"))
+        stamp = e.opt("timestamp", Json.number)
         pos = _position(e)
         if pos is None:
             pos = locate(frame, stamp)

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from slamreloc.datasets.io import read_text
 from slamreloc.errors import InputError
+from slamreloc.geometry import MAX_COORDINATE
 
 MAX_NAME_BYTES = 4096
 MAX_TEXT_BYTES = 1 << 31
@@ -144,9 +145,9 @@ def _walk_images(r: _Binary) -> dict[int, tuple[str, int]]:
 def _check_image_pose(where, image_id: int, pose) -> None:
     """QW QX QY QZ TX TY TZ: finite, and a unit quaternion (COLMAP writes them normalised; a
     zero or far-from-unit one is damage, which normalising would turn into a made-up pose)."""
-    if not all(math.isfinite(v) for v in pose) or max(abs(v) for v in pose[4:]) > 1e9:
+    if not all(math.isfinite(v) for v in pose) or max(abs(v) for v in pose[4:]) > MAX_COORDINATE:
         raise InputError(f"{where}: image {image_id} has a non-finite pose or a translation "
-                         "beyond 1e9")
+                         f"beyond {MAX_COORDINATE:g}")
     norm = math.sqrt(sum(v * v for v in pose[:4]))
     if abs(norm - 1.0) > 1e-3:
         raise InputError(f"{where}: image {image_id} has a quaternion of norm {norm:.6g}, not a "

@@ -10,9 +10,8 @@ import numpy as np
 from slamreloc.errors import InputError
 from slamreloc.fileio import read_bytes
 from slamreloc.geometry import Rigid3
+from slamreloc.images import check_frame_files, image_header, image_size, read_depth, read_image
 from slamreloc.types import camera_problem
-from slamreloc.images import (check_frame_files, image_header, image_size, read_depth,
-                              read_image)
 
 __all__ = ["check_frame_files", "image_header", "image_size", "read_depth", "read_image",
            "read_intrinsics", "read_pose", "read_text", "write_pose"]
