@@ -142,8 +142,9 @@ class RelocalizationPlugin:
         onto the map's surface where the frame has depth; None when PnP fails."""
         loc = self.localizer
         with self.backend.timer("relocalization"):
-            keypoints, points, conf = loc.confident_correspondences(loc.extractor(frame.image))
-            est = estimate_pose(keypoints, points, frame.camera, loc.pnp)
+            feats = loc.extractor.extract(frame.image, frame.camera)
+            keypoints, points, conf = loc.confident_correspondences(feats)
+            est = estimate_pose(keypoints, points, frame.camera.pinhole, loc.pnp)
             world_from_cam = est.world_from_cam
             if est.success and self.surface is not None and frame.depth is not None:
                 world_from_cam = self._refine(frame, world_from_cam)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +12,7 @@ from rich.table import Table
 
 from slamreloc.datasets import read_image
 from slamreloc.errors import InputError
-from slamreloc.geometry import Rigid3, pose_error, write_tum_trajectory
+from slamreloc.geometry import Rigid3, Sim3, align_poses, pose_error, write_tum_trajectory
 from slamreloc.localizer import Localizer
 from slamreloc.progress import console, track
 from slamreloc.types import Frame
@@ -80,6 +80,45 @@ def summarize(results: list[QueryResult], method: str) -> dict:
                    for k, (tt, rr) in THRESHOLDS.items()},
         "timing_ms": timing,
     }
+
+
+def align_to_reference(map_from_cam: dict[str, Rigid3], reference: dict[str, Rigid3]
+                       ) -> tuple[Sim3, dict]:
+    """ref_from_map: the similarity that takes the map's world frame to a reference's, fitted
+    on the poses of the frames both hold (`geometry.align_poses`: rotation from the cameras'
+    orientations, scale and translation from their centres): the map's *training* cameras,
+    never queries. Returns it and its record: scale, frames used, median residuals."""
+    names = sorted(set(map_from_cam) & set(reference))
+    if len(names) < 3:
+        raise InputError(f"only {len(names)} training frames have a reference pose; a "
+                         "similarity fit needs at least 3")
+    ref_from_map = align_poses([map_from_cam[n] for n in names], [reference[n] for n in names])
+    errors = [pose_error(ref_from_map.apply_to_pose(map_from_cam[n]), reference[n])
+              for n in names]
+    return ref_from_map, {
+        "scale": ref_from_map.scale, "n_frames": len(names),
+        "median_residual_m": float(np.median([e[0] for e in errors])),
+        "median_residual_deg": float(np.median([e[1] for e in errors])),
+        "matrix": np.column_stack([ref_from_map.scale * ref_from_map.rotation,
+                                   ref_from_map.translation]).tolist()}
+
+
+def rescore(results: list[QueryResult], reference: dict[str, Rigid3],
+            ref_from_map: Sim3 | None = None) -> list[QueryResult]:
+    """The same estimates scored against other reference poses (by frame name), after moving
+    them into the reference's frame with `ref_from_map`; frames the reference lacks are left
+    out."""
+    out = []
+    for q in results:
+        if q.name not in reference:
+            continue
+        est = q.world_from_cam
+        if est is not None and ref_from_map is not None:
+            est = ref_from_map.apply_to_pose(est)
+        dt, dr = pose_error(est, reference[q.name]) if est else (np.inf, np.inf)
+        out.append(replace(q, world_from_cam=est, translation_error_m=dt,
+                           rotation_error_deg=dr))
+    return out
 
 
 def write_tum(path: Path, results: list[QueryResult]) -> None:

@@ -65,7 +65,10 @@ def export_points(scene_map: SceneMap, images: dict[str, Path],
         rows = frame_rows[i][~coloured[row_point[frame_rows[i]]]]
         if len(rows) == 0 or name not in images:
             continue
-        rgb[row_point[rows]] = pixel_colours(read_image(images[name]), db.keypoints[rows])
+        # keypoints are in the pinhole camera's pixels: back to the (distorted) image's
+        image = read_image(images[name])
+        camera = scene_map.camera.scaled_to(image.shape[1], image.shape[0])
+        rgb[row_point[rows]] = pixel_colours(image, camera.distort(db.keypoints[rows]))
         coloured[row_point[rows]] = True
     # reprojection error of each observation with the map's camera
     cam = scene_map.camera

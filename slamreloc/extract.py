@@ -1,4 +1,5 @@
-"""Feature extraction over many frames (two worker threads; OpenCV and torch release the GIL)."""
+"""Feature extraction over many frames (two worker threads; OpenCV and torch release the GIL);
+keypoints come out in each frame's pinhole pixels (undistorted)."""
 
 from __future__ import annotations
 
@@ -14,5 +15,6 @@ def extract_frames(frames: list[Frame], extractor: Extractor, progress: bool = T
                    workers: int = 2) -> list[Features]:
     extractor.check_frames(frames)
     with ThreadPoolExecutor(workers) as pool:
-        results = pool.map(lambda f: extractor(read_image(f.image_path)), frames)
+        results = pool.map(lambda f: extractor.extract(read_image(f.image_path), f.camera),
+                           frames)
         return list(track(results, "extracting features", total=len(frames), enabled=progress))

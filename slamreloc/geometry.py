@@ -85,6 +85,61 @@ class Rigid3:
         return self.translation
 
 
+@dataclass(frozen=True)
+class Sim3:
+    """x_b = scale * rotation @ x_a + translation, for a similarity named `b_from_a` (two
+    world frames of one scene that differ in scale, e.g. SfM units and metres)."""
+
+    scale: float
+    rotation: np.ndarray  # (3, 3)
+    translation: np.ndarray  # (3,), metres of frame b
+
+    def transform(self, points: np.ndarray) -> np.ndarray:
+        """Apply to (N, 3) points."""
+        return self.scale * np.asarray(points) @ self.rotation.T + self.translation
+
+    def apply_to_pose(self, a_from_cam: Rigid3) -> Rigid3:
+        """b_from_cam of a camera whose pose is given in frame a (the camera keeps its
+        metric size: only its centre is scaled)."""
+        return Rigid3(self.rotation @ a_from_cam.rotation,
+                      self.transform(a_from_cam.translation[None])[0])
+
+    @property
+    def rigid(self) -> Rigid3:
+        return Rigid3(self.rotation, self.translation)
+
+
+def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = True) -> Sim3:
+    """target_from_source minimising sum |target - (s R source + t)|^2 over (N, 3) point pairs
+    (Umeyama 1991; s = 1 unless `with_scale`)."""
+    source, target = np.asarray(source, np.float64), np.asarray(target, np.float64)
+    mu_s, mu_t = source.mean(0), target.mean(0)
+    cov = (target - mu_t).T @ (source - mu_s) / len(source)
+    u, d, vt = np.linalg.svd(cov)
+    s = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        s[2, 2] = -1
+    rot = u @ s @ vt
+    var_s = np.mean(np.sum((source - mu_s) ** 2, axis=1))
+    scale = float(np.trace(np.diag(d) @ s) / var_s) if with_scale and var_s > 0 else 1.0
+    return Sim3(scale, rot, mu_t - scale * rot @ mu_s)
+
+
+def align_poses(source: list[Rigid3], target: list[Rigid3]) -> Sim3:
+    """target_from_source between two sets of poses of the same cameras (world_from_cam in
+    frames a and b): the rotation is the chordal mean of the cameras' rotation offsets
+    R_b R_a^T, the scale and translation the least-squares fit of the camera centres under
+    it. Unlike `umeyama` on centres alone, the rotation stays well determined for a nearly
+    planar or straight trajectory."""
+    rot = project_to_so3(sum(t.rotation @ s.rotation.T for s, t in zip(source, target)))
+    a = np.array([p.translation for p in source])
+    b = np.array([p.translation for p in target])
+    mu_a, mu_b = a.mean(0), b.mean(0)
+    spread = float(np.sum((a - mu_a) ** 2))
+    scale = float(np.sum((b - mu_b) * ((a - mu_a) @ rot.T)) / spread) if spread > 0 else 1.0
+    return Sim3(scale, rot, mu_b - scale * rot @ mu_a)
+
+
 def project_to_so3(rot: np.ndarray) -> np.ndarray:
     """Nearest rotation matrix (SVD), to clean up rounding in poses read from text."""
     u, _, vt = np.linalg.svd(rot)

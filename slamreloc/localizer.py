@@ -15,8 +15,8 @@ import torch
 
 from slamreloc.features import make_extractor
 from slamreloc.features.matcher import LOCALIZER_DB_CHUNK, match_descriptors
-from slamreloc.precision import autocast, resolve_precision
 from slamreloc.pnp import PnPConfig, PoseEstimate, estimate_pose
+from slamreloc.precision import autocast, resolve_precision
 from slamreloc.regressor.train import resolve_device
 from slamreloc.scene_map import SceneMap
 from slamreloc.types import Camera, Features
@@ -46,13 +46,14 @@ class Localizer:
         raise NotImplementedError
 
     def localize(self, image: np.ndarray, camera: Camera) -> Localization:
-        """image: RGB uint8. Returns the pose estimate (failure included) and stage timings."""
+        """image: RGB uint8 taken by `camera` (any lens model: keypoints are undistorted).
+        Returns the pose estimate (failure included) and stage timings."""
         t0 = time.perf_counter()
-        feats = self.extractor(image)
+        feats = self.extractor.extract(image, camera)
         t1 = time.perf_counter()
         p2d, p3d = self.correspondences(feats)
         t2 = time.perf_counter()
-        est = estimate_pose(p2d, p3d, camera, self.pnp)
+        est = estimate_pose(p2d, p3d, camera.pinhole, self.pnp)
         t3 = time.perf_counter()
         ms = {"features": t1 - t0, "regressor": t2 - t1, "pnp": t3 - t2, "total": t3 - t0}
         return Localization(est, {k: 1000 * v for k, v in ms.items()}, len(feats))

@@ -33,12 +33,13 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc import __version__
+from slamreloc.camera_models import distortion_problem
 from slamreloc.errors import InputError
 from slamreloc.fileio import read_bytes
 from slamreloc.geometry import MAX_COORDINATE
 from slamreloc.jsonio import parse_json
-from slamreloc.types import camera_problem
 from slamreloc.regressor.model import RegressorConfig
+from slamreloc.types import camera_problem
 
 MAP_FORMAT = "slamreloc-map"
 FORMAT_VERSION = 2  # 1: regressor.pt (torch pickle); 2: regressor.npz + checksums
@@ -119,9 +120,15 @@ def _check_schema(meta: dict, path: Path) -> None:
     problem = camera_problem(*(cam[k] for k in ("width", "height", "fx", "fy", "cx", "cy")))
     if problem:
         raise InputError(f"{path}: 'camera': {problem}")
-    extra = set(cam) - {"width", "height", "fx", "fy", "cx", "cy"}
+    extra = set(cam) - {"width", "height", "fx", "fy", "cx", "cy", "model", "distortion"}
     if extra:
         raise InputError(f"{path}: unknown camera key '{sorted(extra)[0]}'")
+    if "model" in cam or "distortion" in cam:
+        model = need(cam, "model", str, "camera.")
+        dist = need(cam, "distortion", list, "camera.")
+        problem = distortion_problem(model, dist)
+        if problem:
+            raise InputError(f"{path}: 'camera': {problem}")
     names = meta.get("frame_names", [])
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise InputError(f"{path}: 'frame_names' must be a list of strings")

@@ -105,7 +105,8 @@ def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progr
         "train": {**config.train.to_dict(), **train_stats},
         "labels": labels.stats,
         "camera": frames[0].camera.to_dict(),
-        "dataset": {"root": str(dataset.root.resolve()), "kind": dataset.kind, "split": split},
+        "dataset": {"root": str(dataset.root.resolve()), "kind": dataset.kind, "split": split,
+                    "metric": dataset.metric},
         "timings_s": timings,
     }
     extra = {}

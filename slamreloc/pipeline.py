@@ -77,19 +77,21 @@ def run_evaluation(map_dir: Path, dataset_dir: Path, report: Path, split: str = 
     return summary
 
 
-def localize_images(map_dir: Path, images: list[Path], intrinsics=None,
+def localize_images(map_dir: Path, images: list[Path],
+                    intrinsics: Camera | tuple[float, float, float, float] | None = None,
                     method: str = "regressor"):
-    """Yield (line, status) per image: a TUM line plus inlier count ("ok"), `# name: not
-    localized` ("failed"), or `error: ...` for an image that cannot be read or is out of
-    bounds ("error"). `intrinsics`: (fx, fy, cx, cy) in pixels, else the map's camera scaled
-    to each image."""
-    if intrinsics is not None:
+    """Yield (line, status) per image (or per frame of a ROS bag among `images`): a TUM line
+    plus inlier count ("ok"), `# name: not localized` ("failed"), or `error: ...` for an
+    image that cannot be read or is out of bounds ("error"). `intrinsics`: a Camera (any lens
+    model, scaled to each image), pinhole (fx, fy, cx, cy) in pixels, else the bag's camera
+    or the map's, scaled to each image."""
+    if intrinsics is not None and not isinstance(intrinsics, Camera):
         problem = camera_problem(1, 1, *intrinsics)
         if problem:
             raise InputError(f"--intrinsics: {problem}")
     scene_map = SceneMap.load(map_dir)
     localizer = make_localizer(scene_map, method)
-    for path in images:
+    for name, path, own_camera in _query_images(images):
         try:
             # the bounds, the extractor's included, are checked before anything is decoded
             image = read_image(path, fits=localizer.extractor.check_size)
@@ -97,11 +99,28 @@ def localize_images(map_dir: Path, images: list[Path], intrinsics=None,
             yield f"error: {err}", "error"
             continue
         h, w = image.shape[:2]
-        camera = (Camera(w, h, *intrinsics) if intrinsics
-                  else scene_map.camera.scaled_to(w, h))
+        if isinstance(intrinsics, Camera):
+            camera = intrinsics.scaled_to(w, h)
+        elif intrinsics:
+            camera = Camera(w, h, *intrinsics)
+        else:
+            camera = (own_camera or scene_map.camera).scaled_to(w, h)
         loc = localizer.localize(image, camera)
         est = loc.estimate
         if est.success:
-            yield f"{tum_line(Path(path).name, est.world_from_cam)} {est.num_inliers}", "ok"
+            yield f"{tum_line(name, est.world_from_cam)} {est.num_inliers}", "ok"
         else:
-            yield f"# {Path(path).name}: not localized ({est.num_inliers} inliers)", "failed"
+            yield f"# {name}: not localized ({est.num_inliers} inliers)", "failed"
+
+
+def _query_images(paths: list[Path]):
+    """(name, image file, its camera or None) of each image file, and of each frame of a ROS
+    bag among them (named by frame, with the bag's camera)."""
+    from slamreloc.datasets.rosbag import is_rosbag, load_rosbag
+
+    for path in paths:
+        if is_rosbag(Path(path)):
+            for frame in load_rosbag(Path(path)).frames("all"):
+                yield frame.name, frame.image_path, frame.camera
+        else:
+            yield Path(path).name, path, None

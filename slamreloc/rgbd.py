@@ -75,8 +75,8 @@ def frame_depth(frame: Frame, dataset: Dataset) -> np.ndarray:
     if frame.depth_path is None:
         return np.zeros((cam.height, cam.width), np.float32)
     depth = read_depth(frame.depth_path, dataset.depth_units_per_metre)
-    if dataset.depth_registered:
-        return depth
+    if dataset.depth_registered:  # in the pinhole pixels the keypoints are undistorted into
+        return cam.undistort_image(depth)
     return warp_depth(depth, depth_camera(cam, depth.shape, dataset.depth_intrinsics),
                       dataset.rgb_from_depth, cam)
 

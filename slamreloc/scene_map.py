@@ -96,7 +96,8 @@ class MapMeta:
         update = meta.get("pseudo_label")
         n_updated = update.get("n_frames_registered", 0) if isinstance(update, dict) else 0
         return MapMeta(
-            meta["format_version"], meta.get("slamreloc_version"), Camera(**meta["camera"]),
+            meta["format_version"], meta.get("slamreloc_version"),
+            Camera.from_dict(meta["camera"]),
             feats.pop("name"), feats, meta["regressor"]["arch"],
             RegressorConfig.from_dict(meta["regressor"]["config"]),
             meta["regressor"]["parameters"], meta["labels"]["n_labelled"],

@@ -99,7 +99,10 @@ def depth_cloud(depth: np.ndarray, camera: Camera,
                  depth_intrinsics: tuple[float, float, float, float] | None,
                  sampling: DepthSampling = DepthSampling()) -> np.ndarray:
     """(N, 3) points of a depth map (metres) in its camera's frame; `depth_intrinsics` as in
-    `Dataset.depth_intrinsics` (None: registered to the RGB `camera`)."""
+    `Dataset.depth_intrinsics` (None: registered to the RGB `camera`, whose lens distortion
+    is undone first)."""
+    if depth_intrinsics is None:
+        depth = camera.undistort_image(depth)
     return backproject(depth, depth_camera(camera, depth.shape, depth_intrinsics), sampling)
 
 

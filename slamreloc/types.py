@@ -7,13 +7,18 @@ from pathlib import Path
 
 import numpy as np
 
+from slamreloc import camera_models as lens
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
 
 
 @dataclass(frozen=True)
 class Camera:
-    """Pinhole intrinsics in pixels, OpenCV convention (pixel centres at integer coordinates)."""
+    """Intrinsics in pixels, OpenCV convention (pixel centres at integer coordinates), and a
+    lens model: PINHOLE, or one of COLMAP's distortion models with its parameters
+    (`slamreloc.camera_models`). Keypoints of a distorted camera are undistorted into its
+    pinhole camera (same fx, fy, cx, cy) at extraction; `K` and `to_pycolmap` are that
+    pinhole camera's."""
 
     width: int
     height: int
@@ -21,11 +26,79 @@ class Camera:
     fy: float
     cx: float
     cy: float
+    model: str = "PINHOLE"
+    distortion: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         problem = camera_problem(self.width, self.height, self.fx, self.fy, self.cx, self.cy)
+        object.__setattr__(self, "distortion", tuple(float(v) if isinstance(v, (int, float))
+                                                     and not isinstance(v, bool) else v
+                                                     for v in self.distortion))
+        problem = problem or lens.distortion_problem(self.model, self.distortion)
         if problem:
             raise InputError(f"invalid camera: {problem}")
+        if self.model != "OPENCV_FISHEYE" and not any(self.distortion):  # one name per lens
+            object.__setattr__(self, "model", "PINHOLE")
+            object.__setattr__(self, "distortion", ())
+
+    @classmethod
+    def from_colmap(cls, model: str, width: int, height: int, params, source: str) -> Camera:
+        """From a COLMAP model name and parameter list (COLMAP's principal point); an
+        InputError naming `source` for anything out of range."""
+        model, fx, fy, cx, cy, distortion = lens.colmap_values(model, params, source)
+        problem = (camera_problem(width, height, fx, fy, cx, cy)
+                   or lens.distortion_problem(model, distortion))
+        if problem:
+            raise InputError(f"{source}: {problem}")
+        return cls(width, height, fx, fy, cx, cy, model, distortion)
+
+    @classmethod
+    def parse(cls, text: str, source: str = "--camera") -> Camera:
+        """A COLMAP camera string, `"OPENCV 640 480 fx fy cx cy k1 k2 p1 p2"`, or a line of
+        cameras.txt (principal point in COLMAP's convention)."""
+        model, width, height, params = lens.split_camera_string(text, source)
+        return cls.from_colmap(model, width, height, params, source)
+
+    def colmap_params(self) -> list[float]:
+        """The parameters of `self.model` in COLMAP's convention (cameras.txt)."""
+        return [*lens.colmap_head(self.model, self.fx, self.fy, self.cx, self.cy),
+                *self.distortion]
+
+    def colmap_string(self) -> str:
+        """The COLMAP camera string `Camera.parse` reads back."""
+        return " ".join([self.model, str(self.width), str(self.height),
+                         *(repr(float(p)) for p in self.colmap_params())])
+
+    @property
+    def distorted(self) -> bool:
+        return self.model != "PINHOLE"
+
+    @property
+    def pinhole(self) -> Camera:
+        """The pinhole camera keypoints are undistorted into (this camera if undistorted)."""
+        return Camera(self.width, self.height, self.fx, self.fy, self.cx, self.cy)
+
+    def undistort(self, uv: np.ndarray) -> np.ndarray:
+        """(N, 2) image pixels -> pinhole pixels (unchanged for a pinhole camera)."""
+        return lens.map_pixels(uv, *self.params(), self.model, self.distortion, True)
+
+    def distort(self, uv: np.ndarray) -> np.ndarray:
+        """(N, 2) pinhole pixels -> image pixels (unchanged for a pinhole camera)."""
+        return lens.map_pixels(uv, *self.params(), self.model, self.distortion, False)
+
+    def undistort_image(self, image: np.ndarray) -> np.ndarray:
+        """An image of this camera (any size: the camera is scaled to it) resampled onto its
+        pinhole camera's pixel grid by nearest neighbour (for depth maps, whose values must
+        not be blended); unchanged for a pinhole camera."""
+        import cv2
+
+        if not self.distorted:
+            return image
+        h, w = image.shape[:2]
+        cam = self.scaled_to(w, h)
+        maps = lens.pinhole_grid_sources(w, h, *cam.params(), cam.model, cam.distortion)
+        return cv2.remap(image, maps, None, cv2.INTER_NEAREST,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
     @property
     def K(self) -> np.ndarray:  # noqa: N802 - the usual name
@@ -36,17 +109,26 @@ class Camera:
 
     def scaled_to(self, width: int, height: int) -> Camera:
         sx, sy = width / self.width, height / self.height
-        return Camera(width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
+        return Camera(width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy,
+                      self.model, self.distortion)
 
     def to_pycolmap(self):
+        """The pinhole camera (undistorted keypoints) as a pycolmap camera."""
         import pycolmap
 
         return pycolmap.Camera(model="PINHOLE", width=self.width, height=self.height,
                                params=self.params())
 
     def to_dict(self) -> dict:
-        return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
-                "cx": self.cx, "cy": self.cy}
+        d = {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
+             "cx": self.cx, "cy": self.cy}
+        if self.distorted:
+            d.update(model=self.model, distortion=list(self.distortion))
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Camera:
+        return cls(**{**d, "distortion": tuple(d.get("distortion", ()))})
 
 
 MAX_INTRINSIC = 1e7  # pixels: beyond any real camera (a 65536-pixel image at 0.4 degrees)

@@ -50,6 +50,12 @@ def no_hang(seconds: float = 20.0):
 
 def run_cli(argv: list[str], hang_s: float = 60.0) -> tuple[int, str]:
     """`slamreloc ARGV` in this process: (exit status, stderr)."""
+    code, _, err = run_cli_output(argv, hang_s)
+    return code, err
+
+
+def run_cli_output(argv: list[str], hang_s: float = 60.0) -> tuple[int, str, str]:
+    """`slamreloc ARGV` in this process: (exit status, stdout, stderr)."""
     import io
     import sys
     from contextlib import redirect_stderr, redirect_stdout
@@ -68,7 +74,7 @@ def run_cli(argv: list[str], hang_s: float = 60.0) -> tuple[int, str]:
                 code = exit_.code if isinstance(exit_.code, int) else 1
     finally:
         sys.argv = old
-    return code, err.getvalue()
+    return code, out.getvalue(), err.getvalue()
 
 
 def total_cases() -> int:

@@ -53,7 +53,7 @@ def test_colmap_model_in_sparse_and_split_files(source, tmp_path):
         load_dataset(root).frames("test")
 
 
-def test_undistorted_models_accepted_distorted_and_fisheye_refused(source, tmp_path):
+def test_distortion_models_are_read_and_others_refused(source, tmp_path):
     ok = write_colmap_project(source, tmp_path / "zero", model="OPENCV",
                               distortion=(0.0, 0.0, 0.0, 0.0))
     assert load_dataset(ok).frames("all")[0].camera == source[0].camera
@@ -61,10 +61,14 @@ def test_undistorted_models_accepted_distorted_and_fisheye_refused(source, tmp_p
                                     ("fisheye", "OPENCV_FISHEYE", (0.0, 0.0, 0.0, 0.0))):
         root = write_colmap_project(source, tmp_path / name, model=model,
                                     distortion=distortion)
-        with pytest.raises(InputError) as err:
-            load_dataset(root)
-        assert str(err.value).startswith(f"{root}/sparse/0/cameras.bin: camera 1 is {model}")
-        assert "undistorted pinhole" in str(err.value) and "\n" not in str(err.value)
+        camera = load_dataset(root).frames("all")[0].camera
+        assert (camera.model, camera.distortion) == (model, distortion)
+        assert camera.pinhole == source[0].camera
+    root = write_colmap_project(source, tmp_path / "fov", model="FOV", distortion=(0.1,))
+    with pytest.raises(InputError) as err:
+        load_dataset(root)
+    assert str(err.value).startswith(f"{root}/sparse/0/cameras.bin: camera 1 is FOV")
+    assert "undistort the images" in str(err.value) and "\n" not in str(err.value)
 
 
 def test_missing_image_and_damaged_models_name_the_file(source, tmp_path):

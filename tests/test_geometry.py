@@ -115,3 +115,24 @@ def test_bad_names_sidecar_is_a_one_line_error(tmp_path, sidecar, message):
     with pytest.raises(InputError, match=message) as err:
         read_named_trajectory(path)
     assert str(err.value).startswith(str(names_sidecar(path))) and "\n" not in str(err.value)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(rigid, min_size=3, max_size=12), rigid, st.floats(0.05, 20))
+def test_pose_and_point_alignment_recover_a_similarity(poses, b_from_a, scale):
+    """align_poses and umeyama find the similarity that moved a set of cameras (and the
+    cameras keep their orientation relative to it)."""
+    from slamreloc.geometry import Sim3, align_poses, umeyama
+
+    sim = Sim3(scale, b_from_a.rotation, b_from_a.translation)
+    moved = [sim.apply_to_pose(p) for p in poses]
+    got = align_poses(poses, moved)
+    assert np.isclose(got.scale, scale, rtol=1e-6) if len({tuple(p.translation) for p in
+                                                           poses}) > 1 else True
+    for p, q in zip(poses, moved):
+        dt, dr = pose_error(got.apply_to_pose(p), q)
+        assert dt < 1e-6 * max(1.0, scale * 10) and dr < 1e-4  # arccos: ~1e-6 deg noise
+    centres = np.array([p.translation for p in poses])
+    if np.linalg.matrix_rank(centres - centres.mean(0), tol=1e-3) == 3:  # not degenerate
+        fit = umeyama(centres, sim.transform(centres))
+        np.testing.assert_allclose(fit.transform(centres), sim.transform(centres), atol=1e-6)

@@ -96,7 +96,8 @@ def load_map(inputs: ViewerInputs, scene_map: SceneMap, dataset=None) -> MapView
         if img is None:
             continue
         if len(idx):
-            colors[idx] = pixel_colours(img, keypoints[idx])
+            camera = scene_map.camera.scaled_to(img.shape[1], img.shape[0])
+            colors[idx] = pixel_colours(img, camera.distort(keypoints[idx]))  # image pixels
             coloured[idx] = True
         if i in with_image:
             frame.thumbnail = fit_width(img, inputs.thumbnail_width)

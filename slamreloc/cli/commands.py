@@ -9,7 +9,16 @@ from typing import Annotated, Optional
 
 import typer
 
-from slamreloc.cli.choices import Arch, Device, FeatureName, Method, Precision, Update
+from slamreloc.cli.choices import (
+    Arch,
+    Device,
+    FeatureName,
+    Mapper,
+    Matching,
+    Method,
+    Precision,
+    Update,
+)
 from slamreloc.errors import InputError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -23,17 +32,27 @@ def options(
         help="change a bound on untrusted input, before the command: max_image_pixels, "
              "max_feature_bytes, max_image_bytes, max_json_bytes, ... (docs/formats.md, "
              "'Input bounds'; also SLAMRELOC_<NAME> variables)")] = None,
+    topic: Annotated[Optional[list[str]], typer.Option(
+        "--topic", metavar="KIND=NAME",
+        help="a ROS bag dataset's topic instead of the one found automatically: image=, "
+             "depth=, camera_info=, pose= (a pose topic or tf:PARENT:CHILD); repeatable "
+             "(docs/formats.md, 'ROS bags')")] = None,
 ) -> None:
     """Camera relocalization with a lightweight scene-coordinate regressor."""
     if limit:
         from slamreloc.limits import parse_limits, set_limits
 
         set_limits(**parse_limits(limit))
+    if topic:
+        from slamreloc.datasets.rosbag import parse_topics, set_topics
+
+        set_topics(parse_topics(topic))
 
 
 @app.command("map")
 def map_cmd(
-    dataset: Annotated[Path, typer.Argument(help="dataset folder (7-Scenes, TUM, synthetic)")],
+    dataset: Annotated[Path, typer.Argument(
+        help="dataset (7-Scenes, TUM, synthetic, COLMAP, `slamreloc sfm` output, a ROS bag)")],
     out: Annotated[Path, typer.Option("--out", help="map folder to write")],
     split: Annotated[str, typer.Option(help="train | test | all | sequence names")] = "train",
     features: Annotated[FeatureName, typer.Option(help="local features")] = FeatureName.sift,
@@ -95,16 +114,29 @@ def evaluate(
 @app.command()
 def localize(
     map_dir: Annotated[Path, typer.Argument(metavar="MAP", help="map folder")],
-    images: Annotated[list[Path], typer.Argument(help="image files")],
+    images: Annotated[list[Path], typer.Argument(
+        help="image files, or ROS bags (each frame, with the bag's camera)")],
     intrinsics: Annotated[Optional[tuple[float, float, float, float]], typer.Option(
-        help="FX FY CX CY in pixels (default: the map's camera, scaled to the image)")] = None,
+        help="FX FY CX CY in pixels, pinhole (default: the map's camera, scaled to the image)")]
+    = None,
+    camera: Annotated[Optional[str], typer.Option(
+        help="a COLMAP camera string, any lens model: \"OPENCV 640 480 fx fy cx cy k1 k2 p1 "
+             "p2\" (as in cameras.txt; scaled to an image of another size)")] = None,
     method: Annotated[Method, typer.Option()] = Method.regressor,
 ) -> None:
     """Print `name tx ty tz qx qy qz qw inliers` (camera-to-world) for each image."""
     from slamreloc.pipeline import localize_images
 
+    if camera is not None and intrinsics is not None:
+        raise InputError("--camera and --intrinsics: give one of them")
+    if camera is not None:
+        from slamreloc.types import Camera
+
+        query_camera = Camera.parse(camera, "--camera")
+    else:
+        query_camera = intrinsics
     errors = 0
-    for line, status in localize_images(map_dir, images, intrinsics, method.value):
+    for line, status in localize_images(map_dir, images, query_camera, method.value):
         if status == "error":
             errors += 1
             typer.echo(line, err=True)
@@ -163,6 +195,46 @@ def pseudo_label_cmd(
 
 
 @app.command()
+def sfm(
+    source: Annotated[Path, typer.Argument(
+        metavar="INPUT", help="a folder of images, a video file, or a dataset (its poses are "
+                              "ignored)")],
+    out: Annotated[Path, typer.Option("--out", help="DATASET folder to write (COLMAP model)")],
+    camera: Annotated[str, typer.Option(
+        help="a COLMAP model (SIMPLE_RADIAL, OPENCV, OPENCV_FISHEYE, ...; intrinsics "
+             "estimated) or a camera string \"OPENCV 640 480 fx fy cx cy k1 k2 p1 p2\" "
+             "(starting intrinsics); default: the dataset's camera, else SIMPLE_RADIAL")] = "",
+    fix_intrinsics: Annotated[bool, typer.Option(
+        "--fix-intrinsics", help="keep the --camera string's intrinsics fixed")] = False,
+    matching: Annotated[Matching, typer.Option(
+        help="auto: exhaustive up to 60 unordered images, else sequential")] = Matching.auto,
+    mapper: Annotated[Mapper, typer.Option(
+        help="global (GLOMAP: fast) or incremental (COLMAP's: slower on long sequences, "
+             "more robust on small sets and unknown intrinsics); auto: global for 100+ "
+             "images with a known camera, else incremental")] = Mapper.auto,
+    fps: Annotated[float, typer.Option(help="video: frames sampled per second")] = 2.0,
+    split: Annotated[str, typer.Option(help="dataset input: which frames")] = "all",
+    overlap: Annotated[int, typer.Option(help="sequential matching: next N images")] = 10,
+    max_features: Annotated[int, typer.Option(help="SIFT features per image")] = 4096,
+    scale_from_depth: Annotated[bool, typer.Option(
+        "--scale-from-depth", help="metric scale from the input's depth")] = False,
+    scale: Annotated[Optional[float], typer.Option(
+        help="metric scale: metres per SfM unit")] = None,
+    min_registered: Annotated[float, typer.Option(
+        help="fail when fewer than this share of the images register")] = 0.5,
+) -> None:
+    """Poses for unposed images or a video: SfM with pycolmap, written as a COLMAP dataset
+    that map, evaluate, slam and pseudo-label read."""
+    from slamreloc.sfm import SfmConfig, print_sfm_summary, run_sfm
+
+    config = SfmConfig(camera=camera, fix_intrinsics=fix_intrinsics, matching=matching.value,
+                       mapper=mapper.value, overlap=overlap, max_features=max_features, fps=fps,
+                       split=split, scale=scale, scale_from_depth=scale_from_depth,
+                       min_registered=min_registered)
+    print_sfm_summary(run_sfm(source, out, config))
+
+
+@app.command()
 def export(
     map_dir: Annotated[Path, typer.Argument(metavar="MAP", help="map folder")],
     colmap: Annotated[Optional[Path], typer.Option(
@@ -201,7 +273,8 @@ def demo(
 
 @app.command()
 def slam(
-    dataset: Annotated[Path, typer.Argument(help="RGB-D dataset folder (7-Scenes, TUM, synthetic)")],
+    dataset: Annotated[Path, typer.Argument(
+        help="RGB-D dataset (7-Scenes, TUM, synthetic, a ROS bag)")],
     map_dir: Annotated[Path, typer.Option("--map", help="map folder to relocalize against")],
     report: Annotated[Path, typer.Option("--report", help="REPORT.json to write")],
     split: Annotated[str, typer.Option(help="split, role or sequence names to track")] = "test",
@@ -209,8 +282,9 @@ def slam(
         help="teleport the camera after every N processed frames (0: never)")] = 0,
     kidnap_skip: Annotated[int, typer.Option(help="frames dropped at each kidnapping")] = 20,
     odometry: Annotated[str, typer.Option(
-        help="auto | kiss-icp | open3d | a TUM trajectory file from another system (auto: "
-             "kiss-icp on unregistered depth, open3d RGB-D on registered depth)")] = "auto",
+        help="auto | kiss-icp | open3d | a TUM trajectory file from another system | "
+             "topic:/NAME, a pose topic of a ROS bag DATASET (auto: kiss-icp on unregistered "
+             "depth, open3d RGB-D on registered depth)")] = "auto",
     trajectory: Annotated[Optional[Path], typer.Option(
         help="write the map-frame trajectory (TUM, camera-to-world)")] = None,
 ) -> None:
@@ -254,3 +328,6 @@ def _print_map(scene_map) -> None:
                   f"regressor ({info.n_parameters / 1e6:.2f} M parameters, trained in "
                   f"{info.train.precision}, {scene_map.size_bytes() / 1e6:.1f} MB), trained on "
                   f"{info.n_labelled} labelled keypoints")
+    if not scene_map.meta.get("dataset", {}).get("metric", True):
+        console.print("[yellow]units[/yellow]: the dataset's SfM units, not metres (it was "
+                      "made by `slamreloc sfm` without --scale or --scale-from-depth)")

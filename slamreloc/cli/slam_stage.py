@@ -13,7 +13,7 @@ from slamreloc.geometry import write_tum_trajectory
 from slamreloc.map_format import check_is_map
 from slamreloc.progress import console
 from slamreloc.slam.poses import final_trajectory
-from slamreloc.slam.run import SlamRunConfig, run_slam
+from slamreloc.slam.run import TOPIC_PREFIX, SlamRunConfig, run_slam
 
 
 def run_slam_command(dataset: Path, map_dir: Path, report: Path, split: str = "test",
@@ -25,7 +25,8 @@ def run_slam_command(dataset: Path, map_dir: Path, report: Path, split: str = "t
     if kidnap_every < 0 or kidnap_skip < 0:
         raise InputError("--kidnap-every and --kidnap-skip must be >= 0")
     check_is_map(map_dir)  # what the inputs are, then where the outputs may go
-    odometry_file = odometry if odometry not in ("auto", "kiss-icp", "open3d") else None
+    odometry_file = (odometry if odometry not in ("auto", "kiss-icp", "open3d")
+                     and not odometry.startswith(TOPIC_PREFIX) else None)
     check_outputs({"--report": report, "--trajectory": trajectory},
                   {"the dataset": dataset, "the map": map_dir, "--odometry": odometry_file})
     config = SlamRunConfig(split=split, odometry=odometry, kidnap_every=kidnap_every,

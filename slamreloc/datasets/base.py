@@ -33,6 +33,7 @@ class Dataset:
     depth_units_per_metre: float = 1000.0
     roles: dict[str, str] = field(default_factory=dict)  # synthetic: sequence -> role
     split_files: dict[str, Path] = field(default_factory=dict)  # split -> file that names it
+    metric: bool = True  # poses in metres (False: an SfM model without a scale)
 
     @property
     def depth_intrinsics(self) -> tuple[float, float, float, float] | None:

@@ -13,8 +13,8 @@ pycolmap's reader.
 
 A sequence is the folder of the image names (`seq1/0001.png` -> `seq1`; names without a
 folder belong to one sequence named after ROOT). Every sequence is in the train split unless
-split files exist. Cameras must be undistorted pinhole cameras: PINHOLE, SIMPLE_PINHOLE, or a
-perspective distortion model whose distortion parameters are all zero; COLMAP's principal
+split files exist. Cameras: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV
+and OPENCV_FISHEYE (keypoints are undistorted, `slamreloc.camera_models`); COLMAP's principal
 point (pixel centres at +0.5) is converted to OpenCV's (pixel centres at integers).
 """
 
@@ -26,19 +26,18 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
+from slamreloc.camera_models import MODELS
 from slamreloc.datasets.base import Dataset
 from slamreloc.datasets.colmap_check import check_model
 from slamreloc.datasets.io import check_frame_files, read_text
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
-from slamreloc.types import Camera, Frame, camera_problem
+from slamreloc.jsonio import read_json
+from slamreloc.types import Camera, Frame
 
 MODEL_DIRS = ("sparse/0", "sparse")
 FILES = ("cameras", "images")
 OPTIONAL_FILES = ("rigs", "frames")
-# perspective models that are a pinhole camera when their distortion parameters are zero
-PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV",
-                  "FULL_OPENCV", "SIMPLE_DIVISION", "DIVISION")
 
 
 def is_colmap(root: Path) -> bool:
@@ -85,22 +84,17 @@ def _attr(obj, name: str):
     return value() if callable(value) else value
 
 
-def pinhole_camera(cam, source: str) -> Camera:
-    """Our Camera from a pycolmap camera; InputError unless it is an undistorted pinhole."""
+def model_camera(cam, source: str) -> Camera:
+    """Our Camera from a pycolmap camera: a pinhole, or one of the lens-distortion models
+    slamreloc undistorts keypoints for (`slamreloc.camera_models`); InputError for others."""
     model = cam.model.name
-    extra = [float(cam.params[i]) for i in cam.extra_params_idxs()]
-    if model not in PINHOLE_MODELS or any(extra):
-        raise InputError(f"{source}: camera {cam.camera_id} is {model}"
-                         f"{' with distortion' if model in PINHOLE_MODELS else ''}; slamreloc "
-                         "needs undistorted pinhole images (PINHOLE or SIMPLE_PINHOLE): run "
-                         "`colmap image_undistorter` first")
-    values = (int(cam.width), int(cam.height), float(cam.focal_length_x),
-              float(cam.focal_length_y), float(cam.principal_point_x) - 0.5,
-              float(cam.principal_point_y) - 0.5)
-    problem = camera_problem(*values)
-    if problem:
-        raise InputError(f"{source}: camera {cam.camera_id}: {problem}")
-    return Camera(*values)
+    if model not in MODELS:
+        raise InputError(f"{source}: camera {cam.camera_id} is {model}, which slamreloc does "
+                         f"not model (known: {', '.join(MODELS)}); undistort the images with "
+                         "`colmap image_undistorter` or re-run COLMAP with one of those")
+    return Camera.from_colmap(model, int(cam.width), int(cam.height),
+                              [float(p) for p in cam.params],
+                              f"{source}: camera {cam.camera_id}")
 
 
 def _image_path(images_dir: Path, name: str, source: Path) -> Path:
@@ -154,7 +148,7 @@ def load_colmap(root: Path) -> Dataset:
         if image.name not in index.image_cameras:  # pycolmap read what was checked
             raise InputError(f"{images_file}: image {image.name!r} not found by the check")
         if image.camera_id not in cameras:
-            cameras[image.camera_id] = pinhole_camera(rec.cameras[image.camera_id],
+            cameras[image.camera_id] = model_camera(rec.cameras[image.camera_id],
                                                       str(folder / f"cameras.{ext}"))
         camera = cameras[image.camera_id]
         path = _image_path(images_dir, image.name, images_file)
@@ -174,4 +168,15 @@ def load_colmap(root: Path) -> Dataset:
     if not splits:  # no split files: everything is for mapping
         splits["train"] = sorted(sequences)
     return Dataset(root, "colmap", dict(sorted(sequences.items())), splits,
-                   split_files=split_files)
+                   split_files=split_files, metric=_sfm_metric(root))
+
+
+def _sfm_metric(root: Path) -> bool:
+    """False where `slamreloc sfm` wrote the project without a metric scale (sfm.json)."""
+    path = root / "sfm.json"
+    if not path.is_file():
+        return True  # a COLMAP project from elsewhere: its units are the user's to know
+    metric = read_json(path, "SfM summary").get("metric", True)
+    if not isinstance(metric, bool):
+        raise InputError(f"{path}: 'metric' must be true or false")
+    return metric

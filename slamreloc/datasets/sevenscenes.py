@@ -3,6 +3,8 @@
     ROOT/seq-XX/frame-XXXXXX.{color.png|color.jpg, depth.png, pose.txt}
     ROOT/TrainSplit.txt, ROOT/TestSplit.txt   lines "sequence1", ...   (optional)
     ROOT/intrinsics.txt                       3x3 K (optional; default fx=fy=525, cx=320, cy=240)
+    ROOT/camera.txt                           a COLMAP camera string, any lens model (optional;
+                                              read instead of intrinsics.txt)
 """
 
 from __future__ import annotations
@@ -11,8 +13,13 @@ import re
 from pathlib import Path
 
 from slamreloc.datasets.base import Dataset
-from slamreloc.datasets.io import (check_frame_files, image_size, read_intrinsics, read_pose,
-                                   read_text)
+from slamreloc.datasets.io import (
+    check_frame_files,
+    image_size,
+    read_intrinsics,
+    read_pose,
+    read_text,
+)
 from slamreloc.errors import InputError
 from slamreloc.fileio import read_bytes
 from slamreloc.jsonio import parse_json
@@ -71,6 +78,13 @@ def _camera(root: Path) -> Camera:
     if first is None:
         raise InputError(f"{root}: no seq-XX/frame-XXXXXX.color.* images found")
     width, height = image_size(first)
+    if (root / "camera.txt").is_file():  # a COLMAP camera string: any lens model
+        path = root / "camera.txt"
+        camera = Camera.parse(read_text(path, "camera", 1 << 12), str(path))
+        if (camera.width, camera.height) != (width, height):
+            raise InputError(f"{path}: camera is {camera.width}x{camera.height} but {first} is "
+                             f"{width}x{height}")
+        return camera
     if (root / "intrinsics.txt").is_file():
         k = read_intrinsics(root / "intrinsics.txt")
         return Camera(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])

@@ -10,7 +10,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.limits import limits
-from slamreloc.types import Features
+from slamreloc.types import Camera, Features
 
 
 @dataclass(frozen=True)
@@ -48,6 +48,15 @@ class Extractor:
         if image.ndim == 3:
             image = _to_grey(image)
         return self.extract_grey(image)
+
+    def extract(self, image: np.ndarray, camera: Camera | None = None) -> Features:
+        """Features of `image` with keypoints in `camera`'s pinhole pixels: undistorted where
+        the camera has a lens-distortion model (`slamreloc.camera_models`)."""
+        feats = self(image)
+        if camera is None or not camera.distorted:
+            return feats
+        return Features(camera.undistort(feats.keypoints).astype(np.float32),
+                        feats.descriptors, feats.scores)
 
     def working_pixels(self, width: int, height: int) -> int:
         """Pixels of the image the extractor works on for a width x height input."""

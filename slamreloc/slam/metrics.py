@@ -5,20 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from slamreloc.geometry import Rigid3
+from slamreloc.geometry import Rigid3, umeyama
 
 
 def umeyama_se3(source: np.ndarray, target: np.ndarray) -> Rigid3:
     """target_from_source minimising sum |target - (R source + t)|^2 over (N, 3) point pairs
     (Umeyama 1991, no scale)."""
-    mu_s, mu_t = source.mean(0), target.mean(0)
-    cov = (target - mu_t).T @ (source - mu_s) / len(source)
-    u, _, vt = np.linalg.svd(cov)
-    s = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        s[2, 2] = -1
-    rot = u @ s @ vt
-    return Rigid3(rot, mu_t - rot @ mu_s)
+    return umeyama(source, target, with_scale=False).rigid
 
 
 def ate_rmse(estimate: list[Rigid3], reference: list[Rigid3], align: bool = False) -> float:

@@ -21,10 +21,10 @@ from slamreloc.slam.report import build_report
 @dataclass
 class SlamRunConfig:
     split: str = "test"
-    # auto | kiss-icp | open3d | path to a TUM trajectory file. auto: kiss-icp on depth that
-    # is not registered to the image (best drift on RedKitchen), open3d's hybrid RGB-D
-    # odometry on registered depth (best on the synthetic scene, whose flat walls make
-    # geometry-only ICP slide); see BENCHMARKS.md
+    # auto | kiss-icp | open3d | path to a TUM trajectory file | topic:/NAME (a pose topic of
+    # the ROS bag being tracked). auto: kiss-icp on depth that is not registered to the image
+    # (best drift on RedKitchen), open3d's hybrid RGB-D odometry on registered depth (best on
+    # the synthetic scene, whose flat walls make geometry-only ICP slide); see BENCHMARKS.md
     odometry: str = "auto"
     kidnap_every: int = 0  # 0: no kidnapping
     kidnap_skip: int = 20
@@ -46,9 +46,13 @@ def kidnap_schedule(n_frames: int, every: int, skip: int) -> tuple[list[int], li
     return kept, jumps
 
 
-def make_odometry(name: str, depth_intrinsics) -> Odometry:
+TOPIC_PREFIX = "topic:"  # --odometry topic:/NAME: a pose topic of the ROS bag dataset
+
+
+def make_odometry(name: str, depth_intrinsics, dataset_dir: Path | None = None) -> Odometry:
     """depth_intrinsics: the depth camera's (fx, fy, cx, cy) at 640x480 when depth is not
-    registered to the image, else None."""
+    registered to the image, else None; dataset_dir: the dataset tracked (a ROS bag, for
+    `topic:/NAME`)."""
     if name == "auto":
         name = "kiss-icp" if depth_intrinsics is not None else "open3d"
     if name == "kiss-icp":
@@ -59,7 +63,15 @@ def make_odometry(name: str, depth_intrinsics) -> Odometry:
         return Open3dOdometry(Open3dConfig(depth_intrinsics=depth_intrinsics))
     from slamreloc.slam.external import TrajectoryOdometry
 
-    return TrajectoryOdometry(name)
+    if name.startswith(TOPIC_PREFIX):
+        from slamreloc.datasets.rosbag import bag_trajectory
+
+        topic = name[len(TOPIC_PREFIX):]
+        if dataset_dir is None:
+            raise InputError(f"--odometry {name}: a topic is read from a ROS bag dataset")
+        stamps, poses = bag_trajectory(dataset_dir, topic)
+        return TrajectoryOdometry(stamps, poses, f"{dataset_dir}: topic {topic}")
+    return TrajectoryOdometry.from_file(name)
 
 
 def run_slam(dataset_dir: Path, map_dir: Path, config: SlamRunConfig = SlamRunConfig(),
@@ -71,7 +83,7 @@ def run_slam(dataset_dir: Path, map_dir: Path, config: SlamRunConfig = SlamRunCo
     if not frames:
         raise InputError(f"{dataset_dir}: split '{config.split}' has no frames")
     depth_k = dataset.depth_intrinsics
-    odometry = make_odometry(config.odometry, depth_k)
+    odometry = make_odometry(config.odometry, depth_k, dataset_dir)
     external = odometry.name == "trajectory"
     if plugins is None:
         plugins = [load_plugin("relocalization", map_dir=map_dir, depth_intrinsics=depth_k,

@@ -16,7 +16,6 @@ from slamreloc.geometry import Rigid3
 from slamreloc.synthetic.room import TEXEL_M, Room
 from slamreloc.types import Camera
 
-
 ATLAS_WIDTH = 4096  # texels; cv2.remap needs both atlas sides < 32767
 
 
@@ -65,11 +64,13 @@ class RenderScene:
         return self.raycaster.compute_distance(pts).numpy()
 
     def rays_cam(self, camera: Camera) -> np.ndarray:
-        """(H*W, 2) float32 (x, y) of the camera-frame rays (x, y, 1), row-major over pixels."""
+        """(H*W, 2) float32 (x, y) of the camera-frame rays (x, y, 1), row-major over pixels
+        (through the lens model of a distorted camera)."""
         if camera not in self._rays_cam:
             u, v = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
-            rays = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy], -1)
-            self._rays_cam[camera] = rays.reshape(-1, 2).astype(np.float32)
+            pixels = camera.undistort(np.stack([u.ravel(), v.ravel()], 1).astype(np.float64))
+            rays = (pixels - [camera.cx, camera.cy]) / [camera.fx, camera.fy]
+            self._rays_cam[camera] = rays.astype(np.float32)
         return self._rays_cam[camera]
 
 

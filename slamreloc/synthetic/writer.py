@@ -4,6 +4,7 @@
     out_dir/seq-XX/frame-NNNNNN.depth.png   uint16 z-depth in millimetres, 0 = invalid
     out_dir/seq-XX/frame-NNNNNN.pose.txt    4x4 world_from_cam, metres
     out_dir/intrinsics.txt, TrainSplit.txt, TestSplit.txt, scene.json
+    out_dir/camera.txt                      the COLMAP camera string of a distorted lens
 """
 
 from __future__ import annotations
@@ -30,7 +31,9 @@ MIN_CLEARANCE_M = 0.4
 
 @dataclass(frozen=True)
 class SceneConfig:
-    """Seed, image size and pinhole intrinsics (pixels), and frames per sequence."""
+    """Seed, image size, intrinsics (pixels) and lens model (`slamreloc.camera_models`: PINHOLE,
+    or OPENCV, OPENCV_FISHEYE, ... with its distortion parameters), and frames per
+    sequence."""
 
     seed: int = 0
     width: int = 640
@@ -43,18 +46,24 @@ class SceneConfig:
     n_query: int = 60
     n_kidnap: int = 120
     n_unlabelled: int = 80
+    model: str = "PINHOLE"
+    distortion: tuple[float, ...] = ()
 
     def camera(self) -> Camera:
-        return Camera(self.width, self.height, self.fx, self.fy, self.cx, self.cy)
+        return Camera(self.width, self.height, self.fx, self.fy, self.cx, self.cy, self.model,
+                      self.distortion)
 
     def counts(self) -> dict[str, int]:
         return dict(zip(SEQUENCES, (self.n_map, self.n_query, self.n_kidnap, self.n_unlabelled)))
 
 
 def scene_json(config: SceneConfig) -> dict:
+    fields = asdict(config)
+    if config.model == "PINHOLE":  # as before lens models existed: old scenes stay valid
+        del fields["model"], fields["distortion"]
     return {"generator": GENERATOR, "version": VERSION, "seed": config.seed,
             "width": config.width, "height": config.height, "depth_registered": True,
-            "sequences": dict(SEQUENCES), "config": asdict(config)}
+            "sequences": dict(SEQUENCES), "config": fields}
 
 
 def _existing(out_dir: Path, config: SceneConfig) -> bool:
@@ -97,6 +106,8 @@ def _write_frames(tmp: Path, config: SceneConfig, progress: Progress | None) -> 
             if progress is not None:
                 progress(done, total)
     np.savetxt(tmp / "intrinsics.txt", camera.K)
+    if camera.distorted:
+        (tmp / "camera.txt").write_text(camera.colmap_string() + "\n")
     (tmp / "TrainSplit.txt").write_text("sequence1\n")
     (tmp / "TestSplit.txt").write_text("sequence2\n")
     (tmp / "scene.json").write_text(json.dumps(scene_json(config), indent=2) + "\n")

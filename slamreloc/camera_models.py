@@ -1,0 +1,179 @@
+"""Camera models: COLMAP's lens-distortion models, their maths, and COLMAP camera strings.
+
+slamreloc works in the *pinhole* camera of a distorted camera: keypoints are undistorted once,
+right after extraction (`Camera.undistort`), into a pinhole camera with the same fx, fy, cx,
+cy; triangulation, PnP, depth back-projection and the map all see pinhole pixels. Images are
+never resampled (depth maps are: `Camera.undistort_image` maps them onto the pinhole grid).
+This module holds the maths on plain values; `slamreloc.types.Camera` wraps it.
+
+Distortion parameters act on normalised image coordinates (x, y) = ((u - cx) / fx,
+(v - cy) / fy) exactly as COLMAP (and OpenCV, whose formulas are the same) define them:
+
+    SIMPLE_RADIAL   f cx cy k                 x' = x (1 + k r^2)
+    RADIAL          f cx cy k1 k2             x' = x (1 + k1 r^2 + k2 r^4)
+    OPENCV          fx fy cx cy k1 k2 p1 p2   radial k1 k2, tangential p1 p2
+    FULL_OPENCV     fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6   rational radial
+    OPENCV_FISHEYE  fx fy cx cy k1 k2 k3 k4   equidistant: theta_d = theta (1 + k1 theta^2 + ...)
+
+Pixel convention: slamreloc's (OpenCV's) pixel centres are at integer coordinates; COLMAP's
+at +0.5. Camera strings and COLMAP files are in COLMAP's convention and converted here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slamreloc.errors import InputError
+
+# COLMAP model name -> its parameter names; "f" means fx = fy
+PARAMS: dict[str, tuple[str, ...]] = {
+    "SIMPLE_PINHOLE": ("f", "cx", "cy"),
+    "PINHOLE": ("fx", "fy", "cx", "cy"),
+    "SIMPLE_RADIAL": ("f", "cx", "cy", "k"),
+    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+    "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+    "FULL_OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+    "OPENCV_FISHEYE": ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"),
+}
+MODELS = tuple(PARAMS)
+DISTORTED_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE")
+MAX_DISTORTION = 1e3  # |k|, |p| beyond this is no lens
+COLMAP_CENTRE = 0.5  # COLMAP's principal point minus OpenCV's, pixels
+
+
+def n_distortion(model: str) -> int:
+    """Number of distortion parameters of a COLMAP model."""
+    return sum(1 for p in PARAMS[model] if p[0] in "kp")
+
+
+def distortion_problem(model: str, distortion) -> str | None:
+    """What is wrong with a model name and its distortion parameters (None when nothing)."""
+    if model not in PARAMS or model == "SIMPLE_PINHOLE":
+        return (f"unknown camera model {str(model)[:40]!r} (known: PINHOLE, "
+                f"{', '.join(DISTORTED_MODELS)})")
+    if len(distortion) != n_distortion(model):
+        return (f"{model} has {n_distortion(model)} distortion parameters, got "
+                f"{len(distortion)}")
+    for name, v in zip((p for p in PARAMS[model] if p[0] in "kp"), distortion):
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or \
+                not abs(float(v)) <= MAX_DISTORTION:
+            return f"distortion {name} must be a finite number within +-{MAX_DISTORTION:g}"
+    return None
+
+
+def colmap_values(model: str, params, source: str) -> tuple[str, float, float, float, float,
+                                                          tuple[float, ...]]:
+    """(canonical model, fx, fy, cx, cy, distortion) of a COLMAP model and its parameter list;
+    the principal point converted to OpenCV's convention. Range checks are the Camera's."""
+    if model not in PARAMS:
+        raise InputError(f"{source}: unknown camera model {model[:40]!r} (known: "
+                         f"{', '.join(MODELS)})")
+    names = PARAMS[model]
+    if len(params) != len(names):
+        raise InputError(f"{source}: {model} takes {len(names)} parameters "
+                         f"({' '.join(names)}), got {len(params)}")
+    values = dict(zip(names, (float(p) for p in params)))
+    fx = fy = values.get("f", 0.0)
+    fx, fy = values.get("fx", fx), values.get("fy", fy)
+    distortion = tuple(values[p] for p in names if p[0] in "kp")
+    return ("PINHOLE" if model == "SIMPLE_PINHOLE" else model, fx, fy,
+            values["cx"] - COLMAP_CENTRE, values["cy"] - COLMAP_CENTRE, distortion)
+
+
+def split_camera_string(text: str, source: str) -> tuple[str, int, int, list[float]]:
+    """(model, width, height, parameters) of `"OPENCV 640 480 fx fy cx cy k1 k2 p1 p2"`, a
+    line of COLMAP's cameras.txt with or without its camera id."""
+    words = text.split()
+    if words and words[0].isdigit() and len(words) > 1 and words[1] in PARAMS:
+        words = words[1:]  # a cameras.txt line: CAMERA_ID MODEL WIDTH HEIGHT PARAMS
+    if len(words) < 3 or words[0].upper() not in PARAMS:
+        raise InputError(f"{source}: expected 'MODEL WIDTH HEIGHT PARAMS...' with MODEL one of "
+                         f"{', '.join(MODELS)}, got {text[:60]!r}")
+    try:
+        return words[0].upper(), int(words[1]), int(words[2]), [float(w) for w in words[3:]]
+    except ValueError:
+        raise InputError(f"{source}: width and height must be whole numbers and parameters "
+                         f"numbers, got {text[:60]!r}") from None
+
+
+def colmap_head(model: str, fx: float, fy: float, cx: float, cy: float) -> list[float]:
+    """The focal and principal-point parameters of a COLMAP model, COLMAP's convention."""
+    cx, cy = cx + COLMAP_CENTRE, cy + COLMAP_CENTRE
+    return [0.5 * (fx + fy), cx, cy] if PARAMS[model][0] == "f" else [fx, fy, cx, cy]
+
+
+def distort_normalized(model: str, distortion, xy: np.ndarray) -> np.ndarray:
+    """(N, 2) ideal normalised coordinates -> distorted normalised coordinates."""
+    xy = np.asarray(xy, np.float64)
+    x, y = xy[:, 0], xy[:, 1]
+    d = tuple(float(v) for v in distortion)
+    r2 = x * x + y * y
+    if model == "PINHOLE":
+        return xy.copy()
+    if model == "OPENCV_FISHEYE":
+        r = np.sqrt(r2)
+        theta = np.arctan(r)
+        t2 = theta * theta
+        theta_d = theta * (1 + t2 * (d[0] + t2 * (d[1] + t2 * (d[2] + t2 * d[3]))))
+        scale = np.where(r > 1e-12, theta_d / np.maximum(r, 1e-12), 1.0)
+        return xy * scale[:, None]
+    if model == "SIMPLE_RADIAL":
+        k1, k2, p1, p2, k3, k4, k5, k6 = d[0], 0, 0, 0, 0, 0, 0, 0
+    elif model == "RADIAL":
+        k1, k2, p1, p2, k3, k4, k5, k6 = d[0], d[1], 0, 0, 0, 0, 0, 0
+    elif model == "OPENCV":
+        k1, k2, p1, p2, k3, k4, k5, k6 = (*d, 0, 0, 0, 0)
+    elif model == "FULL_OPENCV":
+        k1, k2, p1, p2, k3, k4, k5, k6 = d
+    else:
+        raise ValueError(f"unknown camera model {model}")
+    radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return np.stack([xd, yd], axis=1)
+
+
+def undistort_normalized(model: str, distortion, xy_d: np.ndarray,
+                         iterations: int = 40) -> np.ndarray:
+    """Inverse of `distort_normalized` by Gauss-Newton with a numeric Jacobian (as COLMAP
+    does); converges to ~1e-12 for any lens whose distortion is monotonic over the image."""
+    xy_d = np.asarray(xy_d, np.float64)
+    if model == "PINHOLE" or not len(xy_d):
+        return xy_d.copy()
+    xy = xy_d.copy()
+    eps = 1e-7
+    for _ in range(iterations):
+        f = distort_normalized(model, distortion, xy) - xy_d
+        fx = (distort_normalized(model, distortion, xy + [eps, 0]) - xy_d - f) / eps
+        fy = (distort_normalized(model, distortion, xy + [0, eps]) - xy_d - f) / eps
+        a, b, c, d = fx[:, 0], fy[:, 0], fx[:, 1], fy[:, 1]
+        det = a * d - b * c
+        det = np.where(np.abs(det) < 1e-12, 1e-12, det)
+        step = np.stack([(d * f[:, 0] - b * f[:, 1]) / det,
+                         (-c * f[:, 0] + a * f[:, 1]) / det], axis=1)
+        xy -= step
+        if np.max(np.abs(step), initial=0) < 1e-12:
+            break
+    return xy
+
+
+def map_pixels(uv: np.ndarray, fx: float, fy: float, cx: float, cy: float, model: str,
+               distortion, undistort: bool) -> np.ndarray:
+    """(N, 2) image pixels -> pinhole pixels (`undistort`), or back, through normalised
+    coordinates; unchanged for a pinhole camera."""
+    uv = np.asarray(uv)
+    if model == "PINHOLE":
+        return uv
+    f, c = np.array([fx, fy]), np.array([cx, cy])
+    fn = undistort_normalized if undistort else distort_normalized
+    return (fn(model, distortion, (uv - c) / f) * f + c).astype(uv.dtype, copy=False)
+
+
+def pinhole_grid_sources(width: int, height: int, fx: float, fy: float, cx: float, cy: float,
+                         model: str, distortion) -> np.ndarray:
+    """(height, width, 2) float32: for each pinhole pixel, where it lies in the distorted
+    image (a `cv2.remap` map)."""
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    src = map_pixels(np.stack([u.ravel(), v.ravel()], axis=1), fx, fy, cx, cy, model,
+                     distortion, undistort=False)
+    return src.reshape(height, width, 2).astype(np.float32)

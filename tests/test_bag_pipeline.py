@@ -1,0 +1,100 @@
+"""A ROS 2 bag written from the synthetic scene gives the numbers of the folder it came from:
+`map`, `evaluate` (localization) and `slam`, through the CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slamreloc.datasets import load_dataset
+from slamreloc.datasets.rosbag import BagTopics, set_topics
+from slamreloc.evaluate import align_to_reference
+from slamreloc.map_weights import weight_arrays
+from slamreloc.scene_map import SceneMap
+from tests.fuzzing import run_cli, run_cli_output
+from tests.rosbag_support import write_bag
+
+
+@pytest.fixture(autouse=True)
+def automatic_topics():
+    yield
+    set_topics(BagTopics())
+
+
+def bag_of(scene_dir, sequence: str, path):
+    dataset = load_dataset(scene_dir)
+    return write_bag(dataset, dataset.frames(sequence), path, version=2, poses="pose")
+
+
+def _numbers(report: dict, keys) -> dict:
+    return {k: report[k] for k in keys}
+
+
+def test_map_from_a_bag_equals_the_map_from_its_folder(scene_dir, tmp_path):
+    bag = bag_of(scene_dir, "seq-01", tmp_path / "map_bag")
+    runs = {"folder": [str(scene_dir), "--split", "seq-01"], "bag": [str(bag), "--split", "all"]}
+    maps = {}
+    for name, args in runs.items():
+        status, err = run_cli(["map", *args, "--out", str(tmp_path / name), "--epochs", "2"])
+        assert status == 0, err
+        maps[name] = json.loads((tmp_path / name / "slamreloc_map.json").read_text())
+    for key in ("n_labelled", "n_keypoints", "n_tracks", "median_reproj_error_px",
+                "n_depth_labels"):
+        assert maps["bag"]["labels"][key] == maps["folder"]["labels"][key], key
+    assert maps["bag"]["camera"] == maps["folder"]["camera"]
+    folder_w, bag_w = (weight_arrays(SceneMap.load(tmp_path / n).regressor)
+                       for n in ("folder", "bag"))
+    assert folder_w.keys() == bag_w.keys()
+    assert all(np.array_equal(folder_w[k], bag_w[k]) for k in folder_w)
+
+
+def test_evaluate_and_slam_on_a_bag_equal_its_folder(scene_dir, small_map, tmp_path):
+    reports = {}
+    for seq, command in (("seq-02", "evaluate"), ("seq-03", "slam")):
+        bag = bag_of(scene_dir, seq, tmp_path / f"{seq}_bag")
+        for name, data, split in (("folder", scene_dir, seq), ("bag", bag, "all")):
+            report = tmp_path / f"{command}_{name}.json"
+            args = ([command, str(small_map.root), str(data)] if command == "evaluate" else
+                    [command, str(data), "--map", str(small_map.root), "--kidnap-every", "12",
+                     "--kidnap-skip", "3"])
+            status, err = run_cli([*args, "--split", split, "--report", str(report)])
+            assert status == 0, err
+            reports[command, name] = json.loads(report.read_text())
+    ev_f, ev_b = reports["evaluate", "folder"], reports["evaluate", "bag"]
+    assert ev_f["recall"] == ev_b["recall"] and ev_f["n_localized"] == ev_b["n_localized"]
+    assert [(q["translation_error_m"], q["rotation_error_deg"], q["num_inliers"])
+            for q in ev_f["per_query"]] == [(q["translation_error_m"], q["rotation_error_deg"],
+                                             q["num_inliers"]) for q in ev_b["per_query"]]
+    keys = ("n_frames", "n_kidnaps", "n_recovered", "ate_rmse_m", "ate_rmse_odometry_only_m",
+            "n_loop_closures", "n_loop_closures_rejected")
+    assert _numbers(reports["slam", "bag"], keys) == _numbers(reports["slam", "folder"], keys)
+    assert reports["slam", "bag"]["n_recovered"] >= 1
+
+
+def test_localize_a_bag_like_its_images(scene_dir, small_map, tmp_path):
+    frames = load_dataset(scene_dir).frames("seq-02")
+    bag = bag_of(scene_dir, "seq-02", tmp_path / "q_bag")
+    outputs = {}
+    for name, inputs in (("bag", [str(bag)]), ("folder", [str(f.image_path) for f in frames])):
+        status, out, err = run_cli_output(["localize", str(small_map.root), *inputs])
+        assert status == 0, err
+        outputs[name] = [line.split()[1:] for line in out.splitlines()]  # poses and inliers
+    assert len(outputs["bag"]) == len(frames) and outputs["bag"] == outputs["folder"]
+
+
+def test_sfm_from_a_bag_without_poses(scene_dir, tmp_path):
+    dataset = load_dataset(scene_dir)
+    bag = write_bag(dataset, dataset.frames("seq-01"), tmp_path / "run", version=2, poses=None)
+    status, err = run_cli(["sfm", str(bag), "--out", str(tmp_path / "ds"), "--scale-from-depth"])
+    assert status == 0, err
+    summary = json.loads((tmp_path / "ds" / "sfm.json").read_text())
+    assert summary["input_kind"] == "dataset" and summary["metric"]
+    assert summary["n_registered"] >= 54
+    # frame i of the bag ("run/00000i.png") is the folder's frame i: metres, as the truth
+    truth = {f"{i:06d}": f.world_from_cam for i, f in enumerate(dataset.frames("seq-01"))}
+    sfm = {Path(f.name).stem: f.world_from_cam for f in load_dataset(tmp_path / "ds").frames()}
+    _, record = align_to_reference(sfm, truth)
+    assert abs(record["scale"] - 1) < 0.02 and record["median_residual_m"] < 0.02, record
