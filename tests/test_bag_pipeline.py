@@ -81,9 +81,11 @@ def test_evaluate_and_slam_on_a_bag_equal_its_folder(scene_dir, kidnap_scene, sm
               "n_loop_closures_rejected")
     assert _numbers(reports["slam", "bag"], counts) == _numbers(reports["slam", "folder"],
                                                                 counts)
+    # open3d's RGB-D odometry sums over threads in no fixed order: two runs of the same
+    # folder already differ by ~0.1 mm in ATE (the reports round to 0.1 mm)
     for key in ("ate_rmse_m", "ate_rmse_odometry_only_m"):
         assert reports["slam", "bag"][key] == pytest.approx(reports["slam", "folder"][key],
-                                                            rel=1e-6)
+                                                            abs=1e-3)
     assert reports["slam", "bag"]["n_recovered"] >= 1  # the comparison covers a recovery
 
 
