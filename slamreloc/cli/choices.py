@@ -1,6 +1,6 @@
 """The CLI's choices, built from the registries that define them (architecture presets, feature
 extractors, devices, precisions, localization methods, map-update modes, SfM matching and
-mappers): typer validates them and lists them in `--help`."""
+mappers, serving engines): typer validates them and lists them in `--help`."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from slamreloc.precision import PRECISIONS
 from slamreloc.pseudo_label.config import UPDATES
 from slamreloc.regressor.model import PRESETS
 from slamreloc.regressor.train import DEVICES
+from slamreloc.service import ENGINES
 from slamreloc.sfm import MAPPERS, MATCHING
 
 
@@ -29,3 +30,4 @@ Method = registry_choice("Method", METHODS)
 Update = registry_choice("Update", UPDATES)
 Matching = registry_choice("Matching", MATCHING)
 Mapper = registry_choice("Mapper", MAPPERS)
+Engine = registry_choice("Engine", ENGINES)

@@ -19,10 +19,12 @@ from slamreloc.cli.choices import (
     Precision,
     Update,
 )
+from slamreloc.cli.serve import serve
 from slamreloc.errors import InputError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Camera relocalization with a lightweight scene-coordinate regressor.")
+app.command()(serve)
 
 
 @app.callback()

@@ -357,9 +357,10 @@ def _png(pixels: np.ndarray, source: str) -> bytes:
     return data.tobytes()
 
 
-def _colour_file(msg: Any, source: str) -> tuple[bytes, str, tuple[int, int]]:
-    """(file bytes, suffix, (width, height)) of a colour Image or CompressedImage message."""
-    if msg.__msgtype__ == COMPRESSED:
+def colour_file(msg: Any, source: str) -> tuple[bytes, str, tuple[int, int]]:
+    """(file bytes, suffix, (width, height)) of a colour Image or CompressedImage message (a
+    bag's, or a live ROS node's: messages are read by their fields)."""
+    if getattr(msg, "__msgtype__", None) == COMPRESSED or not hasattr(msg, "encoding"):
         data = bytes(msg.data)
         header = check_encoded_image(data, source, "image")
         if header.format not in COMPRESSED_SUFFIXES:
@@ -630,7 +631,7 @@ def load_rosbag(path: str | Path, topics: BagTopics | None = None) -> Dataset:
         first = bag.first(image)
         if first is None:
             raise InputError(f"{bag.path}: image topic {image} has no messages")
-        size = _colour_file(first, f"{bag.path}: image topic {image}, message 0")[2]
+        size = colour_file(first, f"{bag.path}: image topic {image}, message 0")[2]
         camera = _camera(bag, chosen.camera_info, image, size)
         track = None
         if chosen.pose:
@@ -638,7 +639,7 @@ def load_rosbag(path: str | Path, topics: BagTopics | None = None) -> Dataset:
             if note:
                 _say(note)
         with _extraction_folder() as folder:
-            stills = _extract(bag, image, folder / "image", _colour_file, size, "image")
+            stills = _extract(bag, image, folder / "image", colour_file, size, "image")
             depth = (_extract(bag, chosen.depth, folder / "depth", _depth_file, size, "depth")
                      if chosen.depth else [])
     stamps = np.array([s.stamp for s in stills])

@@ -19,22 +19,23 @@ def _ate(poses, truth, align=False):
     return ate_rmse([p for p, _ in pairs], [t for _, t in pairs], align)
 
 
-def kidnap_stats(backend, truth, jumps: list[int]) -> dict:
+CONFIRMING = (EventKind.TRACKING_RECOVERED, EventKind.MAP_UPDATED)
+
+
+def kidnap_stats(confirmed: list[int], online: list, truth: list, jumps: list[int]) -> dict:
     """Per kidnap (first frame after the jump = p): the first frame c >= p, before the next
-    kidnap, where a relocalization confirmed a map-frame pose (anchor or accepted loop
-    closure); frames to recover = c - p; error of the pose returned at c."""
-    confirm = {EventKind.TRACKING_RECOVERED, EventKind.MAP_UPDATED}
-    ends = [*jumps[1:], len(backend.frames)]
+    kidnap, where a relocalization confirmed a map-frame pose (`confirmed`: the frames of the
+    anchors and accepted loop closures, in order); frames to recover = c - p; error of the
+    pose returned at c (`online`: each frame's world_from_cam as returned, or None)."""
+    ends = [*jumps[1:], len(online)]
     frames, errors = [], []
     for p, end in zip(jumps, ends):
-        c = next((e.frame for e in backend.event_log if e.kind in confirm
-                  and p <= e.frame < end), None)
+        c = next((f for f in confirmed if p <= f < end), None)
         if c is None:
             continue
         frames.append(c - p)
-        pose = backend.frames[c].online_world_from_cam
-        if truth[c] is not None and pose is not None:
-            errors.append(pose_error(pose, truth[c]))
+        if truth[c] is not None and online[c] is not None:
+            errors.append(pose_error(online[c], truth[c]))
     med = (lambda v: float(np.median(v)) if len(v) else None)  # noqa: E731
     return {"n_kidnaps": len(jumps), "n_recovered": len(frames),
             "median_frames_to_recover": med(frames), "frames_to_recover": frames,
@@ -70,7 +71,8 @@ def build_report(backend, frames, jumps, plugins, config, t_backend_s: float) ->
         "ate_rmse_odometry_only_m": rnd(_ate(odo, truth)),
         "ate_rmse_online_m": rnd(_ate(online, truth)),
         "n_frames_without_pose_online": sum(p is None for p in online),
-        **kidnap_stats(backend, truth, jumps),
+        **kidnap_stats([e.frame for e in backend.event_log if e.kind in CONFIRMING], online,
+                       truth, jumps),
         "n_loop_closures": stats.get("n_loop_closures", 0),
         "n_loop_closures_rejected": stats.get("n_rejected", 0),
         **anchor_stats(backend, truth),

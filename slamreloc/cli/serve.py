@@ -1,0 +1,84 @@
+"""`slamreloc serve`: the relocalization service (gRPC; docs/serve.md)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from slamreloc.cli.choices import Engine
+from slamreloc.errors import InputError
+
+TOKEN_ENV = "SLAMRELOC_TOKEN"
+
+
+def map_names(maps: list[Path], names: list[str]) -> dict[str, Path]:
+    """name -> folder: the `--name`s in order, then the folders' own names."""
+    if len(names) > len(maps):
+        raise InputError(f"{len(names)} --name for {len(maps)} maps")
+    out: dict[str, Path] = {}
+    for i, path in enumerate(maps):
+        name = names[i] if i < len(names) else path.resolve().name
+        if not name or any(c.isspace() for c in name):
+            raise InputError(f"{path}: map name {name!r} is empty or has spaces (use --name)")
+        if name in out:
+            raise InputError(f"{path}: two maps named {name!r} (use --name)")
+        out[name] = path
+    return out
+
+
+def read_token(token_file: Path | None) -> str | None:
+    if token_file is not None:
+        try:
+            token = token_file.read_text().strip()
+        except (OSError, UnicodeDecodeError) as err:
+            raise InputError(f"{token_file}: cannot read the token ({err})") from None
+        if not token:
+            raise InputError(f"{token_file}: empty token file")
+        return token
+    return os.environ.get(TOKEN_ENV) or None
+
+
+def serve(
+    maps: Annotated[list[Path], typer.Argument(metavar="MAP...", help="map folders to serve")],
+    name: Annotated[Optional[list[str]], typer.Option(
+        help="a map's name, in the order of the maps (default: the folder's name)")] = None,
+    host: Annotated[str, typer.Option(
+        help="address to bind; a non-loopback one needs a token")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="port (0: any free one, printed)")] = 50051,
+    workers: Annotated[int, typer.Option(
+        help="localizations at once (the cores are split between them)")] = 1,
+    max_sessions: Annotated[int, typer.Option(help="SLAM sessions open at once")] = 8,
+    token_file: Annotated[Optional[Path], typer.Option(
+        help=f"file holding the token every call must carry (or ${TOKEN_ENV})")] = None,
+    tls_cert: Annotated[Optional[Path], typer.Option(help="TLS certificate (PEM)")] = None,
+    tls_key: Annotated[Optional[Path], typer.Option(help="TLS private key (PEM)")] = None,
+    max_request_mb: Annotated[float, typer.Option(help="largest request accepted")] = 32.0,
+    watch: Annotated[float, typer.Option(
+        help="seconds between checks for a map folder replaced on disk (0: only ReloadMap)")]
+    = 2.0,
+    engine: Annotated[Engine, typer.Option(
+        help="grpc: this process; ray: deployments on Ray Serve (one per map, --replicas)")]
+    = Engine.grpc,
+    replicas: Annotated[int, typer.Option(help="--engine ray: replicas per map")] = 1,
+) -> None:
+    """Serve MAPs over gRPC (protocol slamreloc.v1): Localize, SLAM sessions, health, list and
+    reload maps. Runs until Ctrl-C."""
+    named = map_names(maps, list(name or []))
+    token = read_token(token_file)
+    if engine == Engine.ray:
+        from slamreloc.service.ray_serve import serve_forever as ray_serve_forever
+
+        if token is not None or tls_cert is not None:
+            raise InputError("--engine ray: token and TLS are Ray Serve's to configure "
+                             "(docs/serve.md); bind it to a trusted network")
+        ray_serve_forever(named, replicas=replicas, host=host, port=port)
+        return
+    from slamreloc.service.server import ServeConfig, serve_forever
+
+    serve_forever(named, ServeConfig(
+        host=host, port=port, workers=workers, max_sessions=max_sessions, token=token,
+        tls_cert=tls_cert, tls_key=tls_key, max_request_bytes=int(max_request_mb * (1 << 20)),
+        watch_s=watch))

@@ -1,0 +1,242 @@
+"""Python client of `slamreloc serve` (protocol slamreloc.v1; docs/serve.md).
+
+    from slamreloc.client import Client
+
+    with Client("127.0.0.1:50051") as client:
+        result = client.localize("query.jpg", map="kitchen")
+        if result.localized:
+            print(result.world_from_cam.translation, result.response.num_inliers)
+
+        with client.session(map="kitchen") as session:  # a SLAM system's session
+            for image, odom_from_cam in frames:
+                update = session.send(image, odometry_world_from_cam=odom_from_cam)
+                for event in update.events: ...
+
+Images go as file bytes (a path or `bytes`) or raw RGB / grey uint8 arrays; cameras as a
+`slamreloc.types.Camera` or a COLMAP camera string; poses as `Rigid3` (`world_from_cam`: camera
+to map frame, metres). A refusal raises `RemoteError` with the server's ErrorKind name.
+"""
+
+from __future__ import annotations
+
+import queue
+from dataclasses import dataclass
+from pathlib import Path
+
+import grpc
+import numpy as np
+
+from slamreloc.geometry import Rigid3
+from slamreloc.proto import relocalizer_pb2 as pb
+from slamreloc.proto.relocalizer_pb2_grpc import RelocalizerStub
+from slamreloc.service.protocol import (
+    ERROR_METADATA_KEY,
+    camera_msg,
+    rigid_from_msg,
+    transform_msg,
+)
+from slamreloc.types import Camera
+
+
+class RemoteError(Exception):
+    """The server refused a call: `kind` is the ErrorKind's name ("BAD_IMAGE", "UNKNOWN_MAP",
+    ...; "" when gRPC itself refused, e.g. a message over the size limit), `code` the gRPC
+    status."""
+
+    def __init__(self, code: grpc.StatusCode, kind: str, message: str):
+        super().__init__(f"{kind or code.name}: {message}")
+        self.code, self.kind, self.message = code, kind, message
+
+    @staticmethod
+    def from_rpc(err: grpc.RpcError) -> RemoteError:
+        kind = dict(err.trailing_metadata() or ()).get(ERROR_METADATA_KEY, "")
+        return RemoteError(err.code(), kind, err.details() or "")
+
+
+@dataclass(frozen=True)
+class LocalizeResult:
+    response: pb.LocalizeResponse
+
+    @property
+    def localized(self) -> bool:
+        return self.response.localized
+
+    @property
+    def world_from_cam(self) -> Rigid3 | None:
+        """The pose found (also when it was refused as far from the prior), else None."""
+        if not self.response.HasField("world_from_cam"):
+            return None
+        return rigid_from_msg(self.response.world_from_cam, "world_from_cam")
+
+    @property
+    def reason(self) -> str:
+        return pb.NotLocalized.Name(self.response.reason)
+
+
+def image_msg(image) -> pb.Image:
+    """A path or bytes (an encoded image file), or a uint8 array (H, W) / (H, W, 3) RGB."""
+    if isinstance(image, (str, Path)):
+        return pb.Image(encoded=Path(image).read_bytes())
+    if isinstance(image, (bytes, bytearray, memoryview)):
+        return pb.Image(encoded=bytes(image))
+    arr = np.ascontiguousarray(image)
+    if arr.dtype != np.uint8 or arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] != 3):
+        raise ValueError(f"raw images are uint8 (H, W) or (H, W, 3), got {arr.dtype} "
+                         f"{arr.shape}")
+    channels = 1 if arr.ndim == 2 else 3
+    return pb.Image(raw=pb.RawImage(width=arr.shape[1], height=arr.shape[0], channels=channels,
+                                    data=arr.tobytes()))
+
+
+def depth_msg(depth: np.ndarray, camera: Camera | None = None) -> pb.Depth:
+    """float32 metres (H, W), 0 where unknown; `camera`: the depth camera when the depth is not
+    registered to the image (pinhole)."""
+    d = np.ascontiguousarray(depth, "<f4")
+    if d.ndim != 2:
+        raise ValueError(f"depth is (H, W), got shape {d.shape}")
+    msg = pb.Depth(encoding=pb.Depth.FLOAT32_METRES, width=d.shape[1], height=d.shape[0],
+                   data=d.tobytes())
+    if camera is not None:
+        msg.intrinsics.CopyFrom(camera_msg(camera.pinhole).pinhole)
+    return msg
+
+
+def _camera(camera: Camera | str | None) -> pb.Camera | None:
+    if camera is None:
+        return None
+    return pb.Camera(colmap=camera) if isinstance(camera, str) else camera_msg(camera)
+
+
+class Client:
+    """A connection to a server. `token`: sent as `authorization: Bearer TOKEN`; `tls_ca`: the
+    PEM certificate(s) to trust for a TLS server; `timeout_s` per unary call."""
+
+    def __init__(self, address: str = "127.0.0.1:50051", token: str | None = None,
+                 tls_ca: Path | bytes | None = None, timeout_s: float = 60.0,
+                 max_message_bytes: int = 64 << 20):
+        options = [("grpc.max_send_message_length", max_message_bytes),
+                   ("grpc.max_receive_message_length", max_message_bytes)]
+        if tls_ca is not None:
+            ca = tls_ca if isinstance(tls_ca, bytes) else Path(tls_ca).read_bytes()
+            self.channel = grpc.secure_channel(address, grpc.ssl_channel_credentials(ca),
+                                               options)
+        else:
+            self.channel = grpc.insecure_channel(address, options)
+        self.stub = RelocalizerStub(self.channel)
+        self.metadata = (("authorization", f"Bearer {token}"),) if token else ()
+        self.timeout_s = timeout_s
+
+    def _call(self, method, request):
+        try:
+            return method(request, timeout=self.timeout_s, metadata=self.metadata)
+        except grpc.RpcError as err:
+            raise RemoteError.from_rpc(err) from None
+
+    def localize(self, image, camera: Camera | str | None = None, map: str = "",
+                 depth: np.ndarray | None = None, depth_camera: Camera | None = None,
+                 world_from_cam_prior: Rigid3 | None = None) -> LocalizeResult:
+        """One image against the map named `map` ("" on a server with one map). camera: the
+        map's, scaled to the image, when None."""
+        req = pb.LocalizeRequest(map=map, image=image_msg(image))
+        if camera is not None:
+            req.camera.CopyFrom(_camera(camera))
+        if depth is not None:
+            req.depth.CopyFrom(depth_msg(depth, depth_camera))
+        if world_from_cam_prior is not None:
+            req.world_from_cam_prior.CopyFrom(transform_msg(world_from_cam_prior))
+        return LocalizeResult(self._call(self.stub.Localize, req))
+
+    def health(self) -> pb.HealthResponse:
+        return self._call(self.stub.Health, pb.HealthRequest())
+
+    def list_maps(self) -> list[pb.MapInfo]:
+        return list(self._call(self.stub.ListMaps, pb.ListMapsRequest()).maps)
+
+    def reload_map(self, map: str = "") -> pb.ReloadMapResponse:
+        return self._call(self.stub.ReloadMap, pb.ReloadMapRequest(map=map))
+
+    def session(self, map: str = "", odometry: str = "client",
+                depth_camera: Camera | None = None,
+                depth_units_per_metre: float = 0.0) -> ClientSession:
+        """Open a session; see `ClientSession`."""
+        opening = pb.SessionOpen(map=map, odometry=odometry,
+                                 depth_units_per_metre=depth_units_per_metre)
+        if depth_camera is not None:
+            opening.depth_intrinsics.CopyFrom(camera_msg(depth_camera.pinhole).pinhole)
+        return ClientSession(self, opening)
+
+    def close(self) -> None:
+        self.channel.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class ClientSession:
+    """A session in lock-step: `send` one frame, get its `pb.FrameResult`; `close` ends it and
+    returns the final trajectory (`pb.SessionClosed`). A refused frame raises RemoteError and
+    the session carries on."""
+
+    _END = object()
+
+    def __init__(self, client: Client, opening: pb.SessionOpen):
+        self._requests: queue.Queue = queue.Queue()
+        self._requests.put(pb.SessionRequest(open=opening))
+        self._updates = client.stub.Session(iter(self._requests.get, self._END),
+                                            metadata=client.metadata)
+        first = self._next()
+        if first.WhichOneof("message") != "opened":
+            raise RemoteError(grpc.StatusCode.UNKNOWN, "", f"unexpected first answer: {first}")
+        self.opened: pb.SessionOpened = first.opened
+        self.closed: pb.SessionClosed | None = None
+
+    def _next(self) -> pb.SessionUpdate:
+        try:
+            return next(self._updates)
+        except grpc.RpcError as err:
+            raise RemoteError.from_rpc(err) from None
+
+    def send(self, image, camera: Camera | str | None = None, depth: np.ndarray | None = None,
+             odometry_world_from_cam: Rigid3 | None = None, timestamp: float = 0.0,
+             depth_encoding: str = "float32") -> pb.FrameResult:
+        """One frame. depth: float32 metres (H, W); with depth_encoding="uint16" a uint16
+        array in the session's depth units. odometry_world_from_cam: required with client
+        odometry (the client's pose in its own fixed odometry frame)."""
+        frame = pb.SessionFrame(image=image_msg(image), timestamp=timestamp)
+        if camera is not None:
+            frame.camera.CopyFrom(_camera(camera))
+        if depth is not None:
+            if depth_encoding == "uint16":
+                d = np.ascontiguousarray(depth, "<u2")
+                frame.depth.CopyFrom(pb.Depth(encoding=pb.Depth.UINT16, width=d.shape[1],
+                                              height=d.shape[0], data=d.tobytes()))
+            else:
+                frame.depth.CopyFrom(depth_msg(depth))
+        if odometry_world_from_cam is not None:
+            frame.odometry_world_from_cam.CopyFrom(transform_msg(odometry_world_from_cam))
+        self._requests.put(pb.SessionRequest(frame=frame))
+        update = self._next()
+        kind = update.WhichOneof("message")
+        if kind == "error":
+            raise RemoteError(grpc.StatusCode.INVALID_ARGUMENT,
+                              pb.ErrorKind.Name(update.error.kind), update.error.message)
+        return update.frame
+
+    def close(self) -> pb.SessionClosed:
+        if self.closed is None:
+            self._requests.put(self._END)
+            update = self._next()
+            self.closed = update.closed
+        return self.closed
+
+    def __enter__(self) -> ClientSession:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if exc[0] is None:
+            self.close()
+        else:
+            self._updates.cancel()

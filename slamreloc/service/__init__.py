@@ -1,0 +1,10 @@
+"""`slamreloc serve`: relocalization as a gRPC service (protocol: `slamreloc.proto`).
+
+Modules: `protocol` (messages <-> slamreloc types, with the checks on untrusted input),
+`maps` (the maps served: loaded once, reloaded atomically), `localize` (one Localize request),
+`sessions` (a SLAM system's session: backend + relocalization plugin), `server` (the gRPC
+server: authentication, limits, errors), `ray_serve` (the same service on Ray Serve).
+Clients: `slamreloc.client` (Python), clients/cpp (C++).
+"""
+
+ENGINES = ("grpc", "ray")  # slamreloc's own gRPC server; the same service on Ray Serve

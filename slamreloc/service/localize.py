@@ -1,0 +1,78 @@
+"""One `Localize` request: checked inputs -> the map's localizer -> optional depth refinement
+and prior check -> the response. The same computation as `slamreloc localize` (one
+`Localizer.localize` call), so the poses are bit-identical to it for the same image bytes."""
+
+from __future__ import annotations
+
+import time
+
+from slamreloc.geometry import pose_error
+from slamreloc.proto import relocalizer_pb2 as pb
+from slamreloc.service.maps import ServedMap
+from slamreloc.service.protocol import (
+    ServiceError,
+    camera_from_msg,
+    depth_from_msg,
+    depth_intrinsics_from_msg,
+    image_from_msg,
+    rigid_from_msg,
+    transform_msg,
+)
+from slamreloc.surface import IcpConfig, depth_cloud, refine_pose
+
+PRIOR_MAX_M, PRIOR_MAX_DEG = 0.5, 20.0  # defaults of LocalizeRequest.prior_max_*
+MIN_KEYPOINTS = 4  # PnP needs four correspondences
+
+
+def localize(served: ServedMap, request: pb.LocalizeRequest) -> pb.LocalizeResponse:
+    """Answer one request from `served`; ServiceError for a defective request."""
+    t0 = time.perf_counter()
+    scene_map = served.scene_map
+    with served.localizer() as loc:
+        image = image_from_msg(request.image, loc.extractor.check_size)
+        h, w = image.shape[:2]
+        camera = camera_from_msg(request.camera if request.HasField("camera") else None, w, h,
+                                 scene_map.camera)
+        prior = (rigid_from_msg(request.world_from_cam_prior, "world_from_cam_prior")
+                 if request.HasField("world_from_cam_prior") else None)
+        limits = (request.prior_max_m or PRIOR_MAX_M, request.prior_max_deg or PRIOR_MAX_DEG)
+        if prior is not None and not all(0 < v < float("inf") for v in limits):
+            raise ServiceError(pb.BAD_POSE, "prior_max_m and prior_max_deg must be positive")
+        depth = depth_k = None
+        if request.HasField("depth"):
+            if request.depth.HasField("intrinsics"):
+                depth_k = depth_intrinsics_from_msg(request.depth.intrinsics, "depth.intrinsics")
+            depth = depth_from_msg(request.depth, None if depth_k else (w, h))
+        t1 = time.perf_counter()
+        result = loc.localize(image, camera)
+    est = result.estimate
+    world_from_cam, refined = est.world_from_cam, False
+    t2 = time.perf_counter()
+    if world_from_cam is not None and depth is not None and scene_map.surface is not None:
+        fit = refine_pose(scene_map.surface, depth_cloud(depth, camera, depth_k),
+                          world_from_cam, IcpConfig())
+        world_from_cam, refined = fit.chosen(), bool(fit.accepted)
+    t3 = time.perf_counter()
+    out = pb.LocalizeResponse(
+        num_inliers=est.num_inliers, num_correspondences=est.num_correspondences,
+        confidence=est.confidence, refined=refined, num_keypoints=result.n_keypoints,
+        map_version=served.version)
+    ms = result.timings_ms
+    out.timings.CopyFrom(pb.Timings(
+        decode_ms=1000 * (t1 - t0), features_ms=ms["features"], regressor_ms=ms["regressor"],
+        pnp_ms=ms["pnp"], refine_ms=1000 * (t3 - t2), total_ms=1000 * (time.perf_counter() - t0)))
+    if world_from_cam is None:
+        few = result.n_keypoints < MIN_KEYPOINTS
+        out.reason = pb.TOO_FEW_KEYPOINTS if few else pb.TOO_FEW_INLIERS
+        out.detail = (f"{result.n_keypoints} keypoints" if few else
+                      f"{est.num_inliers} inliers of {est.num_correspondences} correspondences")
+        return out
+    out.world_from_cam.CopyFrom(transform_msg(world_from_cam))
+    if prior is not None:
+        dist_m, angle_deg = pose_error(world_from_cam, prior)
+        if dist_m > limits[0] or angle_deg > limits[1]:
+            out.reason = pb.FAR_FROM_PRIOR
+            out.detail = f"{dist_m:.3f} m / {angle_deg:.1f} deg from the prior"
+            return out
+    out.localized = True
+    return out

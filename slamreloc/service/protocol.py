@@ -1,0 +1,191 @@
+"""Messages of `slamreloc.v1` <-> slamreloc's types, with every check on untrusted input.
+
+Everything a request carries is checked here before any work: images through
+`slamreloc.images` (header bounds before decoding, the extractor's memory bound), cameras
+through `Camera` (the same checks as `--intrinsics` / `--camera`), poses through `Rigid3`
+(finite, unit quaternion, translation bound), depth by size and encoding. A defect raises
+`ServiceError` with its `ErrorKind`; the server turns that into a gRPC status (unary calls) or a
+`SessionError` (sessions), and nothing else happens.
+"""
+
+from __future__ import annotations
+
+import cv2
+import grpc
+import numpy as np
+
+from slamreloc.errors import InputError
+from slamreloc.geometry import MAX_COORDINATE, Rigid3
+from slamreloc.images import check_image_size, decode_image, decode_rgb, encoded_header
+from slamreloc.proto import relocalizer_pb2 as pb
+from slamreloc.types import Camera
+
+ERROR_METADATA_KEY = "slamreloc-error"  # trailing metadata: the ErrorKind's name
+QUATERNION_NORM_TOL = 1e-3  # as for COLMAP's images.txt
+DEPTH_REFERENCE_SIZE = (640, 480)  # `Dataset.depth_intrinsics` are given at this size
+
+
+class ServiceError(Exception):
+    """A request the service refuses: `kind` is a `pb.ErrorKind` value."""
+
+    def __init__(self, kind: int, message: str):
+        super().__init__(message)
+        self.kind, self.message = kind, message
+
+    @property
+    def kind_name(self) -> str:
+        return pb.ErrorKind.Name(self.kind)
+
+    @property
+    def grpc_code(self) -> grpc.StatusCode:
+        return GRPC_CODES.get(self.kind, grpc.StatusCode.INVALID_ARGUMENT)
+
+
+# the gRPC status each kind of refusal is answered with (every server of the protocol)
+GRPC_CODES = {
+    pb.UNKNOWN_MAP: grpc.StatusCode.NOT_FOUND,
+    pb.TOO_LARGE: grpc.StatusCode.RESOURCE_EXHAUSTED,
+    pb.OVERLOADED: grpc.StatusCode.RESOURCE_EXHAUSTED,
+    pb.UNAUTHENTICATED: grpc.StatusCode.UNAUTHENTICATED,
+    pb.INTERNAL: grpc.StatusCode.INTERNAL,
+}  # the others (BAD_*): INVALID_ARGUMENT
+
+
+# ---- poses ---------------------------------------------------------------------------------
+def transform_msg(a_from_b: Rigid3) -> pb.Transform:
+    qx, qy, qz, qw = (float(v) for v in a_from_b.quat_xyzw())
+    tx, ty, tz = (float(v) for v in a_from_b.translation)
+    return pb.Transform(tx=tx, ty=ty, tz=tz, qx=qx, qy=qy, qz=qz, qw=qw)
+
+
+def rigid_from_msg(msg: pb.Transform, what: str) -> Rigid3:
+    """A checked Rigid3: finite values, a unit quaternion (within 1e-3), translation within
+    MAX_COORDINATE metres."""
+    t = np.array([msg.tx, msg.ty, msg.tz], np.float64)
+    q = np.array([msg.qx, msg.qy, msg.qz, msg.qw], np.float64)
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
+        raise ServiceError(pb.BAD_POSE, f"{what}: non-finite values")
+    if np.abs(t).max() > MAX_COORDINATE:
+        raise ServiceError(pb.BAD_POSE, f"{what}: translation beyond {MAX_COORDINATE:g} m")
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOL:
+        raise ServiceError(pb.BAD_POSE, f"{what}: quaternion norm {norm:.6g}, not 1")
+    return Rigid3.from_qt(q / norm, t)
+
+
+# ---- images and cameras --------------------------------------------------------------------
+def image_from_msg(msg: pb.Image, fits=None, what: str = "image") -> np.ndarray:
+    """RGB uint8 (H, W, 3). `fits(width, height, source)`: the extractor's memory bound,
+    checked on the header before anything is decoded."""
+    kind = msg.WhichOneof("data")
+    if kind is None:
+        raise ServiceError(pb.BAD_REQUEST, f"{what}: missing")
+    try:
+        if kind == "encoded":
+            return decode_rgb(msg.encoded, what, fits)
+        raw = msg.raw
+        if raw.channels not in (1, 3):
+            raise InputError(f"{what}: raw images have 1 or 3 channels, got {raw.channels}")
+        check_image_size(raw.width, raw.height, what)
+        if fits is not None:
+            fits(raw.width, raw.height, what)
+        expected = raw.width * raw.height * raw.channels
+        if len(raw.data) != expected:
+            raise InputError(f"{what}: {raw.width}x{raw.height}x{raw.channels} needs {expected} "
+                             f"bytes, got {len(raw.data)}")
+        pixels = np.frombuffer(raw.data, np.uint8).reshape(raw.height, raw.width, raw.channels)
+        return np.ascontiguousarray(np.repeat(pixels, 3, axis=2) if raw.channels == 1
+                                    else pixels)
+    except InputError as err:
+        raise ServiceError(_bound_kind(err, pb.BAD_IMAGE), str(err)) from None
+
+
+def _bound_kind(err: InputError, kind: int) -> int:
+    """TOO_LARGE for an input over a bound of `slamreloc.limits` (pixels, bytes, memory, JPEG
+    scans: "... over the N limit"; Pillow's own pixel bound for BMP, PNM, ...), else `kind`."""
+    text = str(err)
+    over = ("beyond" in text or "exceeds" in text or "DecompressionBomb" in text
+            or ("over the" in text and "limit" in text))
+    return pb.TOO_LARGE if over else kind
+
+
+def camera_from_msg(msg: pb.Camera | None, width: int, height: int, default: Camera,
+                    what: str = "camera") -> Camera:
+    """The query camera for an image of width x height: the message's (a pinhole camera must
+    have the image's size; a COLMAP camera is scaled to it, as `localize --camera`), else
+    `default` scaled to the image."""
+    kind = None if msg is None else msg.WhichOneof("model")
+    try:
+        if kind is None:
+            return default.scaled_to(width, height)
+        if kind == "pinhole":
+            p = msg.pinhole
+            if (p.width, p.height) != (width, height):
+                raise InputError(f"{p.width}x{p.height}, the image is {width}x{height}")
+            return Camera(p.width, p.height, p.fx, p.fy, p.cx, p.cy)
+        return Camera.parse(msg.colmap, what).scaled_to(width, height)
+    except (InputError, ValueError, OverflowError, ZeroDivisionError) as err:
+        raise ServiceError(pb.BAD_CAMERA, f"{what}: {err}") from None
+
+
+def camera_msg(camera: Camera) -> pb.Camera:
+    """A Camera as the message (COLMAP string for a lens model, else pinhole)."""
+    if camera.distorted:
+        return pb.Camera(colmap=camera.colmap_string())
+    return pb.Camera(pinhole=pb.PinholeCamera(width=camera.width, height=camera.height,
+                                              fx=camera.fx, fy=camera.fy, cx=camera.cx,
+                                              cy=camera.cy))
+
+
+# ---- depth ---------------------------------------------------------------------------------
+def depth_intrinsics_from_msg(msg: pb.PinholeCamera,
+                              what: str) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) at 640x480, as `Dataset.depth_intrinsics`."""
+    try:
+        cam = Camera(msg.width, msg.height, msg.fx, msg.fy, msg.cx, msg.cy)
+        return tuple(cam.scaled_to(*DEPTH_REFERENCE_SIZE).params())
+    except (InputError, ValueError, ZeroDivisionError) as err:
+        raise ServiceError(pb.BAD_CAMERA, f"{what}: {err}") from None
+
+
+def depth_from_msg(msg: pb.Depth, registered_size: tuple[int, int] | None,
+                   units_per_metre: float = 0.0, what: str = "depth") -> np.ndarray:
+    """float32 metres (H, W), 0 where there is no depth. `registered_size`: the image's (width,
+    height), which depth registered to it must have; None for depth of its own camera."""
+    units = msg.units_per_metre or units_per_metre or 1000.0
+    try:
+        if not (np.isfinite(units) and 1e-3 <= units <= 1e6):
+            raise InputError(f"units_per_metre must be in [0.001, 1e6], got {units:g}")
+        if msg.encoding == pb.Depth.PNG16:
+            header = encoded_header(msg.data, what, "depth")  # colour would become grey
+            if header.channels != 1 or header.bits != 16:
+                raise InputError(f"a 16-bit single-channel PNG is needed, got {header.channels} "
+                                 f"channel(s) of {header.bits} bits")
+            raw = decode_image(msg.data, what, cv2.IMREAD_ANYDEPTH, "depth")
+            if raw.ndim != 2 or raw.dtype != np.uint16:
+                raise InputError(f"a 16-bit single-channel PNG is needed, got {raw.dtype} "
+                                 f"{raw.shape}")
+            depth = raw.astype(np.float32) / units
+        else:
+            check_image_size(msg.width, msg.height, what, "depth")
+            item = 4 if msg.encoding == pb.Depth.FLOAT32_METRES else 2
+            expected = msg.width * msg.height * item
+            if len(msg.data) != expected:
+                raise InputError(f"{msg.width}x{msg.height} needs {expected} bytes, got "
+                                 f"{len(msg.data)}")
+            if msg.encoding == pb.Depth.FLOAT32_METRES:
+                depth = np.frombuffer(msg.data, "<f4").reshape(msg.height, msg.width).copy()
+            elif msg.encoding == pb.Depth.UINT16:
+                depth = (np.frombuffer(msg.data, "<u2").reshape(msg.height, msg.width)
+                         .astype(np.float32) / units)
+            else:
+                raise InputError(f"unknown encoding {msg.encoding}")
+        depth[~np.isfinite(depth) | (depth < 0) | (depth > 1e3)] = 0.0
+        if registered_size is not None and (depth.shape[1], depth.shape[0]) != registered_size:
+            w, h = registered_size
+            raise InputError(f"registered depth is {depth.shape[1]}x{depth.shape[0]}, the image "
+                             f"is {w}x{h} (give the depth camera's intrinsics if it is not "
+                             "registered)")
+        return depth
+    except InputError as err:
+        raise ServiceError(_bound_kind(err, pb.BAD_DEPTH), f"{what}: {err}") from None

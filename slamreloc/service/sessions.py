@@ -1,0 +1,144 @@
+"""A running SLAM system's session: its frames go through the same `SlamBackend` and
+relocalization plugin as `slamreloc slam`, and what they decide comes back as events.
+
+The session is opened with a map and an odometry source: "client" (each frame carries the
+client's own odometry pose, `odometry_world_from_cam`, in its fixed odometry frame: the backend
+runs without a front end) or a server front end that tracks the streamed depth ("auto",
+"kiss-icp", "open3d", as `slamreloc slam --odometry`). File or topic odometry is not offered:
+a client never names a file on the server.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import uuid
+
+from slamreloc.localizer import RegressorLocalizer
+from slamreloc.proto import relocalizer_pb2 as pb
+from slamreloc.service.maps import ServedMap
+from slamreloc.service.protocol import (
+    ServiceError,
+    camera_from_msg,
+    depth_from_msg,
+    depth_intrinsics_from_msg,
+    image_from_msg,
+    rigid_from_msg,
+    transform_msg,
+)
+from slamreloc.slam.backend import BackendConfig, SlamBackend, TrackState
+from slamreloc.slam.events import EventKind, load_plugin
+from slamreloc.slam.poses import final_trajectory
+from slamreloc.slam.run import make_odometry
+
+CLIENT_ODOMETRY = "client"
+SERVER_ODOMETRY = ("auto", "kiss-icp", "open3d")
+STATES = {TrackState.INITIALIZING: pb.INITIALIZING, TrackState.TRACKING: pb.TRACKING,
+          TrackState.LOST: pb.LOST}
+EVENTS = {EventKind.TRACKING_LOST: pb.SessionEvent.TRACKING_LOST,
+          EventKind.TRACKING_RECOVERED: pb.SessionEvent.TRACKING_RECOVERED,
+          EventKind.MAP_UPDATED: pb.SessionEvent.LOOP_CLOSURE,
+          EventKind.NEW_KEYFRAME: pb.SessionEvent.NEW_KEYFRAME}
+
+
+class Session:
+    """One client's backend + relocalization plugin on one map (the map version it opened)."""
+
+    def __init__(self, served: ServedMap, request: pb.SessionOpen):
+        odometry = request.odometry or CLIENT_ODOMETRY
+        if odometry not in (CLIENT_ODOMETRY, *SERVER_ODOMETRY):
+            raise ServiceError(pb.BAD_REQUEST, f"odometry {odometry!r}: one of "
+                               f"{', '.join((CLIENT_ODOMETRY, *SERVER_ODOMETRY))}")
+        self.depth_intrinsics = (depth_intrinsics_from_msg(request.depth_intrinsics,
+                                                           "depth_intrinsics")
+                                 if request.HasField("depth_intrinsics") else None)
+        self.depth_units = request.depth_units_per_metre
+        self.served, self.id = served, uuid.uuid4().hex[:12]
+        self.client_odometry = odometry == CLIENT_ODOMETRY
+        front_end = (None if self.client_odometry
+                     else make_odometry(odometry, self.depth_intrinsics))
+        self.odometry_name = odometry if front_end is None else front_end.name
+        plugin = load_plugin("relocalization", depth_intrinsics=self.depth_intrinsics,
+                             localizer=self._localizer())
+        self.plugin = plugin
+        self.backend = SlamBackend(front_end, [plugin], BackendConfig())
+        self._decisions_sent = 0
+
+    def _localizer(self) -> RegressorLocalizer:
+        """As `RelocalizationPlugin` makes its own from a map folder (same keep_fraction)."""
+        from slamreloc.plugins.relocalization import RelocalizationConfig
+
+        return RegressorLocalizer(self.served.scene_map,
+                                  keep_fraction=RelocalizationConfig().keep_fraction)
+
+    def opened(self) -> pb.SessionOpened:
+        return pb.SessionOpened(session_id=self.id, map_version=self.served.version,
+                                odometry=self.odometry_name)
+
+    def frame(self, msg: pb.SessionFrame) -> pb.FrameResult:
+        """Check and process one frame; ServiceError (nothing processed) for a defective one."""
+        loc = self.plugin.localizer
+        image = image_from_msg(msg.image, loc.extractor.check_size, "frame.image")
+        h, w = image.shape[:2]
+        camera = camera_from_msg(msg.camera if msg.HasField("camera") else None, w, h,
+                                 self.served.scene_map.camera, "frame.camera")
+        depth = None
+        if msg.HasField("depth"):
+            if msg.depth.HasField("intrinsics"):
+                raise ServiceError(pb.BAD_DEPTH, "frame.depth: the depth camera is given once, "
+                                   "in SessionOpen.depth_intrinsics")
+            depth = depth_from_msg(msg.depth, (w, h) if self.depth_intrinsics is None else None,
+                                   self.depth_units, "frame.depth")
+        elif not self.client_odometry:
+            raise ServiceError(pb.BAD_DEPTH, f"frame.depth: {self.odometry_name} odometry "
+                               "needs depth in every frame")
+        odom = None
+        if self.client_odometry:
+            if not msg.HasField("odometry_world_from_cam"):
+                raise ServiceError(pb.BAD_POSE, "frame.odometry_world_from_cam: required with "
+                                   "client odometry")
+            odom = rigid_from_msg(msg.odometry_world_from_cam, "frame.odometry_world_from_cam")
+        if msg.timestamp != msg.timestamp or abs(msg.timestamp) > 1e12:
+            raise ServiceError(pb.BAD_REQUEST, f"frame.timestamp: {msg.timestamp!r} is not a "
+                               "time in seconds")
+        t0 = time.perf_counter()
+        step = self.backend.process(image, depth, camera, odom, msg.timestamp)
+        out = pb.FrameResult(index=step.index, state=STATES[step.state],
+                             backend_ms=1000 * (time.perf_counter() - t0))
+        if step.world_from_cam is not None:
+            out.has_pose = True
+            out.world_from_cam.CopyFrom(transform_msg(step.world_from_cam))
+        out.events.extend(self._events(step.events))
+        return out
+
+    def _events(self, events) -> list[pb.SessionEvent]:
+        out = []
+        for e in events:
+            kind = EVENTS.get(e.kind)
+            if kind is None:
+                continue
+            ev = pb.SessionEvent(kind=kind, frame=e.frame, reason=str(e.info.get("reason", "")),
+                                 reanchor=bool(e.info.get("reanchor", False)))
+            if e.world_from_cam is not None:
+                ev.has_pose = True
+                ev.world_from_cam.CopyFrom(transform_msg(e.world_from_cam))
+            out.append(ev)
+        decisions = self.plugin.stats.decisions
+        for d in decisions[self._decisions_sent:]:
+            out.append(pb.SessionEvent(
+                kind=(pb.SessionEvent.RELOCALIZATION_ACCEPTED if d["accepted"]
+                      else pb.SessionEvent.RELOCALIZATION_REJECTED),
+                frame=d["frame"], num_inliers=d["num_inliers"], confidence=d["confidence"],
+                reason=d["type"], position=d["position"]))
+        self._decisions_sent = len(decisions)
+        return out
+
+    def close(self) -> pb.SessionClosed:
+        """End of the stream: settle pending relocalizations, optimise the whole graph."""
+        self.backend.finish()
+        out = pb.SessionClosed(stats_json=json.dumps(self.plugin.stats.to_dict()))
+        for pose in final_trajectory(self.backend):
+            out.has_pose.append(pose is not None)
+            out.world_from_cam.append(transform_msg(pose) if pose is not None
+                                      else pb.Transform(qw=1.0))
+        return out
