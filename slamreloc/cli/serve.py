@@ -71,10 +71,13 @@ def serve(
     if engine == Engine.ray:
         from slamreloc.service.ray_serve import serve_forever as ray_serve_forever
 
-        if token is not None or tls_cert is not None:
-            raise InputError("--engine ray: token and TLS are Ray Serve's to configure "
-                             "(docs/serve.md); bind it to a trusted network")
-        ray_serve_forever(named, replicas=replicas, host=host, port=port)
+        if tls_cert is not None or tls_key is not None:
+            raise InputError("--engine ray: Ray Serve's gRPC proxy has no TLS; use --engine grpc "
+                             "or a TLS-terminating proxy in front (docs/serve.md)")
+        if token is None:
+            raise InputError("--engine ray: Ray Serve's gRPC proxy listens on every interface, "
+                             f"whatever --host says; give a token (--token-file or ${TOKEN_ENV})")
+        ray_serve_forever(named, replicas=replicas, host=host, port=port, token=token)
         return
     from slamreloc.service.server import ServeConfig, serve_forever
 

@@ -48,9 +48,10 @@ def localize(served: ServedMap, request: pb.LocalizeRequest) -> pb.LocalizeRespo
     est = result.estimate
     world_from_cam, refined = est.world_from_cam, False
     t2 = time.perf_counter()
-    if world_from_cam is not None and depth is not None and scene_map.surface is not None:
-        fit = refine_pose(scene_map.surface, depth_cloud(depth, camera, depth_k),
-                          world_from_cam, IcpConfig())
+    cloud = (depth_cloud(depth, camera, depth_k) if world_from_cam is not None
+             and depth is not None and scene_map.surface is not None else ())
+    if len(cloud):  # a depth map without a valid pixel leaves the pose as PnP found it
+        fit = refine_pose(scene_map.surface, cloud, world_from_cam, IcpConfig())
         world_from_cam, refined = fit.chosen(), bool(fit.accepted)
     t3 = time.perf_counter()
     out = pb.LocalizeResponse(

@@ -67,7 +67,8 @@ def rigid_from_msg(msg: pb.Transform, what: str) -> Rigid3:
         raise ServiceError(pb.BAD_POSE, f"{what}: non-finite values")
     if np.abs(t).max() > MAX_COORDINATE:
         raise ServiceError(pb.BAD_POSE, f"{what}: translation beyond {MAX_COORDINATE:g} m")
-    norm = float(np.linalg.norm(q))
+    with np.errstate(over="ignore"):
+        norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUATERNION_NORM_TOL:
         raise ServiceError(pb.BAD_POSE, f"{what}: quaternion norm {norm:.6g}, not 1")
     return Rigid3.from_qt(q / norm, t)
@@ -125,7 +126,9 @@ def camera_from_msg(msg: pb.Camera | None, width: int, height: int, default: Cam
             return Camera(p.width, p.height, p.fx, p.fy, p.cx, p.cy)
         return Camera.parse(msg.colmap, what).scaled_to(width, height)
     except (InputError, ValueError, OverflowError, ZeroDivisionError) as err:
-        raise ServiceError(pb.BAD_CAMERA, f"{what}: {err}") from None
+        text = str(err)  # Camera.parse names its source already
+        raise ServiceError(pb.BAD_CAMERA, text if text.startswith(f"{what}:")
+                           else f"{what}: {text}") from None
 
 
 def camera_msg(camera: Camera) -> pb.Camera:

@@ -11,6 +11,7 @@ a client never names a file on the server.
 from __future__ import annotations
 
 import json
+import math
 import time
 import uuid
 
@@ -52,7 +53,11 @@ class Session:
         self.depth_intrinsics = (depth_intrinsics_from_msg(request.depth_intrinsics,
                                                            "depth_intrinsics")
                                  if request.HasField("depth_intrinsics") else None)
-        self.depth_units = request.depth_units_per_metre
+        units = request.depth_units_per_metre
+        if units and not (math.isfinite(units) and 1e-3 <= units <= 1e6):
+            raise ServiceError(pb.BAD_DEPTH, "depth_units_per_metre must be in [0.001, 1e6] "
+                               f"(0: 1000), got {units:g}")
+        self.depth_units = units
         self.served, self.id = served, uuid.uuid4().hex[:12]
         self.client_odometry = odometry == CLIENT_ODOMETRY
         front_end = (None if self.client_odometry

@@ -1,0 +1,247 @@
+"""clients/cpp: the C++ client, built with CMake against the system's gRPC, run against a live
+server: the same lines as `slamreloc localize` and the same poses as the Python client, to the
+last digit; typed errors with exit status 2."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from slamreloc.client import Client
+from slamreloc.datasets import load_dataset
+from slamreloc.service.server import ServeConfig, start_server
+from tests.fuzzing import run_cli_output
+
+ROOT = Path(__file__).resolve().parents[1]
+TOKEN = "cpp-client-test-token-0123"
+N_FRAMES = 5
+
+
+def _missing_tools() -> list[str]:
+    missing = [tool for tool in ("cmake", "g++", "protoc", "grpc_cpp_plugin", "pkg-config")
+               if shutil.which(tool) is None]
+    if "pkg-config" not in missing and subprocess.run(
+            ["pkg-config", "--exists", "grpc++", "protobuf"], check=False).returncode != 0:
+        missing.append("pkg-config grpc++/protobuf (libgrpc++-dev, libprotobuf-dev)")
+    return missing
+
+
+MISSING = _missing_tools()
+# checked before any fixture: without the tools, no scene or map is built for this module
+pytestmark = pytest.mark.skipif(
+    bool(MISSING), reason=f"the C++ client needs {', '.join(MISSING)} (Debian: libgrpc++-dev "
+    "protobuf-compiler-grpc libprotobuf-dev protobuf-compiler cmake g++ pkg-config; "
+    "scripts/install.sh installs them as root)")
+
+
+@pytest.fixture(scope="module")
+def client_binary(tmp_path_factory) -> Path:
+    """clients/cpp built into a temporary folder (no optimisation: the build is what costs)."""
+    build = tmp_path_factory.mktemp("cpp_build")
+    t0 = time.perf_counter()
+    for cmd in (["cmake", "-S", str(ROOT / "clients/cpp"), "-B", str(build)],
+                ["cmake", "--build", str(build), "-j", "2"]):
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
+        assert done.returncode == 0, f"{' '.join(cmd)}:\n{done.stdout[-3000:]}{done.stderr}"
+    print(f"clients/cpp built in {time.perf_counter() - t0:.1f} s")
+    return build / "slamreloc_client"
+
+
+@pytest.fixture(scope="module")
+def server(small_map):
+    running = start_server({"small": small_map.root},
+                           ServeConfig(port=0, watch_s=0, token=TOKEN))
+    yield running
+    running.stop()
+
+
+@pytest.fixture(scope="module")
+def sequence(scene_dir, tmp_path_factory) -> Path:
+    """A 7-Scenes sequence folder: the first query frames (colour, depth and pose files), and a
+    featureless frame that cannot be localized."""
+    out = tmp_path_factory.mktemp("cpp_seq") / "seq-02"
+    out.mkdir()
+    for frame in load_dataset(scene_dir).frames("seq-02")[:N_FRAMES]:
+        stem = frame.image_path.name.removesuffix(".color.png")
+        for path in frame.image_path.parent.glob(stem + ".*"):
+            shutil.copy(path, out / path.name)
+    grey = np.full((240, 320, 3), 128, np.uint8)
+    cv2.imwrite(str(out / f"frame-{N_FRAMES:06d}.color.png"), grey)
+    return out
+
+
+def run_client(binary: Path, *args: str, env: dict | None = None, token: str | None = TOKEN):
+    argv = [str(binary), *args] + (["--token", token] if token else [])
+    return subprocess.run(argv, capture_output=True, text=True, timeout=120, check=False,
+                          env={**os.environ, **(env or {})})
+
+
+def _fields(line: str) -> tuple[str, list[float], int]:
+    parts = line.split()
+    return parts[0], [float(v) for v in parts[1:8]], int(parts[8])
+
+
+def test_lines_equal_slamreloc_localize_and_the_python_client(client_binary, server, small_map,
+                                                              sequence):
+    done = run_client(client_binary, "--server", server.address, "--map", "small",
+                      str(sequence))
+    assert done.returncode == 0 and done.stderr == "", done.stderr
+    lines = done.stdout.splitlines()
+    images = sorted(sequence.glob("frame-*.color.png"))
+    assert len(lines) == len(images) == N_FRAMES + 1
+
+    # `slamreloc localize` on the same files: the same names, outcomes and inlier counts; its
+    # poses have 6 decimals
+    status, out, err = run_cli_output(["localize", str(small_map.root), *map(str, images)])
+    assert status == 0, err
+    reference = out.splitlines()
+    assert lines[-1] == reference[-1] == f"# frame-{N_FRAMES:06d}.color.png: not localized " \
+                                         "(0 inliers)"
+    with Client(server.address, token=TOKEN) as client:
+        for line, ref, path in zip(lines[:-1], reference[:-1], images):
+            name, pose, inliers = _fields(line)
+            ref_name, ref_pose, ref_inliers = _fields(ref)
+            assert (name, inliers) == (ref_name, ref_inliers) == (path.name, inliers)
+            assert pose == pytest.approx(ref_pose, abs=6e-7)
+            # the Python client's answer to the same bytes: every digit of the doubles
+            r = client.localize(path, map="small").response
+            t = r.world_from_cam
+            assert r.localized and r.num_inliers == inliers
+            assert pose == pytest.approx([t.tx, t.ty, t.tz, t.qx, t.qy, t.qz, t.qw], abs=1e-9,
+                                         rel=0)
+
+
+def test_tum_folder_camera_and_token_from_the_environment(client_binary, server, small_map,
+                                                          sequence, tmp_path):
+    """rgb.txt decides which images and in which order; --camera goes to the server (a lens
+    other than the map's gives other poses, equal to the Python client's with that string)."""
+    (tmp_path / "rgb").mkdir()
+    names = [f"{1.5 + i:.6f}.png" for i in range(3)]
+    for name, src in zip(names, sorted(sequence.glob("frame-*.color.png"))):
+        shutil.copy(src, tmp_path / "rgb" / name)
+    listed = [names[2], names[0]]  # names[1] is in rgb/ but not listed
+    (tmp_path / "rgb.txt").write_text("# color images\n# timestamp filename\n\n" + "".join(
+        f"{Path(n).stem} rgb/{n}\n" for n in listed))
+    cam = small_map.camera
+    camera = f"PINHOLE {cam.width} {cam.height} {cam.fx * 1.05} {cam.fy * 1.05} {cam.cx} {cam.cy}"
+    done = run_client(client_binary, "--server", server.address, "--camera", camera,
+                      str(tmp_path), env={"SLAMRELOC_TOKEN": TOKEN}, token=None)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert [line.split()[0] for line in lines] == listed
+    with Client(server.address, token=TOKEN) as client:
+        for line, name in zip(lines, listed):
+            data = (tmp_path / "rgb" / name).read_bytes()
+            _, pose, inliers = _fields(line)
+            own = client.localize(data, camera=camera).response
+            default = client.localize(data).response
+            t = own.world_from_cam
+            assert own.localized and own.num_inliers == inliers
+            assert pose == pytest.approx([t.tx, t.ty, t.tz, t.qx, t.qy, t.qz, t.qw], abs=1e-9,
+                                         rel=0)
+            assert abs(pose[2] - default.world_from_cam.tz) + \
+                abs(pose[0] - default.world_from_cam.tx) > 1e-4  # the camera made a difference
+
+
+def _error_line(done: subprocess.CompletedProcess) -> str:
+    assert done.returncode == 2, (done.returncode, done.stdout, done.stderr)
+    lines = done.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), done.stderr
+    return lines[0]
+
+
+def _closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_errors_name_the_file_or_server_and_exit_2(client_binary, server, sequence, tmp_path):
+    address = server.address
+    first = min(sequence.glob("frame-*.color.png"))
+    # a map the server does not have: the first call fails, nothing is printed
+    done = run_client(client_binary, "--server", address, "--map", "nosuch", str(sequence))
+    line = _error_line(done)
+    assert "NOT_FOUND (UNKNOWN_MAP)" in line and str(first) in line and address in line
+    assert "nosuch" in line and done.stdout == ""
+    # no token, and a wrong one
+    for token in (None, "wrong-token-of-26-characters"):
+        line = _error_line(run_client(client_binary, "--server", address, str(sequence),
+                                      token=token, env={"SLAMRELOC_TOKEN": ""}))
+        assert "UNAUTHENTICATED" in line
+    # a folder that does not exist, and one without images
+    missing = tmp_path / "no_such_sequence"
+    line = _error_line(run_client(client_binary, "--server", address, str(missing)))
+    assert str(missing) in line
+    line = _error_line(run_client(client_binary, "--server", address, str(tmp_path)))
+    assert str(tmp_path) in line and "no images" in line
+    # nobody listening
+    dead = f"127.0.0.1:{_closed_port()}"
+    line = _error_line(run_client(client_binary, "--server", dead, str(sequence)))
+    assert dead in line and "UNAVAILABLE" in line
+    # usage
+    line = _error_line(run_client(client_binary, str(sequence)))
+    assert "--server" in line
+
+
+def test_an_image_the_server_refuses_is_reported_and_the_rest_localized(client_binary, server,
+                                                                        sequence, tmp_path):
+    """As `slamreloc localize`: an error line for the bad file, the other lines, exit 2."""
+    frames = sorted(sequence.glob("frame-*.color.png"))
+    shutil.copy(frames[0], tmp_path / frames[0].name)
+    bad = tmp_path / frames[1].name
+    bad.write_bytes(frames[1].read_bytes()[:200])  # a truncated PNG
+    shutil.copy(frames[2], tmp_path / frames[2].name)
+    done = run_client(client_binary, "--server", server.address, str(tmp_path))
+    line = _error_line(done)
+    assert str(bad) in line and "BAD_IMAGE" in line
+    assert [ln.split()[0] for ln in done.stdout.splitlines()] == [frames[0].name, frames[2].name]
+
+
+def _self_signed(cert: Path, key: Path) -> None:
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
+                    "-subj", "/CN=localhost", "-addext", "subjectAltName=IP:127.0.0.1",
+                    "-keyout", str(key), "-out", str(cert)], check=True, capture_output=True)
+
+
+def test_tls(client_binary, small_map, sequence, tmp_path):
+    """--tls-ca: the same answer over TLS; the server's certificate is checked."""
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl (to make a test certificate) not found")
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    _self_signed(cert, key)
+    frame = min(sequence.glob("frame-*.color.png"))
+    (tmp_path / "seq").mkdir()
+    shutil.copy(frame, tmp_path / "seq" / frame.name)
+    running = start_server({"small": small_map.root}, ServeConfig(
+        port=0, watch_s=0, token=TOKEN, tls_cert=cert, tls_key=key))
+    try:
+        done = run_client(client_binary, "--server", running.address, "--tls-ca", str(cert),
+                          str(tmp_path / "seq"))
+        assert done.returncode == 0, done.stderr
+        name, pose, inliers = _fields(done.stdout)
+        with Client(running.address, token=TOKEN, tls_ca=cert) as client:
+            r = client.localize(frame).response
+        t = r.world_from_cam
+        assert name == frame.name and r.localized and r.num_inliers == inliers
+        assert pose == pytest.approx([t.tx, t.ty, t.tz, t.qx, t.qy, t.qz, t.qw], abs=1e-9,
+                                     rel=0)
+        # plain TCP to a TLS server, and TLS trusting another certificate: refused
+        line = _error_line(run_client(client_binary, "--server", running.address,
+                                      str(tmp_path / "seq")))
+        assert "UNAVAILABLE" in line
+        other = tmp_path / "other.pem"
+        _self_signed(other, tmp_path / "other.key")
+        line = _error_line(run_client(client_binary, "--server", running.address, "--tls-ca",
+                                      str(other), str(tmp_path / "seq")))
+        assert "UNAVAILABLE" in line
+    finally:
+        running.stop()
