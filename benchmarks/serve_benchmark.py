@@ -32,10 +32,9 @@ import cv2
 import numpy as np
 
 from benchmarks.run_benchmark import cpu_name
-from slamreloc.client import Client, RemoteError
+from slamreloc.client import Client, RemoteError, confirmed_frames, frame_poses
 from slamreloc.datasets import load_dataset
 from slamreloc.fileio import write_json
-from slamreloc.geometry import Rigid3
 from slamreloc.images import decode_rgb
 from slamreloc.localizer import RegressorLocalizer
 from slamreloc.map_format import SURFACE
@@ -199,13 +198,8 @@ def session(dataset_dir: Path, map_dir: Path, split: str, workdir: Path) -> dict
     finally:
         server.stop()
     wall = time.perf_counter() - t0
-    confirming = (pb.SessionEvent.TRACKING_RECOVERED, pb.SessionEvent.LOOP_CLOSURE)
-    confirmed = [e.frame for r in results for e in r.events if e.kind in confirming]
-    online = [Rigid3.from_qt([r.world_from_cam.qx, r.world_from_cam.qy, r.world_from_cam.qz,
-                              r.world_from_cam.qw],
-                             [r.world_from_cam.tx, r.world_from_cam.ty, r.world_from_cam.tz])
-              if r.has_pose else None for r in results]
-    ours = kidnap_stats(confirmed, online, [f.world_from_cam for f in frames], jumps)
+    ours = kidnap_stats(confirmed_frames(results), frame_poses(results),
+                        [f.world_from_cam for f in frames], jumps)
     keys = ("n_kidnaps", "n_recovered", "frames_to_recover", "recovered_median_error_m",
             "recovered_median_error_deg")
     return {"slam": {k: report[k] for k in keys}, "session": {k: ours[k] for k in keys},

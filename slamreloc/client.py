@@ -175,6 +175,23 @@ class Client:
         self.close()
 
 
+def frame_poses(results: list[pb.FrameResult]) -> list[Rigid3 | None]:
+    """Each session frame's map-frame pose (world_from_cam) as the server returned it, None
+    where it had none (before the first anchor)."""
+    return [rigid_from_msg(r.world_from_cam, f"frame {r.index}") if r.has_pose else None
+            for r in results]
+
+
+CONFIRMING = (pb.SessionEvent.TRACKING_RECOVERED, pb.SessionEvent.LOOP_CLOSURE)
+
+
+def confirmed_frames(results: list[pb.FrameResult]) -> list[int]:
+    """The frames where a relocalization confirmed a map-frame pose (recovery after loss, or
+    a loop closure), in order: with `frame_poses`, what `slamreloc.slam.report.kidnap_stats`
+    scores."""
+    return [e.frame for r in results for e in r.events if e.kind in CONFIRMING]
+
+
 class ClientSession:
     """A session in lock-step: `send` one frame, get its `pb.FrameResult`; `close` ends it and
     returns the final trajectory (`pb.SessionClosed`). A refused frame raises RemoteError and

@@ -17,14 +17,13 @@ import grpc
 import numpy as np
 import pytest
 
-from slamreloc.client import Client, RemoteError
+from slamreloc.client import Client, RemoteError, confirmed_frames, frame_poses
 from slamreloc.datasets import load_dataset
 from slamreloc.geometry import Rigid3, write_tum_trajectory
 from slamreloc.images import decode_rgb, read_image
 from slamreloc.localizer import RegressorLocalizer
 from slamreloc.map_format import SURFACE
 from slamreloc.map_write import save_map
-from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.scene_map import SceneMap
 from slamreloc.service.protocol import transform_msg
 from slamreloc.service.server import ServeConfig, start_server
@@ -174,13 +173,8 @@ def _stream(client, dataset, frames, **opening):
 
 
 def _session_kidnap_stats(results, frames, jumps):
-    confirming = (pb.SessionEvent.TRACKING_RECOVERED, pb.SessionEvent.LOOP_CLOSURE)
-    confirmed = [e.frame for r in results for e in r.events if e.kind in confirming]
-    online = [Rigid3.from_qt([r.world_from_cam.qx, r.world_from_cam.qy, r.world_from_cam.qz,
-                              r.world_from_cam.qw],
-                             [r.world_from_cam.tx, r.world_from_cam.ty, r.world_from_cam.tz])
-              if r.has_pose else None for r in results]
-    return kidnap_stats(confirmed, online, [f.world_from_cam for f in frames], jumps)
+    return kidnap_stats(confirmed_frames(results), frame_poses(results),
+                        [f.world_from_cam for f in frames], jumps)
 
 
 @pytest.mark.parametrize("odometry", ["auto", "client"])
