@@ -40,8 +40,8 @@ from slamreloc.localizer import RegressorLocalizer
 from slamreloc.map_format import SURFACE
 from slamreloc.map_write import save_map
 from slamreloc.proto import relocalizer_pb2 as pb
+from slamreloc.proto.messages import transform_msg
 from slamreloc.scene_map import SceneMap
-from slamreloc.service.protocol import transform_msg
 from slamreloc.slam.feed import read_frames
 from slamreloc.slam.report import kidnap_stats
 from slamreloc.slam.run import kidnap_schedule

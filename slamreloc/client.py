@@ -28,13 +28,13 @@ import numpy as np
 
 from slamreloc.geometry import Rigid3
 from slamreloc.proto import relocalizer_pb2 as pb
-from slamreloc.proto.relocalizer_pb2_grpc import RelocalizerStub
-from slamreloc.service.protocol import (
+from slamreloc.proto.messages import (
     ERROR_METADATA_KEY,
     camera_msg,
     rigid_from_msg,
     transform_msg,
 )
+from slamreloc.proto.relocalizer_pb2_grpc import RelocalizerStub
 from slamreloc.types import Camera
 
 

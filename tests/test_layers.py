@@ -2,7 +2,8 @@
 
 Layers, lowest first: the core (every `slamreloc.*` module outside the others), the SLAM backend
 (`slamreloc.slam`), the wings (`slamreloc.plugins`, `slamreloc.pseudo_label`,
-`slamreloc.viewer`), the command line (`slamreloc.cli`). A module imports only from its own
+`slamreloc.viewer`), the applications (the command line `slamreloc.cli` and the service
+`slamreloc.service`, which compose the wings). A module imports only from its own
 layer or lower ones, and a wing imports no other wing (the viewer reads what the updater writes
 through the core's readers). Every import counts, the function-local ones included. The modules
 are found by walking the source folders that pyproject.toml's package-dir maps into the
@@ -21,7 +22,8 @@ tomllib = pytest.importorskip("tomllib", reason="reads pyproject.toml with Pytho
 
 ROOT = Path(__file__).resolve().parents[1]
 CORE, SLAM, WING, CLI = 0, 1, 2, 3
-LAYER_NAMES = {CORE: "core", SLAM: "slam", WING: "wing", CLI: "cli"}
+LAYER_NAMES = {CORE: "core", SLAM: "slam", WING: "wing", CLI: "application"}
+APPLICATIONS = ("slamreloc.cli", "slamreloc.service")
 WINGS = ("slamreloc.plugins", "slamreloc.pseudo_label", "slamreloc.viewer")
 
 
@@ -94,7 +96,7 @@ def imports_of(module: str, path: Path, modules: dict[str, Path],
 
 
 def layer(module: str) -> int:
-    if module == "slamreloc.cli" or module.startswith("slamreloc.cli."):
+    if any(module == a or module.startswith(a + ".") for a in APPLICATIONS):
         return CLI
     if any(module == w or module.startswith(w + ".") for w in WINGS):
         return WING
@@ -227,7 +229,8 @@ def test_a_bad_import_is_reported_with_its_line(tmp_path):
         "slamreloc.a.py:4: slamreloc.a (core) imports slamreloc.slam.b (slam)",
         "slamreloc.viewer.c.py:1: wing slamreloc.viewer.c imports another wing's "
         "slamreloc.pseudo_label.d",
-        "slamreloc.viewer.c.py:2: slamreloc.viewer.c (wing) imports slamreloc.cli (cli)"]
+        "slamreloc.viewer.c.py:2: slamreloc.viewer.c (wing) imports slamreloc.cli "
+        "(application)"]
     (cycle,) = cycles(imports)
     assert [(i.source, i.target, i.where) for i in cycle] == [
         ("slamreloc.a", "slamreloc.slam.b", "slamreloc.a.py:4"),

@@ -24,8 +24,8 @@ grpc = pytest.importorskip("grpc")
 from slamreloc.errors import InputError
 from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
+from slamreloc.proto.messages import ERROR_METADATA_KEY, ServiceError
 from slamreloc.proto.relocalizer_pb2_grpc import RelocalizerStub
-from slamreloc.service.protocol import ERROR_METADATA_KEY, ServiceError
 
 MAPS = ("alpha", "beta")
 REPLICAS = 2

@@ -24,8 +24,8 @@ from slamreloc.images import decode_rgb, read_image
 from slamreloc.localizer import RegressorLocalizer
 from slamreloc.map_format import SURFACE
 from slamreloc.map_write import save_map
+from slamreloc.proto.messages import transform_msg
 from slamreloc.scene_map import SceneMap
-from slamreloc.service.protocol import transform_msg
 from slamreloc.service.server import ServeConfig, start_server
 from slamreloc.slam.feed import read_frames
 from slamreloc.slam.report import kidnap_stats

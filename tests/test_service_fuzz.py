@@ -41,7 +41,7 @@ from hypothesis import strategies as st
 
 from slamreloc.datasets import read_pose
 from slamreloc.proto import relocalizer_pb2 as pb
-from slamreloc.service.protocol import ERROR_METADATA_KEY, GRPC_CODES, transform_msg
+from slamreloc.proto.messages import ERROR_METADATA_KEY, GRPC_CODES, transform_msg
 from slamreloc.service.server import SERVICE_NAME, RunningServer, ServeConfig, start_server
 from tests.fuzzing import COUNTS, damaged_bytes, fuzz_settings
 

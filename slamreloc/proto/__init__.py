@@ -1,5 +1,7 @@
-"""slamreloc's wire protocol: `relocalizer.proto` (package `slamreloc.v1`) and the Python code
-protoc generates from it. Regenerate after editing the .proto, from the repository root:
+"""slamreloc's wire protocol: `relocalizer.proto` (package `slamreloc.v1`), the Python code
+protoc generates from it, and `messages` (its messages <-> slamreloc's types, with the checks
+on untrusted input; shared by the server and the clients). Regenerate the generated code
+after editing the .proto, from the repository root:
 
     python -m grpc_tools.protoc -I. --python_out=. --pyi_out=. --grpc_python_out=. \\
         slamreloc/proto/relocalizer.proto

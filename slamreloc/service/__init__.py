@@ -1,6 +1,6 @@
 """`slamreloc serve`: relocalization as a gRPC service (protocol: `slamreloc.proto`).
 
-Modules: `protocol` (messages <-> slamreloc types, with the checks on untrusted input),
+Modules (the messages and their checks on untrusted input are `slamreloc.proto.messages`):
 `maps` (the maps served: loaded once, reloaded atomically), `localize` (one Localize request),
 `sessions` (a SLAM system's session: backend + relocalization plugin), `server` (the gRPC
 server: authentication, limits, errors), `ray_serve` (the same service on Ray Serve).

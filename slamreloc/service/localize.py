@@ -8,8 +8,7 @@ import time
 
 from slamreloc.geometry import pose_error
 from slamreloc.proto import relocalizer_pb2 as pb
-from slamreloc.service.maps import ServedMap
-from slamreloc.service.protocol import (
+from slamreloc.proto.messages import (
     ServiceError,
     camera_from_msg,
     depth_from_msg,
@@ -18,6 +17,7 @@ from slamreloc.service.protocol import (
     rigid_from_msg,
     transform_msg,
 )
+from slamreloc.service.maps import ServedMap
 from slamreloc.surface import IcpConfig, depth_cloud, refine_pose
 
 PRIOR_MAX_M, PRIOR_MAX_DEG = 0.5, 20.0  # defaults of LocalizeRequest.prior_max_*

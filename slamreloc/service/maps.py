@@ -24,8 +24,8 @@ from slamreloc.errors import InputError
 from slamreloc.localizer import RegressorLocalizer
 from slamreloc.map_format import META
 from slamreloc.proto import relocalizer_pb2 as pb
+from slamreloc.proto.messages import ServiceError
 from slamreloc.scene_map import SceneMap
-from slamreloc.service.protocol import ServiceError
 
 
 def folder_stamp(path: Path) -> tuple[int, int, int]:

@@ -13,7 +13,7 @@ one); Serve balances a map's requests over its replicas. With one application a 
 `("application", APP_NAME)`.
 
 Errors are the native server's: a refused request comes back as the status code of
-`protocol.GRPC_CODES` (via `ServiceError.grpc_code`) with the ErrorKind's name in the
+`slamreloc.proto.messages.GRPC_CODES` (via `ServiceError.grpc_code`) with the ErrorKind's name in the
 `slamreloc-error` trailing metadata, set on Serve's `RayServegRPCContext`.
 
 What crosses Ray's internal transport (between Ray's own processes, which trust each other:
@@ -56,7 +56,7 @@ from slamreloc import __version__
 from slamreloc.errors import InputError
 from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
-from slamreloc.service.protocol import ERROR_METADATA_KEY, ServiceError
+from slamreloc.proto.messages import ERROR_METADATA_KEY, ServiceError
 
 if TYPE_CHECKING:
     from ray.serve.deployment import Application

@@ -34,9 +34,9 @@ from slamreloc import __version__
 from slamreloc.errors import InputError
 from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
+from slamreloc.proto.messages import ERROR_METADATA_KEY, ServiceError
 from slamreloc.service.localize import localize
 from slamreloc.service.maps import MapRegistry
-from slamreloc.service.protocol import ERROR_METADATA_KEY, ServiceError
 from slamreloc.service.sessions import Session
 
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["Relocalizer"].full_name

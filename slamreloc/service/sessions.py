@@ -17,8 +17,7 @@ import uuid
 
 from slamreloc.localizer import RegressorLocalizer
 from slamreloc.proto import relocalizer_pb2 as pb
-from slamreloc.service.maps import ServedMap
-from slamreloc.service.protocol import (
+from slamreloc.proto.messages import (
     ServiceError,
     camera_from_msg,
     depth_from_msg,
@@ -27,6 +26,7 @@ from slamreloc.service.protocol import (
     rigid_from_msg,
     transform_msg,
 )
+from slamreloc.service.maps import ServedMap
 from slamreloc.slam.backend import BackendConfig, SlamBackend, TrackState
 from slamreloc.slam.events import EventKind, load_plugin
 from slamreloc.slam.poses import final_trajectory
