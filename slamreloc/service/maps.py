@@ -17,12 +17,12 @@ import time
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from slamreloc.errors import InputError
 from slamreloc.localizer import RegressorLocalizer
-from slamreloc.map_format import META
+from slamreloc.map_format import DATABASE, META
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import ServiceError
 from slamreloc.scene_map import SceneMap
@@ -80,7 +80,7 @@ class ServedMap:
 
     def info(self) -> pb.MapInfo:
         m = self.scene_map
-        db = m.root / "database.npz"
+        db = m.root / DATABASE
         return pb.MapInfo(
             name=self.name, path=str(self.path), version=self.version,
             feature=m.info.feature_name, camera=m.camera.colmap_string(),
@@ -129,9 +129,7 @@ class MapRegistry:
                 raise ServiceError(pb.INTERNAL, f"map {old.name!r} not reloaded, still serving "
                                    f"version {old.version}: {err}") from None
             if new.version == old.version:
-                new = old if new.stamp == old.stamp else ServedMap(
-                    old.name, old.path, old.scene_map, old.version, new.stamp, old.loaded_at,
-                    old._pool)
+                new = replace(old, stamp=new.stamp)  # same content: keep the loaded map
             self._maps = {**self._maps, old.name: new}  # one assignment: readers see old or new
             return new, new.version != old.version
 

@@ -13,8 +13,8 @@ one); Serve balances a map's requests over its replicas. With one application a 
 `("application", APP_NAME)`.
 
 Errors are the native server's: a refused request comes back as the status code of
-`slamreloc.proto.messages.GRPC_CODES` (via `ServiceError.grpc_code`) with the ErrorKind's name in the
-`slamreloc-error` trailing metadata, set on Serve's `RayServegRPCContext`.
+`slamreloc.proto.messages.GRPC_CODES` (via `ServiceError.grpc_code`) with the ErrorKind's name
+in the `slamreloc-error` trailing metadata, set on Serve's `RayServegRPCContext`.
 
 What crosses Ray's internal transport (between Ray's own processes, which trust each other:
 run Ray on a trusted network only):

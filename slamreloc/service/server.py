@@ -169,7 +169,7 @@ class RelocalizerService:
                 self.sessions -= 1
 
     def _session(self, requests, context):
-        session, index = None, 0
+        session = None
         for body in requests:
             try:
                 msg = parse_message(pb.SessionRequest, body)
@@ -184,20 +184,20 @@ class RelocalizerService:
                     raise ServiceError(pb.BAD_REQUEST, "SessionOpen twice in one session")
                 with self.compute:
                     result = session.frame(msg.frame)
-                index += 1
                 yield pb.SessionUpdate(frame=result).SerializeToString()
             except ServiceError as err:
                 if session is None:  # nothing to carry on with
                     self._refuse(context, err)
                 yield pb.SessionUpdate(error=pb.SessionError(
-                    kind=err.kind, message=err.message, frame=index)).SerializeToString()
+                    kind=err.kind, message=err.message,
+                    frame=session.n_frames)).SerializeToString()
             except Exception as err:  # noqa: BLE001
                 _log(f"session error: {type(err).__name__}: {err}\n{traceback.format_exc()}")
                 if session is None:
                     self._refuse(context, ServiceError(pb.INTERNAL, str(err)))
                 yield pb.SessionUpdate(error=pb.SessionError(
                     kind=pb.INTERNAL, message=f"{type(err).__name__}: {err}",
-                    frame=index)).SerializeToString()
+                    frame=session.n_frames)).SerializeToString()
         if session is not None and context.is_active():
             with self.compute:
                 closed = session.close()

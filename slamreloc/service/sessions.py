@@ -76,6 +76,11 @@ class Session:
         return RegressorLocalizer(self.served.scene_map,
                                   keep_fraction=RelocalizationConfig().keep_fraction)
 
+    @property
+    def n_frames(self) -> int:
+        """Frames processed so far: the index the next frame gets."""
+        return len(self.backend.frames)
+
     def opened(self) -> pb.SessionOpened:
         return pb.SessionOpened(session_id=self.id, map_version=self.served.version,
                                 odometry=self.odometry_name)
