@@ -36,7 +36,7 @@ from slamreloc.pseudo_label.score import map_views, score
 from slamreloc.pseudo_label.smooth import smooth_poses
 from slamreloc.pseudo_label.write import PseudoLabels, base_provenance, write_updated_map
 
-from slamreloc.datasets import Dataset, load_dataset
+from slamreloc.datasets import Dataset, apply_poses, load_dataset, read_reference
 from slamreloc.errors import InputError
 from slamreloc.extract import extract_frames
 from slamreloc.features import make_extractor
@@ -55,21 +55,29 @@ def _frames_for_registration(frames: list[Frame]) -> list[Frame]:
     return [replace(f, world_from_cam=None) for f in frames]  # the truth is not ours to read
 
 
-def _truth_poses(frames: list[Frame], truth: Path | None) -> list | None:
-    """Ground-truth world_from_cam per frame for scoring: from --truth (matched by frame name)
-    or the dataset's own pose files; None when not every frame has one."""
-    if truth is not None:
-        by_name = {f.name: f.world_from_cam for f in load_dataset(truth).frames("all")}
-        poses = [by_name.get(f.name) for f in frames]
+def _truth_poses(dataset: Dataset, frames: list[Frame], truth: Path | None,
+                 truth_poses: Path | None) -> tuple[list | None, str]:
+    """Ground-truth world_from_cam per frame for scoring (None when not every frame has one)
+    and where it comes from: --truth's dataset (matched by frame name) or the dataset's own
+    pose files, with `truth_poses` (--poses, `datasets.poses`) instead of that dataset's."""
+    if truth is None and truth_poses is None:
+        poses, source = [f.world_from_cam for f in frames], "dataset"
     else:
-        poses = [f.world_from_cam for f in frames]
-    return poses if all(p is not None for p in poses) else None
+        reference = (load_dataset(truth, truth_poses) if truth is not None
+                     else apply_poses(dataset, read_reference(truth_poses)))
+        by_name = {f.name: f.world_from_cam for f in reference.frames("all")}
+        poses = [by_name.get(f.name) for f in frames]
+        source = (reference.poses_source if reference.poses_source != "dataset"
+                  else str(Path(reference.root).resolve()))
+    return (poses if all(p is not None for p in poses) else None), source
 
 
 def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
                  config: PseudoLabelConfig = PseudoLabelConfig(), truth: Path | None = None,
-                 progress: bool = True) -> PseudoLabels:
-    """Register `dataset`'s split in the map at `map_dir`, label and extend (no training)."""
+                 progress: bool = True, truth_poses: Path | None = None) -> PseudoLabels:
+    """Register `dataset`'s split in the map at `map_dir`, label and extend (no training).
+    The report is scored against `truth`'s poses, else `dataset`'s own; `truth_poses` (a
+    pose file, `datasets.poses`) replaces those of whichever is used."""
     map_dir = Path(map_dir)
     if config.update not in UPDATES:
         raise InputError(f"unknown update '{config.update}' (known: {', '.join(UPDATES)})")
@@ -86,7 +94,7 @@ def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
         raise InputError(f"{dataset.root}: split '{split}' has {len(frames_in)} frames; "
                          "pseudo-labelling needs a sequence")
     frames = _frames_for_registration(frames_in)
-    truth_poses = _truth_poses(frames_in, truth)
+    truth_world_from_cam, reference = _truth_poses(dataset, frames_in, truth, truth_poses)
     timings = {}
     t_all = time.perf_counter()
     extractor = make_extractor(old.info.feature_name, **old.info.feature_options)
@@ -153,13 +161,16 @@ def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
         "n_surface_points_before": 0 if old.surface is None else len(old.surface.points),
         "n_surface_points_after": 0 if surface is None else len(surface.points),
         "poses": {frames[i].name: states[i].world_from_cam.matrix().tolist() for i in reg},
+        # what the scores below are against: "dataset", --truth's folder or the --poses file
+        "reference": reference,
     }
-    if truth_poses is not None:
+    if truth_world_from_cam is not None:
         t0 = time.perf_counter()
         labelled_rows = np.flatnonzero(base_source == LABELLED)
         # the reference uses the core's default labelling, whatever the update's settings
         truth_depths = depths if depths is not None else registered_depths(dataset, frames)
-        report.update(score(frames, feats, states, truth_poses, truth_depths, LabelConfig(),
+        report.update(score(frames, feats, states, truth_world_from_cam, truth_depths,
+                            LabelConfig(),
                             map_views(base, old.camera, labelled_rows)))
         report["timings_s"]["scoring_s"] = time.perf_counter() - t0
     else:
@@ -170,16 +181,18 @@ def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
 
 def update_map(map_dir: Path, dataset: Dataset, out: Path, split: str | None = None,
                config: PseudoLabelConfig = PseudoLabelConfig(), truth: Path | None = None,
-               progress: bool = True) -> tuple[SceneMap, dict]:
+               progress: bool = True, truth_poses: Path | None = None
+               ) -> tuple[SceneMap, dict]:
     """Pseudo-label `dataset`'s split against the map at `map_dir`, write NEW_MAP at `out`.
     Returns (the new map, the report). NEW_MAP's write lock is held from the start: a second
-    writer of it fails at once, not after the work."""
+    writer of it fails at once, not after the work. `truth`, `truth_poses`: `pseudo_label`."""
     map_dir, out = Path(map_dir), Path(out)
     SceneMap.load(map_dir)  # fail early on a bad map or target, before the work
     check_outputs({"the new map": out}, {"the map it updates": map_dir,
-                                         "the dataset": dataset.root, "--truth": truth},
+                                         "the dataset": dataset.root, "--truth": truth,
+                                         "--poses": truth_poses},
                   folders=("the new map",))
     with map_write_lock(out):
         check_map_target(out)
-        labels = pseudo_label(map_dir, dataset, split, config, truth, progress)
+        labels = pseudo_label(map_dir, dataset, split, config, truth, progress, truth_poses)
         return write_updated_map(labels, out, config, progress)

@@ -82,15 +82,18 @@ def summarize(results: list[QueryResult], method: str) -> dict:
     }
 
 
-def align_to_reference(map_from_cam: dict[str, Rigid3], reference: dict[str, Rigid3]
-                       ) -> tuple[Sim3, dict]:
+def align_to_reference(map_from_cam: dict[str, Rigid3], reference: dict[str, Rigid3],
+                       source: str | None = None) -> tuple[Sim3, dict]:
     """ref_from_map: the similarity that takes the map's world frame to a reference's, fitted
     on the poses of the frames both hold (`geometry.align_poses`: rotation from the cameras'
     orientations, scale and translation from their centres): the map's *training* cameras,
-    never queries. Returns it and its record: scale, frames used, median residuals."""
+    never queries. Returns it and its record: scale, frames used, median residuals (metres
+    of the reference, degrees), the 3x4 matrix [s R | t]. `source` names the reference in
+    the error raised when fewer than 3 frames are shared."""
     names = sorted(set(map_from_cam) & set(reference))
     if len(names) < 3:
-        raise InputError(f"only {len(names)} training frames have a reference pose; a "
+        where = f"{source}: " if source else ""
+        raise InputError(f"{where}only {len(names)} training frames have a reference pose; a "
                          "similarity fit needs at least 3")
     ref_from_map = align_poses([map_from_cam[n] for n in names], [reference[n] for n in names])
     errors = [pose_error(ref_from_map.apply_to_pose(map_from_cam[n]), reference[n])
@@ -101,6 +104,47 @@ def align_to_reference(map_from_cam: dict[str, Rigid3], reference: dict[str, Rig
         "median_residual_deg": float(np.median([e[1] for e in errors])),
         "matrix": np.column_stack([ref_from_map.scale * ref_from_map.rotation,
                                    ref_from_map.translation]).tolist()}
+
+
+IDENTITY_RESIDUAL = (0.001, 0.05)  # metres, degrees: a reference whose training cameras lie
+# this close (medians) to the map's without a transform is in the map's frame already
+
+
+def reference_alignment(map_from_cam: dict[str, Rigid3], reference: dict[str, Rigid3],
+                        source: str | None = None) -> tuple[Sim3 | None, dict]:
+    """How to move estimates (map frame) into a reference's frame, from the training cameras
+    both hold (`map_from_cam`: the map's training world_from_cam by frame name, queries left
+    out; `reference`: the reference's world_from_cam by the same names). None (no transform)
+    where the reference agrees with the map's frame already: the median residuals of the
+    identity are below IDENTITY_RESIDUAL; else `align_to_reference`'s similarity. The record
+    is `align_to_reference`'s plus `aligned` (whether a transform is applied); without one,
+    scale 1, the identity matrix and the identity's residuals."""
+    names = sorted(set(map_from_cam) & set(reference))
+    if len(names) >= 3:
+        errors = [pose_error(map_from_cam[n], reference[n]) for n in names]
+        med_m = float(np.median([e[0] for e in errors]))
+        med_deg = float(np.median([e[1] for e in errors]))
+        if med_m < IDENTITY_RESIDUAL[0] and med_deg < IDENTITY_RESIDUAL[1]:
+            return None, {"scale": 1.0, "n_frames": len(names), "median_residual_m": med_m,
+                          "median_residual_deg": med_deg, "matrix": np.eye(4)[:3].tolist(),
+                          "aligned": False}
+    ref_from_map, record = align_to_reference(map_from_cam, reference, source)
+    return ref_from_map, {**record, "aligned": True}
+
+
+REFERENCE_KEYS = ("n_queries", "n_localized", "median_translation_m", "median_rotation_deg",
+                  "recall")
+
+
+def score_against(results: list[QueryResult], reference: dict[str, Rigid3],
+                  ref_from_map: Sim3 | None = None) -> dict:
+    """`summarize`'s scores (REFERENCE_KEYS) of the estimates against a reference's poses of
+    the queries (by name), in the reference's frame (`rescore`); the queries it lacks are
+    left out and counted in `n_queries_without_reference`."""
+    scored = rescore(results, reference, ref_from_map)
+    summary = summarize(scored, "")
+    return {**{k: summary[k] for k in REFERENCE_KEYS},
+            "n_queries_without_reference": len(results) - len(scored)}
 
 
 def rescore(results: list[QueryResult], reference: dict[str, Rigid3],
@@ -135,15 +179,37 @@ def write_tum(path: Path, results: list[QueryResult]) -> None:
 
 
 def print_summary(summaries: list[dict]) -> None:
-    """A rich table of evaluation summaries, one row per method."""
+    """A rich table of evaluation summaries: one row per method scored against its primary
+    reference (the dataset's poses or --poses), then one per --reference; notes on how each
+    reference was aligned and which queries it lacks follow the table."""
     table = Table(title="relocalization")
-    for col in ("method", "localized", "median", "5cm5deg", "10cm5deg", "ms/query"):
+    for col in ("method", "reference", "localized", "median", *THRESHOLDS, "ms/query"):
         table.add_column(col)
+    notes = []
     for s in summaries:
-        med_t, med_r = s["median_translation_m"], s["median_rotation_deg"]
-        median = "inf" if med_t is None else f"{100 * med_t:.1f} cm, {med_r:.2f} deg"
-        table.add_row(s["method"], f"{s['n_localized']}/{s['n_queries']}", median,
-                      f"{100 * s['recall']['5cm5deg']:.1f} %",
-                      f"{100 * s['recall']['10cm5deg']:.1f} %",
-                      f"{s['timing_ms'].get('total', float('nan')):.0f}")
+        primary = s.get("reference", "dataset")
+        rows = [(s["method"], "dataset" if primary == "dataset" else Path(primary).name, s,
+                 f"{s['timing_ms'].get('total', float('nan')):.0f}")]
+        for label, ref in s.get("references", {}).items():
+            rows.append(("", label, ref, "-"))
+            notes.append(_reference_note(label, ref))
+        for method, reference, r, ms in rows:
+            med_t, med_r = r["median_translation_m"], r["median_rotation_deg"]
+            median = "inf" if med_t is None else f"{100 * med_t:.1f} cm, {med_r:.2f} deg"
+            table.add_row(method, reference, f"{r['n_localized']}/{r['n_queries']}", median,
+                          *(f"{100 * r['recall'][k]:.1f} %" for k in THRESHOLDS), ms)
     console.print(table)
+    for note in notes:
+        console.print(note)
+
+
+def _reference_note(label: str, ref: dict) -> str:
+    a = ref["alignment"]
+    how = (f"aligned by a similarity (scale {a['scale']:.4f})" if a["aligned"]
+           else "in the map's frame already (no transform)")
+    note = (f"reference {label}: {how}, {a['n_frames']} training cameras, residual median "
+            f"{100 * a['median_residual_m']:.2f} cm / {a['median_residual_deg']:.2f} deg")
+    missing = ref.get("n_queries_without_reference", 0)
+    if missing:
+        note += f"; {missing} queries it has no pose for are left out"
+    return note

@@ -278,7 +278,7 @@ def _content_lines(path: Path, what: str) -> list[tuple[int, str]]:
             if line.strip() and not line.lstrip().startswith("#")]
 
 
-NAMES_SUFFIX = ".names.txt"  # `evaluate --poses P.txt` names P's stamps in P.names.txt
+NAMES_SUFFIX = ".names.txt"  # `evaluate --trajectory P.txt` names P's stamps in P.names.txt
 
 
 def names_sidecar(path) -> Path:
@@ -322,6 +322,7 @@ class TumTrajectory:
     stamps: np.ndarray  # (N,) float64
     names: list[str | None]
     poses: list[Rigid3]  # world_from_cam
+    numeric: bool = False  # every first column is a number (names, if any, from the sidecar)
 
 
 def read_names_sidecar(path) -> dict[str, str]:
@@ -339,21 +340,23 @@ def read_names_sidecar(path) -> dict[str, str]:
 def read_named_trajectory(path) -> TumTrajectory:
     """A TUM file whose first column is a timestamp (or index) or a frame name, row by row.
     When every row is numeric, names come from the `names_sidecar` if there is one (what
-    `evaluate --poses` writes). Errors name the file and line."""
+    `evaluate --trajectory` writes). Errors name the file and line."""
     rows = read_tum_trajectory(path)
     stamps, names = [], []
     for i, (first, _) in enumerate(rows):
         try:
             stamps.append(parse_stamp(first, str(path)))
             names.append(None)
-        except InputError:  # a frame name (older `evaluate --poses` files)
+        except InputError:  # a frame name (a named pose file, older `evaluate` files)
             stamps.append(float(i))
             names.append(first)
     sidecar = names_sidecar(path)
-    if rows and all(n is None for n in names) and sidecar.is_file():
+    numeric = bool(rows) and all(n is None for n in names)
+    if numeric and sidecar.is_file():
         table = read_names_sidecar(sidecar)
         names = [table.get(f"{s:.6f}") for s in stamps]
-    return TumTrajectory(np.array(stamps, dtype=np.float64), names, [p for _, p in rows])
+    return TumTrajectory(np.array(stamps, dtype=np.float64), names, [p for _, p in rows],
+                         numeric)
 
 
 def project(points_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:

@@ -49,6 +49,16 @@ def labelled_database(frames: list[Frame], feats: list[Features], labels: LabelS
         world_from_cam=np.stack([f.world_from_cam.matrix() for f in frames]))
 
 
+def depth_labels(dataset: Dataset, config: MapConfig) -> bool:
+    """Whether depth labels keypoints (else tracks are triangulated from the poses alone).
+    Only with the dataset's own poses: a depth sensor's poses were made from that depth and
+    share its frame and scale. Poses from elsewhere (`--poses`, e.g. SfM, metric to ~1 %) need
+    not: on RedKitchen with SfM poses, depth points lie a median 2.8 cm from the triangulated
+    ones, which reproject to 0.67 px; their labels come from triangulation, which agrees with
+    the poses by construction (BENCHMARKS.md, "Two references")."""
+    return config.labels.use_depth and dataset.poses_source == "dataset"
+
+
 def build_map(dataset: Dataset, out: Path, split: str = "train", config: MapConfig = MapConfig(),
               progress: bool = True, resume: bool = False) -> SceneMap:
     """Map a split of `dataset` into the folder `out` (written atomically). Training state is
@@ -62,7 +72,9 @@ def build_map(dataset: Dataset, out: Path, split: str = "train", config: MapConf
 
 def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progress: bool,
                resume: bool) -> SceneMap:
-    check_outputs({"the map": out}, {"the dataset": dataset.root}, folders=("the map",))
+    poses_file = None if dataset.poses_source == "dataset" else dataset.poses_source
+    check_outputs({"the map": out}, {"the dataset": dataset.root, "--poses": poses_file},
+                  folders=("the map",))
     check_map_target(out)  # fail before the work, not after it
     ckpt = checkpoint_path(out)
     if resume and not ckpt.is_file():
@@ -72,13 +84,14 @@ def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progr
         raise InputError(f"{dataset.root}: split '{split}' has no frames")
     unposed = [f.name for f in frames if f.world_from_cam is None]
     if unposed:
-        raise InputError(f"{dataset.root}: frame {unposed[0]} has no pose; mapping needs poses")
+        raise InputError(f"{dataset.poses_origin}: frame {unposed[0]} has no pose; mapping "
+                         "needs poses")
     extractor = make_extractor(config.features, **config.feature_options)
     timings = {}
     t0 = time.perf_counter()
     feats = extract_frames(frames, extractor, progress)
     timings["features_s"] = time.perf_counter() - t0
-    depths = registered_depths(dataset, frames) if config.labels.use_depth else None
+    depths = registered_depths(dataset, frames) if depth_labels(dataset, config) else None
     t0 = time.perf_counter()
     labels = build_labels(frames, feats, depths, config.labels, progress)
     timings["labels_s"] = time.perf_counter() - t0
@@ -88,7 +101,8 @@ def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progr
                          "are the poses and intrinsics right?")
     console.print(f"labels: {labels.stats['n_labelled']} of {labels.stats['n_keypoints']} keypoints "
                   f"({100 * labels.stats['labelled_fraction']:.1f} %), median reprojection error "
-                  f"{labels.stats['median_reproj_error_px'] or 0:.2f} px")
+                  f"{labels.stats['median_reproj_error_px'] or 0:.2f} px, "
+                  f"{labels.stats['n_depth_labels']} from depth")
     t0 = time.perf_counter()
     surface = None if config.surface is None else dataset_surface(dataset, frames,
                                                                   config.surface, progress)
@@ -105,8 +119,9 @@ def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progr
         "train": {**config.train.to_dict(), **train_stats},
         "labels": labels.stats,
         "camera": frames[0].camera.to_dict(),
+        # "poses": "dataset" (its own), or the pose file given with --poses
         "dataset": {"root": str(dataset.root.resolve()), "kind": dataset.kind, "split": split,
-                    "metric": dataset.metric},
+                    "metric": dataset.metric, "poses": dataset.poses_source},
         "timings_s": timings,
     }
     extra = {}

@@ -523,8 +523,8 @@ def test_fuzz_viewer_reports(small_map, scene_dir, tmp_path_factory, data, kind)
 
 # --- the attack classes found by hand, kept as tests --------------------------------------------
 
-@pytest.mark.parametrize("outputs", [["--report", "/dev/null"], ["--poses", "/dev/full"],
-                                     ["--report", "SAME", "--poses", "SAME"],
+@pytest.mark.parametrize("outputs", [["--report", "/dev/null"], ["--trajectory", "/dev/full"],
+                                     ["--report", "SAME", "--trajectory", "SAME"],
                                      ["--report", "DIR"]])
 def test_outputs_never_replace_devices_folders_or_each_other(small_map, scene_dir, tmp_path,
                                                              outputs):

@@ -413,7 +413,7 @@ NAMES = "".join(f"{1.0 + i / 30:.6f} seq-02/frame-{i:06d}\n" for i in range(4))
 @given(content=st.one_of(st.just(TRAJECTORY.encode()), damaged_text(TRAJECTORY)),
        names=st.one_of(st.none(), damaged_text(NAMES)))
 def test_fuzz_view_trajectory(work, content, names):
-    """`slamreloc view --trajectory T.txt`: the file and its `evaluate --poses` names sidecar."""
+    """`slamreloc view --trajectory T.txt`: the file and its `evaluate --trajectory` names sidecar."""
     from slamreloc.viewer.loaders import read_trajectory
 
     path = Path(tempfile.mkdtemp(dir=work)) / "poses.txt"

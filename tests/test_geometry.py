@@ -86,7 +86,7 @@ def _pose(i: int) -> Rigid3:
 
 
 def test_named_trajectory_takes_names_from_the_first_column_or_the_sidecar(tmp_path):
-    numeric = tmp_path / "poses.txt"  # what `evaluate --poses` writes
+    numeric = tmp_path / "poses.txt"  # what `evaluate --trajectory` writes
     numeric.write_text("# estimate\n" + "".join(tum_line(f"{t:.6f}", _pose(i)) + "\n"
                                                 for i, t in enumerate([1.5, 2.5, 4.0])))
     tum = read_named_trajectory(numeric)

@@ -67,7 +67,7 @@ def test_confidence_ranks_query_predictions(small_map, scene_dir):
 @pytest.mark.parametrize("method, min_recall", [("regressor", 0.75), ("matching", 0.9)])
 def test_localizes_synthetic_queries(small_map, scene_dir, tmp_path, method, min_recall):
     report = run_evaluation(small_map.root, scene_dir, tmp_path / "r.json", "test", method,
-                            poses=tmp_path / "poses.txt", progress=False)
+                            trajectory=tmp_path / "poses.txt", progress=False)
     assert CONTRACT_KEYS <= set(report)
     assert report["recall"]["5cm5deg"] >= min_recall, report
     assert report["median_translation_m"] < 0.03 and report["median_rotation_deg"] < 1.0

@@ -151,7 +151,7 @@ def test_evaluate_with_depth_refines_every_query(small_map, scene_dir, tmp_path)
     runs, poses = {}, {}
     for name, extra in (("rgb", []), ("depth", ["--depth"])):
         res = _cli("evaluate", small_map.root, scene_dir, "--split", "query", "--report",
-                   tmp_path / f"{name}.json", "--poses", tmp_path / f"{name}.txt", *extra)
+                   tmp_path / f"{name}.json", "--trajectory", tmp_path / f"{name}.txt", *extra)
         assert res.returncode == 0, res.stderr
         runs[name] = json.loads((tmp_path / f"{name}.json").read_text())
         traj = read_named_trajectory(tmp_path / f"{name}.txt")

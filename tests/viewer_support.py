@@ -106,7 +106,7 @@ def build_case(scene: Path, out: Path) -> ViewerCase:
     errors[list(FAILED)] = np.nan
     estimates = [perturb(q.world_from_cam, e, rng) if np.isfinite(e) else None
                  for q, e in zip(queries, errors)]
-    # `evaluate --poses`: numeric first column (index), names in the sidecar
+    # `evaluate --trajectory`: numeric first column (index), names in the sidecar
     lines = [tum_line(f"{i:.6f}", p) for i, p in enumerate(estimates) if p is not None]
     traj = out / "poses_regressor.txt"
     traj.write_text("\n".join(lines) + "\n")

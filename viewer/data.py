@@ -24,6 +24,7 @@ class ViewerInputs:
     max_points: int = 500_000  # voxel-downsample the map beyond this
     max_images: int = 512  # frustums shown with an image thumbnail
     thumbnail_width: int = 160
+    poses: Path | None = None  # the ground truth shown from this pose file (`--poses`)
 
 
 @dataclass

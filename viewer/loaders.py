@@ -25,8 +25,18 @@ def load_scene_data(inputs: ViewerInputs) -> SceneData:
     trajectories = [read_trajectory(p) for p in inputs.trajectories]
     if inputs.dataset is not None and not Path(inputs.dataset).is_dir():
         raise InputError(f"{inputs.dataset}: dataset folder not found")
+    reference = None
+    if inputs.poses is not None:
+        from slamreloc.datasets import apply_poses, read_reference
+
+        reference = read_reference(inputs.poses)
     scene_map = SceneMap.load(inputs.map_dir, regressor=False)
     dataset = open_dataset(inputs.dataset or scene_map.info.dataset_root)
+    if reference is not None:  # the ground truth shown: --poses instead of the dataset's
+        if dataset is None:
+            raise InputError(f"{inputs.poses}: --poses needs the dataset its frames belong to "
+                             "(--dataset DATASET; the map records none that can be read)")
+        dataset = apply_poses(dataset, reference)
     map_view = load_map(inputs, scene_map, dataset)
     for traj in trajectories:
         attach_truth(traj, dataset)
@@ -47,7 +57,8 @@ def load_scene_data(inputs: ViewerInputs) -> SceneData:
         kind = report_kind(data)
         if kind == "evaluate":
             recorded = recorded_dataset(path, data)
-            ds = dataset if inputs.dataset or not recorded else (open_dataset(recorded) or dataset)
+            ds = (dataset if inputs.dataset or inputs.poses or not recorded
+                  else (open_dataset(recorded) or dataset))
             scene.evaluations.append(read_evaluate(path, data, ds, trajectories))
         elif kind == "slam":
             scene.slams.append(read_slam_report(path, data, trajectories))

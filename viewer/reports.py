@@ -40,7 +40,7 @@ def recorded_dataset(path: Path, data: dict) -> str | None:
 
 def read_evaluate(path: Path, data: dict, dataset, trajectories: list[Trajectory]) -> EvalReport:
     """Per query: its error, and its estimated pose from the trajectories given with the
-    report (`evaluate --poses` writes them; the report holds errors only)."""
+    report (`evaluate --trajectory` writes them; the report holds errors only)."""
     report = Json(data, path)
     per_query = report.get("per_query")
     by_name = frames_by_name(dataset)

@@ -74,7 +74,7 @@ def _query_note(q: QueryView) -> str:
     if q.num_inliers is not None:
         parts.append(f"{q.num_inliers} inliers")
     if q.estimate is None:
-        parts.append("estimated pose not given (pass the --poses file as --trajectory)")
+        parts.append("estimated pose not given (pass evaluate's --trajectory file to the viewer)")
     return ", ".join(parts)
 
 

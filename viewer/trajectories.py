@@ -17,8 +17,8 @@ GT_NAME = re.compile(r"(^|[^a-z])(gt|groundtruth|ground_truth|ground-truth)([^a-
 
 def read_trajectory(path: str | Path, kind: str | None = None) -> Trajectory:
     """A TUM file `stamp tx ty tz qx qy qz qw` (camera-to-world), read by the core's
-    `read_named_trajectory`: the first column may also be a frame name (older `evaluate
-    --poses`), and the sidecar `<stem>.names.txt` that `evaluate --poses` writes names
+    `read_named_trajectory`: the first column may also be a frame name (older `evaluate`
+    files), and the sidecar `<stem>.names.txt` that `evaluate --trajectory` writes names
     numeric stamps."""
     path = Path(path)
     tum = read_named_trajectory(path)

@@ -22,6 +22,8 @@ from slamreloc.cli.choices import (
 from slamreloc.cli.serve import serve
 from slamreloc.errors import InputError
 
+POSES_HELP = ("take the frames' poses from this file instead of the dataset's: a COLMAP model "
+              "folder, 'name tx ty tz qx qy qz qw' lines or a TUM file (docs/formats.md)")
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Camera relocalization with a lightweight scene-coordinate regressor.")
 app.command()(serve)
@@ -69,6 +71,7 @@ def map_cmd(
              "AVX512-BF16, recent CUDA), else fp32")] = Precision.auto,
     resume: Annotated[bool, typer.Option(
         "--resume", help="continue an interrupted run from its training checkpoint")] = False,
+    poses: Annotated[Optional[Path], typer.Option(metavar="FILE", help=POSES_HELP)] = None,
 ) -> None:
     """Extract features, build scene-coordinate labels and train the regressor into OUT."""
     from slamreloc.datasets import load_dataset
@@ -83,7 +86,7 @@ def map_cmd(
         config.feature_options = {"weights": str(superpoint_weights or "")}
     config.train = replace(config.train, precision=precision.value,
                            **({} if epochs is None else {"epochs": epochs}))
-    scene_map = build_map(load_dataset(dataset), out, split, config, resume=resume)
+    scene_map = build_map(load_dataset(dataset, poses), out, split, config, resume=resume)
     _print_map(scene_map)
 
 
@@ -95,19 +98,28 @@ def evaluate(
     split: Annotated[str, typer.Option(help="train | test | all | sequence names")] = "test",
     method: Annotated[Method, typer.Option(help="regressor, or the matching baseline")] =
     Method.regressor,
-    poses: Annotated[Optional[Path], typer.Option(help="write estimated poses (TUM)")] = None,
+    trajectory: Annotated[Optional[Path], typer.Option(
+        help="write the estimated poses (TUM, camera-to-world; frame names in "
+             "<stem>.names.txt)")] = None,
     plot: Annotated[Optional[Path], typer.Option(help="write error curves and top view (PNG)")] =
     None,
     device: Annotated[Device, typer.Option(help="regressor device")] = Device.cpu,
     depth: Annotated[bool, typer.Option(
         "--depth", help="refine each pose by ICP of the frame's depth against the map's "
         "surface (RGB-D relocalization)")] = False,
+    poses: Annotated[Optional[Path], typer.Option(
+        metavar="FILE", help=POSES_HELP + "; the ground truth scored against")] = None,
+    reference: Annotated[Optional[list[Path]], typer.Option(
+        metavar="FILE", help="also score against this reference (read as --poses is), moved "
+        "into the map's frame by a similarity fitted on the map's training cameras only; "
+        "repeatable")] = None,
 ) -> None:
     """Localize every frame of a split against MAP and score it against ground truth."""
     from slamreloc.pipeline import run_evaluation
 
-    summary = run_evaluation(map_dir, dataset, report, split, method.value, poses, plot,
-                             device.value, depth=depth)
+    summary = run_evaluation(map_dir, dataset, report, split, method.value, trajectory, plot,
+                             device.value, depth=depth, poses=poses,
+                             references=list(reference or []))
     from slamreloc.evaluate import print_summary
 
     print_summary([summary])
@@ -167,10 +179,15 @@ def pseudo_label_cmd(
         help="dataset with the true poses of the same frames, only to score the report")] =
     None,
     device: Annotated[Device, typer.Option(help="training device")] = Device.auto,
+    poses: Annotated[Optional[Path], typer.Option(
+        metavar="FILE", help="score the report against this pose file's poses (read as "
+        "`map --poses` reads it), matched to --truth's frames if given, else DATASET's")] =
+    None,
 ) -> None:
     """Register an unlabelled sequence in MAP, pseudo-label and extend it, update the regressor.
 
-    DATASET's poses are never read except to score the report (as are --truth's)."""
+    DATASET's poses are never read except to score the report (as are --truth's and
+    --poses')."""
     from slamreloc.datasets import load_dataset
     from slamreloc.fileio import check_outputs, write_json
     from slamreloc.map_format import check_is_map
@@ -179,12 +196,13 @@ def pseudo_label_cmd(
 
     check_is_map(map_dir)  # what the inputs are, then where the outputs may go
     check_outputs({"--report": report, "--out": out},
-                  {"the map": map_dir, "the dataset": dataset, "--truth": truth},
-                  folders=("--out",))
+                  {"the map": map_dir, "the dataset": dataset, "--truth": truth,
+                   "--poses": poses}, folders=("--out",))
 
     config = PseudoLabelConfig(rounds=rounds, update=update.value, epochs=epochs,
                                device=device.value)
-    new_map, rep = update_map(map_dir, load_dataset(dataset), out, split, config, truth)
+    new_map, rep = update_map(map_dir, load_dataset(dataset), out, split, config, truth,
+                              truth_poses=poses)
     write_json(report, rep)
     prec = rep.get("pseudo_label_precision_10cm")
     console.print(
@@ -289,13 +307,15 @@ def slam(
              "depth, open3d RGB-D on registered depth)")] = "auto",
     trajectory: Annotated[Optional[Path], typer.Option(
         help="write the map-frame trajectory (TUM, camera-to-world)")] = None,
+    poses: Annotated[Optional[Path], typer.Option(
+        metavar="FILE", help=POSES_HELP + "; the ground truth of the ATE")] = None,
 ) -> None:
     """Track a split with odometry, relocalize after tracking loss and at keyframes, optimise
     the pose graph in the map frame; report ATE, recoveries and loop closures."""
     from slamreloc.cli.slam_stage import run_slam_command
 
     run_slam_command(dataset, map_dir, report, split, kidnap_every, kidnap_skip, odometry,
-                     trajectory)
+                     trajectory, poses=poses)
 
 
 @app.command()
@@ -314,12 +334,14 @@ def view(
     "127.0.0.1",
     max_points: Annotated[int, typer.Option(help="voxel-downsample the map beyond this")] =
     500_000,
+    poses: Annotated[Optional[Path], typer.Option(
+        metavar="FILE", help=POSES_HELP + "; the ground truth shown")] = None,
 ) -> None:
     """Serve a web viewer (viser) of MAP with trajectories and reports, until Ctrl-C."""
     from slamreloc.viewer import ViewerInputs, serve
 
     serve(ViewerInputs(map_dir, list(trajectory or []), list(report or []), dataset, host, port,
-                       max_points), echo=lambda line: print(line, flush=True))
+                       max_points, poses=poses), echo=lambda line: print(line, flush=True))
 
 
 def _print_map(scene_map) -> None:
@@ -330,6 +352,9 @@ def _print_map(scene_map) -> None:
                   f"regressor ({info.n_parameters / 1e6:.2f} M parameters, trained in "
                   f"{info.train.precision}, {scene_map.size_bytes() / 1e6:.1f} MB), trained on "
                   f"{info.n_labelled} labelled keypoints")
+    poses = scene_map.meta.get("dataset", {}).get("poses", "dataset")
+    if poses != "dataset":
+        console.print(f"[green]poses[/green]: from {poses} (--poses), not the dataset's")
     if not scene_map.meta.get("dataset", {}).get("metric", True):
         console.print("[yellow]units[/yellow]: the dataset's SfM units, not metres (it was "
                       "made by `slamreloc sfm` without --scale or --scale-from-depth)")

@@ -70,7 +70,7 @@ def run_demo(workdir: Path, viewer: bool = True, port: int = 8080,
     scene_map = build_map(dataset, workdir / "map", "train", map_config)
     console.rule("3/5 relocalize the query sequence")
     summaries = [run_evaluation(scene_map.root, scene_dir, workdir / f"report_{m}.json", "test",
-                                m, poses=workdir / f"poses_{m}.txt") for m in
+                                m, trajectory=workdir / f"poses_{m}.txt") for m in
                  ("regressor", "matching")]
     write_json(workdir / "report.json", summaries[0])  # the contract's name: the method itself
     console.rule("4/5 SLAM backend on the kidnap sequence, camera kidnapped twice")
@@ -92,7 +92,7 @@ def run_demo(workdir: Path, viewer: bool = True, port: int = 8080,
 
 def demo_viewer_inputs(workdir: Path, map_dir: Path, scene_dir: Path, port: int = 8080):
     """ViewerInputs for everything the demo wrote in `workdir`: its reports (each once) and
-    trajectories (the `evaluate --poses` files and the SLAM trajectory)."""
+    trajectories (the `evaluate --trajectory` files and the SLAM trajectory)."""
     from slamreloc.viewer import ViewerInputs
 
     workdir = Path(workdir)

@@ -19,19 +19,22 @@ from slamreloc.slam.run import TOPIC_PREFIX, SlamRunConfig, run_slam
 def run_slam_command(dataset: Path, map_dir: Path, report: Path, split: str = "test",
                      kidnap_every: int = 0, kidnap_skip: int = 20, odometry: str = "auto",
                      trajectory: Path | None = None, progress: bool = True,
-                     plugin_options: dict | None = None, plugins: list | None = None) -> dict:
+                     plugin_options: dict | None = None, plugins: list | None = None,
+                     poses: Path | None = None) -> dict:
     """plugin_options: keyword arguments of the relocalization plugin (benchmarks, tests);
-    plugins: the backend's plugins instead of that one (benchmarks: a test-harness plugin)."""
+    plugins: the backend's plugins instead of that one (benchmarks: a test-harness plugin);
+    poses: the ground truth from this pose file instead of the dataset's (`--poses`)."""
     if kidnap_every < 0 or kidnap_skip < 0:
         raise InputError("--kidnap-every and --kidnap-skip must be >= 0")
     check_is_map(map_dir)  # what the inputs are, then where the outputs may go
     odometry_file = (odometry if odometry not in ("auto", "kiss-icp", "open3d")
                      and not odometry.startswith(TOPIC_PREFIX) else None)
     check_outputs({"--report": report, "--trajectory": trajectory},
-                  {"the dataset": dataset, "the map": map_dir, "--odometry": odometry_file})
+                  {"the dataset": dataset, "the map": map_dir, "--odometry": odometry_file,
+                   "--poses": poses})
     config = SlamRunConfig(split=split, odometry=odometry, kidnap_every=kidnap_every,
                            kidnap_skip=kidnap_skip, progress=progress,
-                           plugin_options=plugin_options or {})
+                           plugin_options=plugin_options or {}, poses=poses)
     result, backend, frames = run_slam(dataset, map_dir, config, plugins)
     if trajectory is not None:
         poses = final_trajectory(backend)

@@ -34,6 +34,16 @@ class Dataset:
     roles: dict[str, str] = field(default_factory=dict)  # synthetic: sequence -> role
     split_files: dict[str, Path] = field(default_factory=dict)  # split -> file that names it
     metric: bool = True  # poses in metres (False: an SfM model without a scale)
+    # where the frames' world_from_cam come from: "dataset" (its own pose files), or the
+    # resolved path of a pose file given with --poses (`datasets.poses.apply_poses`)
+    poses_source: str = "dataset"
+    poses_matched: int | None = None  # frames that took a pose from that file (None: own)
+
+    @property
+    def poses_origin(self) -> Path:
+        """Where the frames' poses were read: the pose file, else the dataset folder (for
+        messages about a missing pose)."""
+        return self.root if self.poses_source == "dataset" else Path(self.poses_source)
 
     @property
     def depth_intrinsics(self) -> tuple[float, float, float, float] | None:

@@ -44,9 +44,10 @@ def is_colmap(root: Path) -> bool:
     return (Path(root) / "sparse").is_dir()
 
 
-def find_model(root: Path) -> tuple[Path, str]:
-    """(model folder, "bin" or "txt") of the project at `root`."""
-    for rel in MODEL_DIRS:
+def find_model(root: Path, dirs: tuple[str, ...] = MODEL_DIRS) -> tuple[Path, str]:
+    """(model folder, "bin" or "txt") of the project at `root`: the first of `dirs` (relative
+    to `root`; "." is `root` itself) that holds cameras and images."""
+    for rel in dirs:
         folder = root / rel
         for ext in ("bin", "txt"):
             if all((folder / f"{name}.{ext}").is_file() for name in FILES):
@@ -55,12 +56,16 @@ def find_model(root: Path) -> tuple[Path, str]:
             have = sorted(p.name for p in folder.iterdir() if p.stem in FILES and p.is_file())
             raise InputError(f"{folder}: incomplete COLMAP model (has {', '.join(have)}; needs "
                              "cameras and images, both .bin or both .txt)")
-    raise InputError(f"{root / 'sparse'}: no COLMAP model (cameras and images .bin or .txt) "
-                     "in sparse/0 or sparse")
+    if dirs == MODEL_DIRS:
+        raise InputError(f"{root / 'sparse'}: no COLMAP model (cameras and images .bin or .txt) "
+                         "in sparse/0 or sparse")
+    where = " or ".join("the folder itself" if d == "." else d for d in dirs)
+    raise InputError(f"{root}: no COLMAP model (cameras and images .bin or .txt) in {where}")
 
 
-def _reconstruction(folder: Path, ext: str):
-    """pycolmap's reading of the checked files (points3D left out: an empty one stands in)."""
+def read_reconstruction(folder: Path, ext: str):
+    """pycolmap's reading of the model files (points3D left out: an empty one stands in);
+    call `check_model` on them first."""
     import pycolmap
 
     with tempfile.TemporaryDirectory(prefix="slamreloc-colmap-") as tmp:
@@ -107,14 +112,26 @@ def _image_path(images_dir: Path, name: str, source: Path) -> Path:
     return path
 
 
-def _world_from_cam(image, source: str) -> Rigid3 | None:
-    """The image's camera-to-world pose; None for an image the model holds without a pose."""
+def image_world_from_cam(image, source: str) -> Rigid3 | None:
+    """A pycolmap image's camera-to-world pose (the inverse of COLMAP's cam_from_world, in the
+    model's units); None for an image the model holds without a pose."""
     posed = _attr(image, "has_pose") if hasattr(image, "has_pose") else _attr(image,
                                                                                "registered")
     if not posed:
         return None
     cam_from_world = np.asarray(_attr(image, "cam_from_world").matrix(), np.float64)
     return Rigid3.from_matrix(cam_from_world, source=source).inverse()
+
+
+def read_model_poses(folder: Path, ext: str) -> dict[str, Rigid3 | None]:
+    """world_from_cam (camera-to-world, the model's units) of every image of the model in
+    `folder`, by image name; None for an image without a pose. The files are checked first."""
+    check_model(folder, ext)
+    rec = read_reconstruction(folder, ext)
+    images_file = folder / f"images.{ext}"
+    return {image.name: image_world_from_cam(image, f"{images_file}: pose of image "
+                                                    f"{image.name!r}")
+            for image in sorted(rec.images.values(), key=lambda im: im.name)}
 
 
 def _sequence_of(name: str, root: Path) -> str:
@@ -135,7 +152,7 @@ def load_colmap(root: Path) -> Dataset:
     root = Path(root)
     folder, ext = find_model(root)
     index = check_model(folder, ext)
-    rec = _reconstruction(folder, ext)
+    rec = read_reconstruction(folder, ext)
     images_file = folder / f"images.{ext}"
     images_dir = root / "images"
     if not rec.images:
@@ -157,7 +174,7 @@ def load_colmap(root: Path) -> Dataset:
         frames = sequences.setdefault(seq, [])
         frames.append(Frame(
             name=image.name, image_path=path, camera=camera, sequence=seq,
-            world_from_cam=_world_from_cam(image, f"{images_file}: pose of image "
+            world_from_cam=image_world_from_cam(image, f"{images_file}: pose of image "
                                                   f"{image.name!r}"),
             timestamp=len(frames) / 30.0))
     splits, split_files = {}, {}

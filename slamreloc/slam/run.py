@@ -31,6 +31,7 @@ class SlamRunConfig:
     backend: BackendConfig = field(default_factory=BackendConfig)
     plugin_options: dict = field(default_factory=dict)  # RelocalizationPlugin keyword args
     progress: bool = True
+    poses: Path | None = None  # ground truth from this pose file, not the dataset's (--poses)
 
 
 def kidnap_schedule(n_frames: int, every: int, skip: int) -> tuple[list[int], list[int]]:
@@ -78,7 +79,7 @@ def run_slam(dataset_dir: Path, map_dir: Path, config: SlamRunConfig = SlamRunCo
              plugins: list | None = None) -> tuple[dict, SlamBackend, list]:
     """Returns (report, backend, processed frames)."""
     check_is_map(map_dir)
-    dataset = load_dataset(dataset_dir)
+    dataset = load_dataset(dataset_dir, config.poses)
     frames = dataset.frames(config.split)
     if not frames:
         raise InputError(f"{dataset_dir}: split '{config.split}' has no frames")
@@ -100,4 +101,5 @@ def run_slam(dataset_dir: Path, map_dir: Path, config: SlamRunConfig = SlamRunCo
                                         enabled=config.progress))
     backend.finish()
     report = build_report(backend, processed, jumps, plugins, config, t_backend)
+    report["reference"] = dataset.poses_source  # the ATE's ground truth: "dataset" or --poses
     return report, backend, processed

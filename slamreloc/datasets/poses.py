@@ -1,0 +1,185 @@
+"""Poses from elsewhere: a pose file or COLMAP model read into `ReferencePoses` (`read_poses`),
+and `apply_poses`, which gives a dataset's frames those poses instead of its own (`--poses`);
+`evaluate --reference` scores against poses read the same way.
+
+Every pose is world_from_cam (camera-to-world) in the file's own world frame and units
+(metres, unless the file is a model without a metric scale). The format is told from content:
+
+- a COLMAP model: a folder holding cameras and images (.bin or .txt; points3D is not read),
+  or a folder with sparse/0/ or sparse/ holding them. Names are the images' names;
+  world_from_cam is the inverse of COLMAP's cam_from_world; unposed images are left out.
+- a named file: `name tx ty tz qx qy qz qw` per line (camera centre in metres, camera-to-world
+  rotation as a quaternion, scalar last), `#` comments: e.g. the 7-Scenes SfM pseudo ground
+  truth, names like `seq-01/frame-000000`.
+- TUM: `timestamp tx ty tz qx qy qz qw` per line (the first column a number), with the frame
+  names of the sidecar `<stem>.names.txt` (`stamp name` per line) where there is one: what
+  `evaluate --trajectory`, `slam --trajectory` and `export --tum` write.
+
+A frame of a dataset takes the pose of (`match_poses`; the first rule that finds one wins):
+1. its name (`Frame.name`, e.g. `seq-01/frame-000000`) or its image file's path relative to
+   the dataset root (`seq-01/frame-000000.color.png`), exactly;
+2. the same with image suffixes stripped on both sides (`.color.png`, `.png`, `.jpg`, ...);
+3. for poses without a name (TUM without the sidecar): its timestamp, within 20 ms
+   (`geometry.nearest_stamps`); one pose may not stand for frames of two sequences.
+Frames the file has no pose for become unposed.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from slamreloc.datasets.base import Dataset
+from slamreloc.datasets.colmap import MODEL_DIRS, find_model, read_model_poses
+from slamreloc.errors import InputError
+from slamreloc.geometry import Rigid3, nearest_stamps, read_named_trajectory
+from slamreloc.types import Frame
+
+MAX_DT = 0.02  # seconds: a pose without a name stands for the frame this close in time
+KINDS = ("colmap", "named", "tum", "dataset")  # "dataset": `datasets.read_reference`
+# an image file name's suffix, with the 7-Scenes / TUM colour-image infix
+_IMAGE_SUFFIX = re.compile(r"(\.(color|rgb))?\.(png|jpe?g|bmp|tiff?|webp|ppm|pgm)$",
+                           re.IGNORECASE)
+
+
+@dataclass(frozen=True, eq=False)
+class ReferencePoses:
+    """Camera poses read from `source` (`read_poses`): world_from_cam (camera-to-world, the
+    file's world frame and units) by frame name, and the poses that carry a timestamp only."""
+
+    source: Path  # the file or model folder, resolved
+    kind: str  # one of KINDS
+    world_from_cam: dict[str, Rigid3]  # by the name the file gives
+    stamps: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (M,) s, unnamed poses
+    stamped_world_from_cam: list[Rigid3] = field(default_factory=list)  # row for row
+
+    def __len__(self) -> int:
+        return len(self.world_from_cam) + len(self.stamps)
+
+    def count(self) -> str:
+        """"1 pose", "600 poses": for messages."""
+        return f"{len(self)} pose{'' if len(self) == 1 else 's'}"
+
+    def first(self) -> str:
+        """The first pose's name (or timestamp), for messages."""
+        if self.world_from_cam:
+            return repr(next(iter(self.world_from_cam)))
+        return f"t = {self.stamps[0]:.6f} s" if len(self.stamps) else "none"
+
+
+@dataclass(frozen=True)
+class FrameKey:
+    """What a pose file may know a frame by."""
+
+    name: str  # Frame.name
+    image: str | None = None  # the image file relative to the dataset root, POSIX
+    timestamp: float | None = None  # seconds
+    sequence: str = ""
+
+    @staticmethod
+    def of(frame: Frame, root: Path) -> FrameKey:
+        try:
+            image = Path(frame.image_path).relative_to(root).as_posix()
+        except ValueError:  # an image outside the dataset folder (a ROS bag's still)
+            image = None
+        return FrameKey(frame.name, image, frame.timestamp, frame.sequence)
+
+
+def strip_image_suffix(name: str) -> str:
+    """`seq-01/frame-000000.color.png` -> `seq-01/frame-000000` (unchanged without one)."""
+    return _IMAGE_SUFFIX.sub("", name)
+
+
+def read_poses(path: str | Path) -> ReferencePoses:
+    """A COLMAP model folder, a named pose file or a TUM file (module docstring); InputError
+    naming the file (and line) for anything unreadable or empty."""
+    path = Path(path)
+    if path.is_dir():
+        folder, ext = find_model(path, (".", *MODEL_DIRS))
+        posed = {n: p for n, p in read_model_poses(folder, ext).items() if p is not None}
+        if not posed:
+            raise InputError(f"{folder / f'images.{ext}'}: the model has no posed images")
+        return ReferencePoses(path.resolve(), "colmap", posed)
+    if not path.is_file():
+        raise InputError(f"{path}: pose file not found")
+    traj = read_named_trajectory(path)
+    if not traj.poses:
+        raise InputError(f"{path}: no poses (expected lines 'name tx ty tz qx qy qz qw' or "
+                         "'timestamp tx ty tz qx qy qz qw', or a COLMAP model folder)")
+    named: dict[str, Rigid3] = {}
+    for name, world_from_cam in zip(traj.names, traj.poses):
+        if name is None:
+            continue
+        if name in named:
+            raise InputError(f"{path}: frame {name!r} has more than one pose")
+        named[name] = world_from_cam
+    unnamed = [i for i, name in enumerate(traj.names) if name is None]
+    return ReferencePoses(path.resolve(), "tum" if traj.numeric else "named", named,
+                          traj.stamps[unnamed], [traj.poses[i] for i in unnamed])
+
+
+def match_poses(reference: ReferencePoses, keys: list[FrameKey]) -> list[Rigid3 | None]:
+    """The reference's world_from_cam for each frame (None where it has none), by the rules
+    of the module docstring."""
+    exact = reference.world_from_cam
+    stripped: dict[str, str | None] = {}  # stripped name -> the name (None: two names strip
+    for name in exact:                      # to it, which tells no frame apart)
+        key = strip_image_suffix(name)
+        stripped[key] = None if key in stripped else name
+    out: list[Rigid3 | None] = []
+    for key in keys:
+        ids = [key.name] + ([key.image] if key.image else [])
+        hit = next((i for i in ids if i in exact), None)
+        if hit is None:
+            hit = next((stripped[s] for s in map(strip_image_suffix, ids)
+                        if stripped.get(s) is not None), None)
+        out.append(None if hit is None else exact[hit])
+    if len(reference.stamps):
+        _match_stamps(reference, keys, out)
+    return out
+
+
+def _match_stamps(reference: ReferencePoses, keys: list[FrameKey],
+                  out: list[Rigid3 | None]) -> None:
+    """Fill `out` where still None with the unnamed pose nearest in time (within MAX_DT)."""
+    todo = [i for i, key in enumerate(keys) if out[i] is None and key.timestamp is not None]
+    if not todo:
+        return
+    rows = nearest_stamps(reference.stamps, [keys[i].timestamp for i in todo], MAX_DT)
+    sequence_of_row: dict[int, str] = {}
+    for i, row in zip(todo, rows.tolist()):
+        if row < 0:
+            continue
+        seq = sequence_of_row.setdefault(row, keys[i].sequence)
+        if seq != keys[i].sequence:
+            raise InputError(
+                f"{reference.source}: its poses carry timestamps without frame names, and "
+                f"t = {reference.stamps[row]:.6f} s is a frame of both {seq} and "
+                f"{keys[i].sequence}; name the frames ('name tx ty tz qx qy qz qw' lines, or "
+                "the '.names.txt' sidecar of 'stamp name' lines)")
+        out[i] = reference.stamped_world_from_cam[row]
+
+
+def apply_poses(dataset: Dataset, reference: ReferencePoses) -> Dataset:
+    """`dataset` with every frame's world_from_cam replaced by the reference's (None where it
+    has no pose for the frame); `poses_source` names the file. InputError when the file has a
+    pose for no frame of the dataset."""
+    root = Path(dataset.root)
+    keys = {seq: [FrameKey.of(f, root) for f in frames]
+            for seq, frames in dataset.sequences.items()}
+    flat = [k for seq_keys in keys.values() for k in seq_keys]
+    matched = match_poses(reference, flat)
+    n_matched = sum(p is not None for p in matched)
+    if n_matched == 0:
+        example = flat[0].name if flat else "none"
+        raise InputError(f"{reference.source}: names no frame of {root} ({reference.count()}, "
+                         f"the first {reference.first()}; the dataset's frames are named like "
+                         f"{example!r})")
+    it = iter(matched)
+    sequences = {seq: [replace(f, world_from_cam=next(it)) for f in frames]
+                 for seq, frames in dataset.sequences.items()}
+    return replace(dataset, sequences=sequences, poses_source=str(reference.source),
+                   poses_matched=n_matched)
