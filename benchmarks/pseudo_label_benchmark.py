@@ -8,7 +8,11 @@
 
 Usage:
     python benchmarks/pseudo_label_benchmark.py ../shared/data/7scenes_redkitchen \
-        --workdir /tmp/rk_bench --out pseudo_bench.md [--epochs 100] [--reuse]
+        --workdir /tmp/rk_bench --out pseudo_bench.md [--epochs 100] [--reuse] \
+        [--poses ../shared/data/7scenes_redkitchen/sfm_pgt/poses.txt]
+
+`--poses FILE`: the same scenario on another reference (e.g. the SfM one): the maps are
+trained on FILE's poses, and registration, pseudo-labels and queries are scored against them.
 
 Everything runs in this one process, in a row, so timings share the machine's load. `--reuse`
 keeps maps already in WORKDIR (labelled and reference), to repeat the update alone.
@@ -39,7 +43,8 @@ from slamreloc.scene_map import SceneMap
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def build(dataset: Path, out: Path, epochs: int, reuse: bool) -> tuple[SceneMap, float]:
+def build(dataset: Path, out: Path, epochs: int, reuse: bool,
+          poses: Path | None = None) -> tuple[SceneMap, float]:
     marker = out.parent / f".{out.name}.building"  # another process builds it: wait
     while reuse and marker.exists() and not SceneMap.is_map(out):
         time.sleep(10)
@@ -48,7 +53,7 @@ def build(dataset: Path, out: Path, epochs: int, reuse: bool) -> tuple[SceneMap,
         return m, float(m.meta["timings_s"]["train_s"])
     cfg = MapConfig()
     cfg = replace(cfg, train=replace(cfg.train, epochs=epochs))
-    m = build_map(load_dataset(dataset), out, "train", cfg)
+    m = build_map(load_dataset(dataset, poses), out, "train", cfg)
     return m, float(m.meta["timings_s"]["train_s"])
 
 
@@ -89,6 +94,10 @@ def main() -> None:
     ap.add_argument("--n-labelled", type=int, default=200, help="first frames of seq-01")
     ap.add_argument("--n-unlabelled", type=int, default=None,
                     help="the frames after them (default: the rest of seq-01)")
+    ap.add_argument("--poses", type=Path, default=None,
+                    help="another reference's poses for every frame (e.g. sfm_pgt/poses.txt): "
+                         "the labelled and true-pose maps are trained on them and registration, "
+                         "pseudo-labels and queries are scored against them")
     ap.add_argument("--only-reference", action="store_true",
                     help="build only the true-pose map (run beside a --reuse run)")
     args = ap.parse_args()
@@ -106,15 +115,16 @@ def main() -> None:
         marker = work / ".map_true_poses.building"
         marker.touch()
         try:
-            build(split / "full", work / "map_true_poses", args.epochs, False)
+            build(split / "full", work / "map_true_poses", args.epochs, False, args.poses)
         finally:
             marker.unlink()
         return
-    labelled, t_lab = build(split / "labelled", work / "map_labelled", args.epochs, args.reuse)
+    labelled, t_lab = build(split / "labelled", work / "map_labelled", args.epochs, args.reuse,
+                            args.poses)
 
     config = PseudoLabelConfig(rounds=args.rounds)
     labels = pseudo_label(labelled.root, load_dataset(split / "unlabelled"), "all", config,
-                          truth=args.source)
+                          truth=args.source, truth_poses=args.poses)
     maps = {}
     reports = {}
     for update in ("finetune", "retrain"):
@@ -123,7 +133,8 @@ def main() -> None:
         rep = {k: v for k, v in reports[update].items() if k != "poses"}
         (work / f"report_{update}.json").write_text(json.dumps(rep, indent=2))
 
-    reference, t_ref = build(split / "full", work / "map_true_poses", args.epochs, args.reuse)
+    reference, t_ref = build(split / "full", work / "map_true_poses", args.epochs, args.reuse,
+                             args.poses)
     evals, per_query = {}, {}
     n_lab, n_full = (len(load_dataset(split / p).frames("all")) for p in ("labelled", "full"))
     lab, full = f"labelled map ({n_lab} frames)", f"true poses of all {n_full} frames"
@@ -132,7 +143,7 @@ def main() -> None:
                             ("updated, fine-tuned", maps["finetune"], "regressor"),
                             ("updated, retrained", maps["retrain"], "regressor"),
                             (full, reference, "regressor")):
-        s, _, _ = evaluate_method(m, split / "queries", "test", method)
+        s, _, _ = evaluate_method(m, split / "queries", "test", method, poses=args.poses)
         per_query[name] = s.pop("per_query")
         evals[name] = s
     areas = area_recalls(per_query)
@@ -144,7 +155,7 @@ def main() -> None:
     t_ft = reports["finetune"]["timings_s"]["update_s"]
     t_rt = reports["retrain"]["timings_s"]["update_s"]
     lines = [
-        f"dataset `{args.source}`; machine: {platform.machine()}, {torch.get_num_threads()} "
+        f"dataset `{args.source}`, poses {args.poses or 'of the dataset'}; machine: {platform.machine()}, {torch.get_num_threads()} "
         f"torch threads, torch {torch.__version__}; maps: {args.epochs} epochs; "
         f"whole benchmark {time.perf_counter() - t_start:.0f} s",
         "",

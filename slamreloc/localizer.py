@@ -22,6 +22,11 @@ from slamreloc.scene_map import SceneMap
 from slamreloc.types import Camera, Features
 
 METHODS = ("regressor", "matching")
+# Regressed world points scatter by a few centimetres, a few pixels once projected: the final
+# refinement's Cauchy loss gets that scale (4 px) instead of pycolmap's 1 px, which is made for
+# matched points and down-weights most regressed inliers. On RedKitchen (SfM reference) it
+# takes 1cm1deg from 82.0 % to 84.5 % at no cost (BENCHMARKS.md, "Fine accuracy").
+REGRESSOR_PNP = PnPConfig(refine_loss_px=4.0)
 
 
 @dataclass
@@ -62,7 +67,7 @@ class Localizer:
 class RegressorLocalizer(Localizer):
     method = "regressor"
 
-    def __init__(self, scene_map: SceneMap, pnp: PnPConfig = PnPConfig(), device: str = "cpu",
+    def __init__(self, scene_map: SceneMap, pnp: PnPConfig = REGRESSOR_PNP, device: str = "cpu",
                  precision: str = "auto", keep_fraction: float = 0.5):
         """precision: auto | fp32 | bf16 (auto: bf16 where the hardware runs it natively).
         keep_fraction: PnP uses this share of the predictions, the most confident ones, but

@@ -17,6 +17,10 @@ class PnPConfig:
     min_inliers: int = 20  # fewer inliers: the frame is reported as not localized
     max_trials: int = 10000
     seed: int = 0
+    # the final refinement on the inliers (Levenberg-Marquardt, Cauchy loss): the loss's scale
+    # in pixels and the gradient tolerance that stops it (pycolmap's defaults: 1 px, 1.0)
+    refine_loss_px: float = 1.0
+    refine_gradient_tolerance: float = 1.0
 
 
 @dataclass
@@ -56,6 +60,8 @@ def estimate_pose(points2d: np.ndarray, points3d: np.ndarray, camera: Camera,
     ref = pycolmap.AbsolutePoseRefinementOptions()
     ref.refine_focal_length = False
     ref.refine_extra_params = False
+    ref.loss_function_scale = config.refine_loss_px
+    ref.gradient_tolerance = config.refine_gradient_tolerance
     res = pycolmap.estimate_and_refine_absolute_pose(
         np.ascontiguousarray(points2d, np.float64), np.ascontiguousarray(points3d, np.float64),
         camera.to_pycolmap(), est, ref)

@@ -1,0 +1,181 @@
+"""Levers for fine accuracy (1 cm / 1 deg), side by side on one map and one set of queries.
+
+    python -m benchmarks.fine_levers MAP DATASET [--poses FILE] [--split test] --out levers.md
+
+Every variant starts from the same extracted features (extracted once) and is scored against
+the poses the map was trained on (the dataset's, or `--poses`, as `evaluate` does). Variants:
+- `regressor`: the default localizer (the most confident half of the predictions,
+  PnP-RANSAC at 12 px, refinement on the inliers with a Cauchy loss of scale 4 px);
+- `refine loss S px`: another scale of that loss (1 px: pycolmap's default, and the
+  localizer's before 2026-12-03), also with a tighter gradient tolerance (default 1.0);
+- `keep K`: PnP on another share of the predictions;
+- `PnP T px`: another RANSAC threshold;
+- `re-match`: a second stage that matches each query keypoint to the map's database
+  descriptors within `radius` of its predicted world point (ratio test among those), then
+  refines the coarse pose on those database points (inliers within 12 px of the coarse pose,
+  Levenberg-Marquardt from it), or runs RANSAC on them (`+ RANSAC`);
+- `union`: the coarse pose's regressor inliers plus the re-matched database points;
+- `matching`: the classical baseline (nearest database descriptor over the whole map).
+`extra ms` is each variant's time beyond extraction, regression and the coarse PnP (for
+`matching`: its matching and PnP). Timings are medians per query on one thread.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import torch
+from scipy.spatial import cKDTree
+
+from slamreloc.datasets import load_dataset, read_image
+from slamreloc.geometry import Rigid3, pose_error
+from slamreloc.localizer import make_localizer
+from slamreloc.pnp import PnPConfig, estimate_pose
+from slamreloc.scene_map import SceneMap
+
+
+class DatabaseRematcher:
+    """Query keypoint -> the database row nearest in descriptor space among the rows whose
+    world point (metres) lies within `radius_m` of the keypoint's predicted world point."""
+
+    def __init__(self, scene_map: SceneMap, radius_m: float = 0.1, neighbours: int = 32,
+                 ratio: float = 0.9):
+        db = scene_map.database
+        self.points = db.points.astype(np.float64)
+        self.tree = cKDTree(self.points)
+        self.descriptors = torch.as_tensor(db.descriptors.astype(np.float32))
+        self.radius_m, self.neighbours, self.ratio = radius_m, neighbours, ratio
+
+    def __call__(self, keypoints, descriptors, predicted):
+        dist, idx = self.tree.query(predicted.astype(np.float64), k=self.neighbours,
+                                    distance_upper_bound=self.radius_m, workers=1)
+        valid = np.isfinite(dist)
+        idx = np.where(valid, idx, 0)
+        q = torch.as_tensor(descriptors, dtype=torch.float32)
+        sims = torch.bmm(self.descriptors[torch.as_tensor(idx)], q[:, :, None])[:, :, 0].numpy()
+        sims[~valid] = -2
+        order = np.argsort(-sims, axis=1)[:, :2]
+        s1, s2 = (np.take_along_axis(sims, order[:, i:i + 1], 1)[:, 0] for i in (0, 1))
+        j1, j2 = (np.take_along_axis(idx, order[:, i:i + 1], 1)[:, 0] for i in (0, 1))
+        d1, d2 = (np.sqrt(np.clip(2 - 2 * s, 0, None)) for s in (s1, s2))
+        same = np.linalg.norm(self.points[j1] - self.points[j2], axis=1) < 0.01
+        ok = (s1 > -2) & ((d1 < self.ratio * d2) | (s2 <= -2) | same)
+        return keypoints[ok].astype(np.float64), self.points[j1[ok]]
+
+
+def refine_from(cam_from_world: Rigid3, keypoints, points, camera, max_error_px: float = 12.0):
+    """Levenberg-Marquardt from `cam_from_world` on the correspondences that reproject within
+    `max_error_px` of it; None with fewer than 20."""
+    x = points @ cam_from_world.rotation.T + cam_from_world.translation
+    z = np.where(x[:, 2] > 1e-6, x[:, 2], np.nan)
+    uv = np.stack([camera.fx * x[:, 0] / z + camera.cx, camera.fy * x[:, 1] / z + camera.cy], 1)
+    inliers = np.nan_to_num(np.linalg.norm(uv - keypoints, axis=1), nan=np.inf) < max_error_px
+    if inliers.sum() < 20:
+        return None
+    opts = pycolmap.AbsolutePoseRefinementOptions()
+    opts.refine_focal_length = opts.refine_extra_params = False
+    start = pycolmap.Rigid3d(pycolmap.Rotation3d(cam_from_world.rotation),
+                             cam_from_world.translation)
+    res = pycolmap.refine_absolute_pose(start, keypoints, points, inliers,
+                                        camera.to_pycolmap(), opts)
+    if res is None:
+        return None
+    m = res["cam_from_world"].matrix()
+    return Rigid3(m[:, :3].copy(), m[:, 3].copy())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("map", type=Path)
+    ap.add_argument("dataset", type=Path)
+    ap.add_argument("--poses", type=Path, default=None)
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--out", type=Path, default=Path("levers.md"))
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    scene_map = SceneMap.load(args.map)
+    frames = load_dataset(args.dataset, args.poses).frames(args.split)
+    reg = make_localizer(scene_map, "regressor")
+    matcher = make_localizer(scene_map, "matching")
+    rematchers = {r: DatabaseRematcher(scene_map, r) for r in (0.1, 0.2)}
+    scores: dict[str, tuple[list, list]] = {}
+
+    def add(name, world_from_cam, truth, ms=0.0):
+        err = pose_error(world_from_cam, truth) if world_from_cam is not None else (np.inf,) * 2
+        scores.setdefault(name, ([], []))
+        scores[name][0].append(err)
+        scores[name][1].append(ms)
+
+    for frame in frames:
+        truth, camera = frame.world_from_cam, frame.camera.pinhole
+        feats = reg.extractor.extract(read_image(frame.image_path), frame.camera)
+        predicted, _ = reg.predict(feats.descriptors)
+        kp, pts, _ = reg.confident_correspondences(feats)
+        coarse = estimate_pose(kp, pts, camera, reg.pnp)
+        add(f"regressor (default: refine loss {reg.pnp.refine_loss_px:g} px)",
+            coarse.world_from_cam, truth)
+        for loss in (1.0, 2.0, 8.0):
+            add(f"refine loss {loss:g} px", estimate_pose(
+                kp, pts, camera, replace(reg.pnp, refine_loss_px=loss)).world_from_cam, truth)
+        add("refine loss 1 px, gradient tolerance 1e-10", estimate_pose(
+            kp, pts, camera, replace(reg.pnp, refine_loss_px=1.0,
+                                     refine_gradient_tolerance=1e-10)).world_from_cam, truth)
+        for keep in (1.0, 0.3):
+            reg.keep_fraction = keep
+            k2, p2, _ = reg.confident_correspondences(feats)
+            add(f"keep {keep}", estimate_pose(k2, p2, camera, reg.pnp).world_from_cam, truth)
+        reg.keep_fraction = 0.5
+        for thr in (8.0, 16.0):
+            add(f"PnP {thr:.0f} px", estimate_pose(
+                kp, pts, camera, replace(reg.pnp, max_error_px=thr)).world_from_cam, truth)
+        for radius, rematch in rematchers.items():
+            t0 = time.perf_counter()
+            k3, p3 = rematch(feats.keypoints, feats.descriptors, predicted)
+            t1 = time.perf_counter()
+            best = None if not coarse.success else refine_from(coarse.cam_from_world, k3, p3,
+                                                               camera)
+            t2 = time.perf_counter()
+            est = best.inverse() if best is not None else coarse.world_from_cam
+            add(f"re-match {radius} m", est, truth, 1000 * (t2 - t0))
+            ransac = estimate_pose(k3, p3, camera, PnPConfig(max_trials=2000))
+            t3 = time.perf_counter()
+            add(f"re-match {radius} m + RANSAC", ransac.world_from_cam
+                if ransac.success else coarse.world_from_cam, truth, 1000 * (t3 - t2 + t1 - t0))
+            if coarse.success:
+                inl = coarse.inlier_mask
+                both = refine_from(coarse.cam_from_world,
+                                   np.concatenate([kp[inl].astype(np.float64), k3]),
+                                   np.concatenate([pts[inl].astype(np.float64), p3]), camera)
+                add(f"union {radius} m", both.inverse() if both is not None
+                    else coarse.world_from_cam, truth)
+            else:
+                add(f"union {radius} m", None, truth)
+        t0 = time.perf_counter()
+        km, pm = matcher.correspondences(feats)
+        est = estimate_pose(km, pm, camera, matcher.pnp)
+        add("matching", est.world_from_cam, truth, 1000 * (time.perf_counter() - t0))
+        add("matching, refine loss 4 px", estimate_pose(
+            km, pm, camera, replace(matcher.pnp, refine_loss_px=4.0)).world_from_cam, truth)
+
+    lines = [(f"map `{args.map}`, {len(frames)} queries of `{args.dataset}` ({args.split}), "
+             f"scored against {args.poses or 'the dataset poses'}"), "",
+             "| variant | 1cm1deg | 2cm2deg | 5cm5deg | 10cm5deg | median | extra ms |",
+             "|---|---|---|---|---|---|---|"]
+    for name, (errors, ms) in scores.items():
+        e = np.array(errors)
+        rec = [100 * np.mean((e[:, 0] <= t) & (e[:, 1] <= r))
+               for t, r in ((0.01, 1), (0.02, 2), (0.05, 5), (0.10, 5))]
+        lines.append(f"| {name} | " + " | ".join(f"{v:.1f} %" for v in rec) +
+                     f" | {100 * np.median(e[:, 0]):.2f} cm / {np.median(e[:, 1]):.3f} deg | "
+                     f"{np.median(ms):.1f} |")
+    args.out.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
