@@ -367,7 +367,8 @@ def test_map_trained_on_moved_poses_scores_the_same_against_the_original(scene_d
     # the dataset folder itself as a reference: its own poses, the same as the file of them
     own_poses = report["references"][Path(scene_dir).name]
     assert own_poses["recall"] == ref["recall"]
-    np.testing.assert_allclose(own_poses["alignment"]["matrix"], a["matrix"], atol=1e-9)
+    # (the file holds the poses to 6 decimals, the dataset to full precision)
+    np.testing.assert_allclose(own_poses["alignment"]["matrix"], a["matrix"], atol=1e-5)
 
 
 def test_view_shows_the_poses_file_as_ground_truth(small_map, scene_dir, files, truth):

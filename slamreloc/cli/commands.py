@@ -23,7 +23,8 @@ from slamreloc.cli.serve import serve
 from slamreloc.errors import InputError
 
 POSES_HELP = ("take the frames' poses from this file instead of the dataset's: a COLMAP model "
-              "folder, 'name tx ty tz qx qy qz qw' lines or a TUM file (docs/formats.md)")
+              "folder, 'name tx ty tz qx qy qz qw' lines, a TUM file or another dataset "
+              "folder (docs/formats.md)")
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Camera relocalization with a lightweight scene-coordinate regressor.")
 app.command()(serve)
