@@ -15,6 +15,10 @@ the poses the map was trained on (the dataset's, or `--poses`, as `evaluate` doe
   refines the coarse pose on those database points (inliers within 12 px of the coarse pose,
   Levenberg-Marquardt from it), or runs RANSAC on them (`+ RANSAC`);
 - `union`: the coarse pose's regressor inliers plus the re-matched database points;
+- `scale K x median residual`: the refinement's Cauchy scale set per query to K times the
+  median reprojection residual of the RANSAC inliers at the coarse pose;
+- `all predictions within T px`: the refinement, from the coarse pose, on every prediction
+  (not only the confident share RANSAC saw) that reprojects within T px of it;
 - `matching`: the classical baseline (nearest database descriptor over the whole map).
 `extra ms` is each variant's time beyond extraction, regression and the coarse PnP (for
 `matching`: its matching and PnP). Timings are medians per query on one thread.
@@ -68,17 +72,26 @@ class DatabaseRematcher:
         return keypoints[ok].astype(np.float64), self.points[j1[ok]]
 
 
-def refine_from(cam_from_world: Rigid3, keypoints, points, camera, max_error_px: float = 12.0):
-    """Levenberg-Marquardt from `cam_from_world` on the correspondences that reproject within
-    `max_error_px` of it; None with fewer than 20."""
+def reprojection_px(cam_from_world: Rigid3, keypoints, points, camera) -> np.ndarray:
+    """(N,) pixel distance between each keypoint and its world point projected by the pose
+    (inf behind the camera)."""
     x = points @ cam_from_world.rotation.T + cam_from_world.translation
     z = np.where(x[:, 2] > 1e-6, x[:, 2], np.nan)
     uv = np.stack([camera.fx * x[:, 0] / z + camera.cx, camera.fy * x[:, 1] / z + camera.cy], 1)
-    inliers = np.nan_to_num(np.linalg.norm(uv - keypoints, axis=1), nan=np.inf) < max_error_px
+    return np.nan_to_num(np.linalg.norm(uv - keypoints, axis=1), nan=np.inf)
+
+
+def refine_from(cam_from_world: Rigid3, keypoints, points, camera, max_error_px: float = 12.0,
+                loss_px: float = 1.0):
+    """Levenberg-Marquardt (Cauchy loss of scale `loss_px`) from `cam_from_world` on the
+    correspondences that reproject within `max_error_px` of it; None with fewer than 20."""
+    keypoints, points = (np.asarray(v, np.float64) for v in (keypoints, points))
+    inliers = reprojection_px(cam_from_world, keypoints, points, camera) < max_error_px
     if inliers.sum() < 20:
         return None
     opts = pycolmap.AbsolutePoseRefinementOptions()
     opts.refine_focal_length = opts.refine_extra_params = False
+    opts.loss_function_scale = loss_px
     start = pycolmap.Rigid3d(pycolmap.Rotation3d(cam_from_world.rotation),
                              cam_from_world.translation)
     res = pycolmap.refine_absolute_pose(start, keypoints, points, inliers,
@@ -130,6 +143,22 @@ def main() -> None:
             k2, p2, _ = reg.confident_correspondences(feats)
             add(f"keep {keep}", estimate_pose(k2, p2, camera, reg.pnp).world_from_cam, truth)
         reg.keep_fraction = 0.5
+        if coarse.success:
+            residual = reprojection_px(coarse.cam_from_world, kp, pts, camera)
+            med = float(np.median(residual[coarse.inlier_mask]))
+            for k in (1.0, 2.0):
+                est = refine_from(coarse.cam_from_world, kp, pts, camera, loss_px=k * med)
+                add(f"scale {k:g} x median residual",
+                    est.inverse() if est is not None else coarse.world_from_cam, truth)
+            for thr in (12.0, 6.0):
+                est = refine_from(coarse.cam_from_world, feats.keypoints, predicted, camera,
+                                  max_error_px=thr, loss_px=reg.pnp.refine_loss_px)
+                add(f"all predictions within {thr:g} px",
+                    est.inverse() if est is not None else coarse.world_from_cam, truth)
+        else:
+            for name in ("scale 1 x median residual", "scale 2 x median residual",
+                         "all predictions within 12 px", "all predictions within 6 px"):
+                add(name, None, truth)
         for thr in (8.0, 16.0):
             add(f"PnP {thr:.0f} px", estimate_pose(
                 kp, pts, camera, replace(reg.pnp, max_error_px=thr)).world_from_cam, truth)

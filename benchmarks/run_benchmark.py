@@ -9,8 +9,8 @@ With `--reference FILE` two maps are built: one on the dataset's poses (`map-dat
 on FILE's poses (`map-reference`, `slamreloc map --poses FILE`). Every method on every map is
 scored against both references: the map's own (the poses it was trained on) and the other,
 moved into its frame by a similarity fitted on the map's training cameras only
-(`evaluate --reference`). The dataset's own poses are written to WORKDIR/dataset_poses.txt
-(`name tx ty tz qx qy qz qw`) for that.
+(`evaluate --reference`; the dataset's own poses are that reference given as the dataset
+folder).
 
 Writes WORKDIR/map-*, one contract report per map and method (`<map>-<method>.json`) and
 WORKDIR/curves-<map>.png (both methods' error curves and positions).
@@ -32,7 +32,6 @@ import torch
 
 from slamreloc.datasets import load_dataset
 from slamreloc.fileio import write_json
-from slamreloc.geometry import tum_line
 from slamreloc.mapping import MapConfig, build_map
 from slamreloc.pipeline import evaluate_method
 from slamreloc.plots import plot_evaluation
@@ -51,13 +50,6 @@ def cpu_name() -> str:
             return next(ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name"))
     except (OSError, StopIteration):
         return platform.processor() or platform.machine()
-
-
-def write_named_poses(path: Path, dataset) -> Path:
-    """The dataset's own world_from_cam, one `name tx ty tz qx qy qz qw` line per frame."""
-    path.write_text("".join(tum_line(f.name, f.world_from_cam) + "\n"
-                            for f in dataset.frames("all") if f.world_from_cam is not None))
-    return path
 
 
 def get_map(dataset_dir: Path, poses: Path | None, out: Path, config: MapConfig,
@@ -111,7 +103,6 @@ def main() -> None:
     if args.epochs:
         config.train = replace(config.train, epochs=args.epochs)
     args.workdir.mkdir(parents=True, exist_ok=True)
-    own = write_named_poses(args.workdir / "dataset_poses.txt", load_dataset(args.dataset))
     maps = [("dataset", None, args.dataset_name)]
     if args.reference is not None:
         maps.append(("reference", args.reference, args.reference_name))
@@ -130,8 +121,8 @@ def main() -> None:
                     f"{scene_map.meta['labels']['n_labelled']} "
                     f"({scene_map.meta['labels'].get('n_depth_labels', 0)} from depth), "
                     f"{scene_map.size_bytes() / 1e6:.1f} MB")
-        # the other reference, as a file: the dataset's own poses are written out for it
-        other = [(own if p is None else p, n) for k, p, n in maps if k != key]
+        # the other reference: a pose file, or the dataset folder for the dataset's own poses
+        other = [(args.dataset if p is None else p, n) for k, p, n in maps if k != key]
         results = {}
         for method, depth in METHODS:
             if depth and scene_map.surface is None:

@@ -96,14 +96,22 @@ def align_to_reference(map_from_cam: dict[str, Rigid3], reference: dict[str, Rig
         raise InputError(f"{where}only {len(names)} training frames have a reference pose; a "
                          "similarity fit needs at least 3")
     ref_from_map = align_poses([map_from_cam[n] for n in names], [reference[n] for n in names])
-    errors = [pose_error(ref_from_map.apply_to_pose(map_from_cam[n]), reference[n])
-              for n in names]
     return ref_from_map, {
         "scale": ref_from_map.scale, "n_frames": len(names),
-        "median_residual_m": float(np.median([e[0] for e in errors])),
-        "median_residual_deg": float(np.median([e[1] for e in errors])),
+        **residual_medians(map_from_cam, reference, names, ref_from_map),
         "matrix": np.column_stack([ref_from_map.scale * ref_from_map.rotation,
                                    ref_from_map.translation]).tolist()}
+
+
+def residual_medians(map_from_cam: dict[str, Rigid3], reference: dict[str, Rigid3],
+                     names: list[str], ref_from_map: Sim3 | None = None) -> dict:
+    """Median pose differences over `names` between the map's cameras, moved by
+    `ref_from_map` (None: as they are), and the reference's: metres of the reference,
+    degrees."""
+    moved = ((lambda p: p) if ref_from_map is None else ref_from_map.apply_to_pose)
+    errors = np.array([pose_error(moved(map_from_cam[n]), reference[n]) for n in names])
+    return {"median_residual_m": float(np.median(errors[:, 0])),
+            "median_residual_deg": float(np.median(errors[:, 1]))}
 
 
 IDENTITY_RESIDUAL = (0.001, 0.05)  # metres, degrees: a reference whose training cameras lie
@@ -121,13 +129,11 @@ def reference_alignment(map_from_cam: dict[str, Rigid3], reference: dict[str, Ri
     scale 1, the identity matrix and the identity's residuals."""
     names = sorted(set(map_from_cam) & set(reference))
     if len(names) >= 3:
-        errors = [pose_error(map_from_cam[n], reference[n]) for n in names]
-        med_m = float(np.median([e[0] for e in errors]))
-        med_deg = float(np.median([e[1] for e in errors]))
-        if med_m < IDENTITY_RESIDUAL[0] and med_deg < IDENTITY_RESIDUAL[1]:
-            return None, {"scale": 1.0, "n_frames": len(names), "median_residual_m": med_m,
-                          "median_residual_deg": med_deg, "matrix": np.eye(4)[:3].tolist(),
-                          "aligned": False}
+        residual = residual_medians(map_from_cam, reference, names)
+        if (residual["median_residual_m"] < IDENTITY_RESIDUAL[0]
+                and residual["median_residual_deg"] < IDENTITY_RESIDUAL[1]):
+            return None, {"scale": 1.0, "n_frames": len(names), **residual,
+                          "matrix": np.eye(4)[:3].tolist(), "aligned": False}
     ref_from_map, record = align_to_reference(map_from_cam, reference, source)
     return ref_from_map, {**record, "aligned": True}
 

@@ -35,6 +35,10 @@ class LabelConfig:
     min_tri_angle_deg: float = 2.0
     depth_agreement_m: float = 0.05  # track vs depth, plus 2 % of depth
     use_depth: bool = True  # only where the dataset's depth is registered to RGB
+    # bundle-adjust each track's point, poses fixed (`refine_track_points`): off, as on
+    # RedKitchen it lowers the regressor's median error but not its recall at 1-2 cm, and
+    # matching on such labels loses (BENCHMARKS.md, "Fine accuracy: labels")
+    refine_points: bool = False
 
 
 @dataclass
@@ -141,6 +145,8 @@ def triangulate_tracks(frames, feats, track_of, config, progress=True):
                                               [cams[k] for k in fr], opts)
         if res is not None and res["inliers"].sum() >= 2:
             points[obs[res["inliers"]]] = res["xyz"]
+    if config.refine_points:
+        points = refine_track_points(points, kp_xy, frame_of, track_of, frames)
     # final per-observation check: in front of the camera, within the reprojection bound
     errors = np.full(len(kp_xy), np.nan)
     for k, frame in enumerate(frames):
@@ -153,6 +159,71 @@ def triangulate_tracks(frames, feats, track_of, config, progress=True):
     bad = ~(errors <= config.max_reproj_px)
     points[bad] = np.nan
     return points, np.where(bad, np.nan, errors)
+
+
+def refine_track_points(points: np.ndarray, kp_xy: np.ndarray, frame_of: np.ndarray,
+                        track_of: np.ndarray, frames: list[Frame], iterations: int = 10,
+                        huber_px: float = 1.0) -> np.ndarray:
+    """Each track's world point (metres) moved to minimise the reprojection error (pixels,
+    Huber loss) over the observations it was triangulated from (rows of `points` that are
+    not NaN, all of a track's rows holding the same point), the frames' poses held fixed:
+    Gauss-Newton, one 3x3 system per track, a step kept only where it lowers the track's
+    cost. pycolmap's triangulation ends with a linear (algebraic-error) estimate; this is
+    the bundle adjustment of the structure alone. Returns a refined copy."""
+    obs = np.flatnonzero(~np.isnan(points[:, 0]))
+    if len(obs) == 0:
+        return points
+    tracks, tr = np.unique(track_of[obs], return_inverse=True)
+    cam_from_world = [f.world_from_cam.inverse() for f in frames]
+    rot = np.stack([c.rotation for c in cam_from_world])[frame_of[obs]]
+    trans = np.stack([c.translation for c in cam_from_world])[frame_of[obs]]
+    intr = np.array([f.camera.params() for f in frames], np.float64)[frame_of[obs]]
+    xy = kp_xy[obs]
+    first = np.zeros(len(tracks), np.int64)
+    first[tr[::-1]] = np.arange(len(obs))[::-1]  # one row of each track
+    pt = points[obs[first]].astype(np.float64)
+
+    def residuals(pt_tracks):
+        xc = np.einsum("nij,nj->ni", rot, pt_tracks[tr]) + trans
+        z = np.where(xc[:, 2] > 1e-6, xc[:, 2], np.nan)
+        uv = xc[:, :2] / z[:, None] * intr[:, :2] + intr[:, 2:]
+        return uv - xy, xc, z
+
+    def track_cost(res):
+        e = np.nan_to_num(np.linalg.norm(res, axis=1), nan=1e6)
+        rho = np.where(e <= huber_px, 0.5 * e ** 2, huber_px * (e - 0.5 * huber_px))
+        return np.bincount(tr, rho, len(tracks)), e
+
+    res, xc, z = residuals(pt)
+    cost, err = track_cost(res)
+    for _ in range(iterations):
+        w = np.where(err <= huber_px, 1.0, huber_px / np.maximum(err, 1e-12))
+        fx, fy = intr[:, 0], intr[:, 1]
+        j_proj = np.zeros((len(obs), 2, 3))
+        j_proj[:, 0, 0], j_proj[:, 0, 2] = fx / z, -fx * xc[:, 0] / z ** 2
+        j_proj[:, 1, 1], j_proj[:, 1, 2] = fy / z, -fy * xc[:, 1] / z ** 2
+        jac = np.nan_to_num(j_proj @ rot)  # d(pixel)/d(world point)
+        res0 = np.nan_to_num(res)
+        hess = np.zeros((len(tracks), 3, 3))
+        grad = np.zeros((len(tracks), 3))
+        np.add.at(hess, tr, w[:, None, None] * np.einsum("nki,nkj->nij", jac, jac))
+        np.add.at(grad, tr, w[:, None] * np.einsum("nki,nk->ni", jac, res0))
+        hess += 1e-9 * np.eye(3)
+        step = -np.linalg.solve(hess, grad[:, :, None])[:, :, 0]
+        new_res, new_xc, new_z = residuals(pt + step)
+        new_cost, new_err = track_cost(new_res)
+        better = new_cost < cost
+        if not better.any():
+            break
+        pt = np.where(better[:, None], pt + step, pt)
+        cost = np.where(better, new_cost, cost)
+        keep = better[tr]
+        res = np.where(keep[:, None], new_res, res)
+        xc = np.where(keep[:, None], new_xc, xc)
+        z, err = np.where(keep, new_z, z), np.where(keep, new_err, err)
+    out = points.copy()
+    out[obs] = pt[tr]
+    return out
 
 
 def depth_points(frame: Frame, keypoints: np.ndarray, depth: np.ndarray) -> np.ndarray:

@@ -1,11 +1,16 @@
 """Scene-coordinate labels on the synthetic scene, checked against its exact depth."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from slamreloc.datasets import load_dataset, read_depth
 from slamreloc.extract import extract_frames
 from slamreloc.features import make_extractor
+from slamreloc.geometry import project
 from slamreloc.labels import LabelConfig, build_labels, depth_points
 
 
@@ -53,3 +58,47 @@ def test_labels_reproject_into_their_frames(map_frames):
         cam = f.world_from_cam.inverse().transform(pts[ok].astype(np.float64))
         uv = cam[:, :2] / cam[:, 2:] * [f.camera.fx, f.camera.fy] + [f.camera.cx, f.camera.cy]
         assert np.median(np.linalg.norm(uv - ft.keypoints[ok], axis=1)) < 1.0
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2 ** 31 - 1), n_views=st.integers(2, 8),
+       noise_px=st.floats(0.0, 0.3), start_offset_m=st.floats(0.0, 0.05))
+def test_refined_track_points_are_the_least_squares_points(seed, n_views, noise_px,
+                                                          start_offset_m):
+    """`refine_track_points` (structure-only bundle adjustment, poses fixed) moves each track's
+    point, from a start a few cm off, to the point of least squared reprojection error over
+    its observations (scipy's least_squares on the same residuals), two tracks at once. With
+    residuals under the Huber threshold (1 px) the two objectives are the same."""
+    from scipy.optimize import least_squares
+
+    from slamreloc.geometry import look_at
+    from slamreloc.labels import refine_track_points
+    from slamreloc.types import Camera, Frame
+
+    rng = np.random.default_rng(seed)
+    camera = Camera(640, 480, 525.0, 520.0, 320.0, 240.0)
+    targets = rng.uniform(-0.3, 0.3, (2, 3)) + [0.0, 2.0, 1.0]
+    eyes = rng.uniform([-0.5, -0.2, 0.7], [0.5, 0.3, 1.3], (n_views, 3))
+    frames = [Frame(f"f{i}", Path("none"), camera, world_from_cam=look_at(eye, [0.0, 2.0, 1.0]))
+              for i, eye in enumerate(eyes)]
+
+    def pixels(point, frame):
+        cam = frame.world_from_cam.inverse().transform(point[None])
+        return project(cam, *camera.params())[0]
+
+    kp, frame_of, track_of, start = [], [], [], []
+    for t, target in enumerate(targets):
+        for k, frame in enumerate(frames):
+            kp.append(pixels(target, frame) + rng.uniform(-noise_px, noise_px, 2))
+            frame_of.append(k)
+            track_of.append(t)
+        start += [target + start_offset_m * rng.standard_normal(3) / np.sqrt(3)] * n_views
+    kp, frame_of, track_of = np.array(kp), np.array(frame_of), np.array(track_of)
+    refined = refine_track_points(np.array(start), kp, frame_of, track_of, frames)
+    for t in range(2):
+        rows = np.flatnonzero(track_of == t)
+        assert np.ptp(refined[rows], axis=0).max() == 0  # one point per track
+        best = least_squares(lambda p: np.concatenate(
+            [pixels(p, frames[frame_of[r]]) - kp[r] for r in rows]), targets[t],
+            xtol=1e-14, ftol=1e-14, gtol=1e-14).x
+        assert np.linalg.norm(refined[rows[0]] - best) < 1e-6, (refined[rows[0]], best)

@@ -88,6 +88,30 @@ def test_report_ate_agrees_with_evo(clean_kidnap_run, kidnap_scene):
                                        abs=1e-4)
 
 
+def test_a_poses_file_is_the_reference_the_run_is_scored_against(clean_kidnap_run, kidnap_scene,
+                                                                 small_map, tmp_path):
+    """`slam --poses FILE`: the report's ground truth is the file's, and the report says so.
+    The file holds the scene's own poses moved by a rigid motion: the run never reads the truth,
+    so its SE(3)-aligned ATE is the clean run's, while the unaligned ATE is about the motion's
+    size (metres, not the clean run's millimetres)."""
+    from slamreloc.datasets import load_dataset
+    from slamreloc.geometry import Sim3, axis_angle_to_matrix, tum_line
+
+    move = Sim3(1.0, axis_angle_to_matrix([0.2, -0.5, 0.9]), np.array([1.5, -2.0, 0.5]))
+    moved = tmp_path / "moved.txt"
+    moved.write_text("".join(tum_line(f.name, move.apply_to_pose(f.world_from_cam)) + "\n"
+                             for f in load_dataset(kidnap_scene).frames("all")))
+    res = cli("slam", kidnap_scene, "--map", small_map.root, "--split", "kidnap",
+              "--kidnap-every", 30, "--kidnap-skip", 10, "--report", tmp_path / "r.json",
+              "--poses", moved)
+    assert res.returncode == 0, res.stderr
+    r = json.loads((tmp_path / "r.json").read_text())
+    clean, _ = clean_kidnap_run
+    assert clean["reference"] == "dataset" and r["reference"] == str(moved.resolve())
+    assert r["ate_rmse_aligned_m"] == pytest.approx(clean["ate_rmse_aligned_m"], abs=1e-4)
+    assert r["ate_rmse_m"] > 1.0 > 100 * clean["ate_rmse_m"], (r["ate_rmse_m"], clean)
+
+
 def test_wrong_relocalizations_are_rejected(clean_kidnap_run, kidnap_scene, small_map):
     """20 % of the relocalizations replaced by poses >= 0.5 m / 20 deg off (three seeds of the
     hook): every wrong one rejected, no false anchor, and the ATE within 10 % of the clean
