@@ -5,7 +5,8 @@ and the matching baseline on the same queries.
         --out labels.md
 
 Variants (each a map in WORKDIR/map-<name>, reused when it is there):
-- `default`, `seed1`: today's labels, training seeds 0 and 1 (the spread of one training);
+- `default`, `seed1`, `seed2`: today's labels, training seeds 0, 1 and 2 (the spread of one
+  training);
 - `ba`, `ba-seed1`: track points bundle-adjusted with the poses fixed
   (`LabelConfig.refine_points`);
 - `angle4`: tracks triangulated at >= 4 deg only (`LabelConfig.min_tri_angle_deg`, default 2).
@@ -36,6 +37,7 @@ from slamreloc.scene_map import SceneMap
 VARIANTS = {  # name: (LabelConfig fields, TrainConfig fields)
     "default": ({}, {}),
     "seed1": ({}, {"seed": 1}),
+    "seed2": ({}, {"seed": 2}),
     "ba": ({"refine_points": True}, {}),
     "ba-seed1": ({"refine_points": True}, {"seed": 1}),
     "angle4": ({"min_tri_angle_deg": 4.0}, {}),
