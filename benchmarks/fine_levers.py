@@ -37,7 +37,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from slamreloc.datasets import load_dataset, read_image
-from slamreloc.geometry import Rigid3, pose_error
+from slamreloc.geometry import Rigid3, pose_error, project
 from slamreloc.localizer import make_localizer
 from slamreloc.pnp import PnPConfig, estimate_pose
 from slamreloc.scene_map import SceneMap
@@ -75,10 +75,10 @@ class DatabaseRematcher:
 def reprojection_px(cam_from_world: Rigid3, keypoints, points, camera) -> np.ndarray:
     """(N,) pixel distance between each keypoint and its world point projected by the pose
     (inf behind the camera)."""
-    x = points @ cam_from_world.rotation.T + cam_from_world.translation
-    z = np.where(x[:, 2] > 1e-6, x[:, 2], np.nan)
-    uv = np.stack([camera.fx * x[:, 0] / z + camera.cx, camera.fy * x[:, 1] / z + camera.cy], 1)
-    return np.nan_to_num(np.linalg.norm(uv - keypoints, axis=1), nan=np.inf)
+    x = cam_from_world.transform(points)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        err = np.linalg.norm(project(x, *camera.params()) - keypoints, axis=1)
+    return np.where(x[:, 2] > 1e-6, err, np.inf)
 
 
 def refine_from(cam_from_world: Rigid3, keypoints, points, camera, max_error_px: float = 12.0,

@@ -194,33 +194,25 @@ def refine_track_points(points: np.ndarray, kp_xy: np.ndarray, frame_of: np.ndar
         rho = np.where(e <= huber_px, 0.5 * e ** 2, huber_px * (e - 0.5 * huber_px))
         return np.bincount(tr, rho, len(tracks)), e
 
-    res, xc, z = residuals(pt)
-    cost, err = track_cost(res)
+    fx, fy = intr[:, 0], intr[:, 1]
     for _ in range(iterations):
+        res, xc, z = residuals(pt)
+        cost, err = track_cost(res)
         w = np.where(err <= huber_px, 1.0, huber_px / np.maximum(err, 1e-12))
-        fx, fy = intr[:, 0], intr[:, 1]
         j_proj = np.zeros((len(obs), 2, 3))
         j_proj[:, 0, 0], j_proj[:, 0, 2] = fx / z, -fx * xc[:, 0] / z ** 2
         j_proj[:, 1, 1], j_proj[:, 1, 2] = fy / z, -fy * xc[:, 1] / z ** 2
         jac = np.nan_to_num(j_proj @ rot)  # d(pixel)/d(world point)
-        res0 = np.nan_to_num(res)
         hess = np.zeros((len(tracks), 3, 3))
         grad = np.zeros((len(tracks), 3))
         np.add.at(hess, tr, w[:, None, None] * np.einsum("nki,nkj->nij", jac, jac))
-        np.add.at(grad, tr, w[:, None] * np.einsum("nki,nk->ni", jac, res0))
+        np.add.at(grad, tr, w[:, None] * np.einsum("nki,nk->ni", jac, np.nan_to_num(res)))
         hess += 1e-9 * np.eye(3)
         step = -np.linalg.solve(hess, grad[:, :, None])[:, :, 0]
-        new_res, new_xc, new_z = residuals(pt + step)
-        new_cost, new_err = track_cost(new_res)
-        better = new_cost < cost
+        better = track_cost(residuals(pt + step)[0])[0] < cost
         if not better.any():
             break
         pt = np.where(better[:, None], pt + step, pt)
-        cost = np.where(better, new_cost, cost)
-        keep = better[tr]
-        res = np.where(keep[:, None], new_res, res)
-        xc = np.where(keep[:, None], new_xc, xc)
-        z, err = np.where(keep, new_z, z), np.where(keep, new_err, err)
     out = points.copy()
     out[obs] = pt[tr]
     return out
