@@ -5,7 +5,8 @@
 Every variant starts from the same extracted features (extracted once) and is scored against
 the poses the map was trained on (the dataset's, or `--poses`, as `evaluate` does). Variants:
 - `regressor`: the default localizer (the most confident half of the predictions,
-  PnP-RANSAC at 12 px, refinement on the inliers with a Cauchy loss of scale 4 px);
+  PnP-RANSAC at 12 px, refinement on the inliers with a Cauchy loss of scale 4 px); the
+  variants below start from its pose where they refine further;
 - `refine loss S px`: another scale of that loss (1 px: pycolmap's default, and the
   localizer's before 2026-12-03), also with a tighter gradient tolerance (default 1.0);
 - `keep K`: PnP on another share of the predictions;
@@ -17,8 +18,9 @@ the poses the map was trained on (the dataset's, or `--poses`, as `evaluate` doe
 - `union`: the coarse pose's regressor inliers plus the re-matched database points;
 - `scale K x median residual`: the refinement's Cauchy scale set per query to K times the
   median reprojection residual of the RANSAC inliers at the coarse pose;
-- `all predictions within T px`: the refinement, from the coarse pose, on every prediction
-  (not only the confident share RANSAC saw) that reprojects within T px of it;
+- `all predictions within T px`: the refinement once more, from the default's pose, on
+  every prediction (not only the confident share RANSAC saw) that reprojects within T px of
+  it (12 px: the localizer's `refine_on_all`);
 - `matching`: the classical baseline (nearest database descriptor over the whole map).
 `extra ms` is each variant's time beyond extraction, regression and the coarse PnP (for
 `matching`: its matching and PnP). Timings are medians per query on one thread.
@@ -32,14 +34,13 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import pycolmap
 import torch
 from scipy.spatial import cKDTree
 
 from slamreloc.datasets import load_dataset, read_image
-from slamreloc.geometry import Rigid3, pose_error, project
+from slamreloc.geometry import pose_error
 from slamreloc.localizer import make_localizer
-from slamreloc.pnp import PnPConfig, estimate_pose
+from slamreloc.pnp import PnPConfig, estimate_pose, refine_pose, reprojection_px
 from slamreloc.scene_map import SceneMap
 
 
@@ -72,36 +73,6 @@ class DatabaseRematcher:
         return keypoints[ok].astype(np.float64), self.points[j1[ok]]
 
 
-def reprojection_px(cam_from_world: Rigid3, keypoints, points, camera) -> np.ndarray:
-    """(N,) pixel distance between each keypoint and its world point projected by the pose
-    (inf behind the camera)."""
-    x = cam_from_world.transform(points)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        err = np.linalg.norm(project(x, *camera.params()) - keypoints, axis=1)
-    return np.where(x[:, 2] > 1e-6, err, np.inf)
-
-
-def refine_from(cam_from_world: Rigid3, keypoints, points, camera, max_error_px: float = 12.0,
-                loss_px: float = 1.0):
-    """Levenberg-Marquardt (Cauchy loss of scale `loss_px`) from `cam_from_world` on the
-    correspondences that reproject within `max_error_px` of it; None with fewer than 20."""
-    keypoints, points = (np.asarray(v, np.float64) for v in (keypoints, points))
-    inliers = reprojection_px(cam_from_world, keypoints, points, camera) < max_error_px
-    if inliers.sum() < 20:
-        return None
-    opts = pycolmap.AbsolutePoseRefinementOptions()
-    opts.refine_focal_length = opts.refine_extra_params = False
-    opts.loss_function_scale = loss_px
-    start = pycolmap.Rigid3d(pycolmap.Rotation3d(cam_from_world.rotation),
-                             cam_from_world.translation)
-    res = pycolmap.refine_absolute_pose(start, keypoints, points, inliers,
-                                        camera.to_pycolmap(), opts)
-    if res is None:
-        return None
-    m = res["cam_from_world"].matrix()
-    return Rigid3(m[:, :3].copy(), m[:, 3].copy())
-
-
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("map", type=Path)
@@ -114,6 +85,7 @@ def main() -> None:
     scene_map = SceneMap.load(args.map)
     frames = load_dataset(args.dataset, args.poses).frames(args.split)
     reg = make_localizer(scene_map, "regressor")
+    on_all = make_localizer(scene_map, "regressor", refine_on_all=True)
     matcher = make_localizer(scene_map, "matching")
     rematchers = {r: DatabaseRematcher(scene_map, r) for r in (0.1, 0.2)}
     scores: dict[str, tuple[list, list]] = {}
@@ -131,7 +103,9 @@ def main() -> None:
         kp, pts, _ = reg.confident_correspondences(feats)
         coarse = estimate_pose(kp, pts, camera, reg.pnp)
         add(f"regressor (default: refine loss {reg.pnp.refine_loss_px:g} px)",
-            coarse.world_from_cam, truth)
+            reg.localize_features(feats, frame.camera).estimate.world_from_cam, truth)
+        add("all predictions within 12 px (refine_on_all)", on_all.localize_features(
+            feats, frame.camera).estimate.world_from_cam, truth)
         for loss in (1.0, 2.0, 8.0):
             add(f"refine loss {loss:g} px", estimate_pose(
                 kp, pts, camera, replace(reg.pnp, refine_loss_px=loss)).world_from_cam, truth)
@@ -147,17 +121,17 @@ def main() -> None:
             residual = reprojection_px(coarse.cam_from_world, kp, pts, camera)
             med = float(np.median(residual[coarse.inlier_mask]))
             for k in (1.0, 2.0):
-                est = refine_from(coarse.cam_from_world, kp, pts, camera, loss_px=k * med)
+                est = refine_pose(coarse.cam_from_world, kp, pts, camera,
+                                  replace(reg.pnp, refine_loss_px=k * med))
                 add(f"scale {k:g} x median residual",
                     est.inverse() if est is not None else coarse.world_from_cam, truth)
-            for thr in (12.0, 6.0):
-                est = refine_from(coarse.cam_from_world, feats.keypoints, predicted, camera,
-                                  max_error_px=thr, loss_px=reg.pnp.refine_loss_px)
-                add(f"all predictions within {thr:g} px",
-                    est.inverse() if est is not None else coarse.world_from_cam, truth)
+            est = refine_pose(coarse.cam_from_world, feats.keypoints, predicted, camera,
+                              reg.pnp, max_error_px=6.0)
+            add("all predictions within 6 px",
+                est.inverse() if est is not None else coarse.world_from_cam, truth)
         else:
             for name in ("scale 1 x median residual", "scale 2 x median residual",
-                         "all predictions within 12 px", "all predictions within 6 px"):
+                         "all predictions within 6 px"):
                 add(name, None, truth)
         for thr in (8.0, 16.0):
             add(f"PnP {thr:.0f} px", estimate_pose(
@@ -166,8 +140,8 @@ def main() -> None:
             t0 = time.perf_counter()
             k3, p3 = rematch(feats.keypoints, feats.descriptors, predicted)
             t1 = time.perf_counter()
-            best = None if not coarse.success else refine_from(coarse.cam_from_world, k3, p3,
-                                                               camera)
+            best = None if not coarse.success else refine_pose(coarse.cam_from_world, k3, p3,
+                                                               camera, PnPConfig())
             t2 = time.perf_counter()
             est = best.inverse() if best is not None else coarse.world_from_cam
             add(f"re-match {radius} m", est, truth, 1000 * (t2 - t0))
@@ -177,7 +151,7 @@ def main() -> None:
                 if ransac.success else coarse.world_from_cam, truth, 1000 * (t3 - t2 + t1 - t0))
             if coarse.success:
                 inl = coarse.inlier_mask
-                both = refine_from(coarse.cam_from_world,
+                both = refine_pose(coarse.cam_from_world,
                                    np.concatenate([kp[inl].astype(np.float64), k3]),
                                    np.concatenate([pts[inl].astype(np.float64), p3]), camera)
                 add(f"union {radius} m", both.inverse() if both is not None

@@ -19,12 +19,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 from slamreloc.plugins.gating import Candidate, GateConfig, find_agreeing, fits_track, good_quality
 from slamreloc.plugins.relocstats import RelocStats
 
 from slamreloc.geometry import Rigid3
-from slamreloc.pnp import estimate_pose
 from slamreloc.slam.backend import TrackState
 from slamreloc.slam.events import Event, EventKind, FrameData
 from slamreloc.surface import IcpConfig, depth_cloud, refine_pose
@@ -143,16 +141,15 @@ class RelocalizationPlugin:
         loc = self.localizer
         with self.backend.timer("relocalization"):
             feats = loc.extractor.extract(frame.image, frame.camera)
-            keypoints, points, conf = loc.confident_correspondences(feats)
-            est = estimate_pose(keypoints, points, frame.camera.pinhole, loc.pnp)
-            world_from_cam = est.world_from_cam
+            result = loc.localize_features(feats, frame.camera)
+            est, world_from_cam = result.estimate, result.estimate.world_from_cam
             if est.success and self.surface is not None and frame.depth is not None:
                 world_from_cam = self._refine(frame, world_from_cam)
         self.stats.n_attempts += 1
         if not est.success:
             self.stats.n_failed += 1
             return None
-        confidence = float(np.median(conf[est.inlier_mask])) if conf is not None else 1.0
+        confidence = 1.0 if result.inlier_confidence is None else result.inlier_confidence
         return Candidate(frame.index, world_from_cam, est.num_inliers, confidence)
 
     def _refine(self, frame: FrameData, world_from_cam: Rigid3) -> Rigid3:

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
-from slamreloc.geometry import Rigid3
+from slamreloc.geometry import Rigid3, project
 from slamreloc.types import Camera
 
 
@@ -46,6 +46,16 @@ class PoseEstimate:
         return self.num_inliers / max(self.num_correspondences, 1) if self.success else 0.0
 
 
+def _refinement_options(config: PnPConfig) -> pycolmap.AbsolutePoseRefinementOptions:
+    """The pose-only refinement (the camera's intrinsics stay fixed)."""
+    ref = pycolmap.AbsolutePoseRefinementOptions()
+    ref.refine_focal_length = False
+    ref.refine_extra_params = False
+    ref.loss_function_scale = config.refine_loss_px
+    ref.gradient_tolerance = config.refine_gradient_tolerance
+    return ref
+
+
 def estimate_pose(points2d: np.ndarray, points3d: np.ndarray, camera: Camera,
                   config: PnPConfig = PnPConfig()) -> PoseEstimate:
     """points2d: (N, 2) pixels; points3d: (N, 3) world metres."""
@@ -57,14 +67,9 @@ def estimate_pose(points2d: np.ndarray, points3d: np.ndarray, camera: Camera,
     est.ransac.max_error = config.max_error_px
     est.ransac.max_num_trials = config.max_trials
     est.ransac.random_seed = config.seed
-    ref = pycolmap.AbsolutePoseRefinementOptions()
-    ref.refine_focal_length = False
-    ref.refine_extra_params = False
-    ref.loss_function_scale = config.refine_loss_px
-    ref.gradient_tolerance = config.refine_gradient_tolerance
     res = pycolmap.estimate_and_refine_absolute_pose(
         np.ascontiguousarray(points2d, np.float64), np.ascontiguousarray(points3d, np.float64),
-        camera.to_pycolmap(), est, ref)
+        camera.to_pycolmap(), est, _refinement_options(config))
     if res is None or res["num_inliers"] < config.min_inliers:
         if res is not None:
             fail.num_inliers, fail.inlier_mask = int(res["num_inliers"]), np.asarray(res["inlier_mask"])
@@ -73,3 +78,37 @@ def estimate_pose(points2d: np.ndarray, points3d: np.ndarray, camera: Camera,
     m = res["cam_from_world"].matrix()
     return PoseEstimate(Rigid3(m[:, :3].copy(), m[:, 3].copy()), int(res["num_inliers"]), n,
                         np.asarray(res["inlier_mask"]))
+
+
+def reprojection_px(cam_from_world: Rigid3, points2d: np.ndarray, points3d: np.ndarray,
+                    camera: Camera) -> np.ndarray:
+    """(N,) pixel distance between each keypoint and its world point (metres) projected by the
+    pose (inf behind the camera). `camera` is a pinhole: keypoints are undistorted."""
+    x = cam_from_world.transform(np.asarray(points3d, np.float64))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        err = np.linalg.norm(project(x, *camera.params()) - points2d, axis=1)
+    return np.where(x[:, 2] > 1e-6, err, np.inf)
+
+
+def refine_pose(cam_from_world: Rigid3, points2d: np.ndarray, points3d: np.ndarray,
+                camera: Camera, config: PnPConfig = PnPConfig(),
+                max_error_px: float | None = None) -> Rigid3 | None:
+    """The final refinement alone, from a given pose: Levenberg-Marquardt with the Cauchy loss
+    of `config` on the correspondences that reproject within `max_error_px` (default: the
+    RANSAC threshold, `config.max_error_px`) of `cam_from_world`. Returns the refined
+    cam_from_world, or None with fewer than `config.min_inliers` such correspondences or when
+    the solver fails. points2d: (N, 2) undistorted pixels; points3d: (N, 3) world metres."""
+    points2d = np.ascontiguousarray(points2d, np.float64)
+    points3d = np.ascontiguousarray(points3d, np.float64)
+    limit = config.max_error_px if max_error_px is None else max_error_px
+    inliers = reprojection_px(cam_from_world, points2d, points3d, camera) < limit
+    if inliers.sum() < config.min_inliers:
+        return None
+    start = pycolmap.Rigid3d(pycolmap.Rotation3d(cam_from_world.rotation),
+                             cam_from_world.translation)
+    res = pycolmap.refine_absolute_pose(start, points2d, points3d, inliers,
+                                        camera.to_pycolmap(), _refinement_options(config))
+    if res is None:
+        return None
+    m = res["cam_from_world"].matrix()
+    return Rigid3(m[:, :3].copy(), m[:, 3].copy())

@@ -12,6 +12,7 @@ from slamreloc.geometry import tum_line
 from slamreloc.labels import depth_points
 from slamreloc.localizer import make_localizer
 from slamreloc.pipeline import run_evaluation
+from slamreloc.pnp import estimate_pose, refine_pose
 from slamreloc.scene_map import SceneMap
 
 CONTRACT_KEYS = {"method", "n_queries", "n_localized", "median_translation_m",
@@ -105,6 +106,40 @@ def test_cli_evaluate_and_localize(small_map, scene_dir, tmp_path):
                                                           query.camera).estimate
     assert res.stdout.split() == [*tum_line(name, api.world_from_cam).split(),
                                   str(api.num_inliers)]
+
+
+def _same(a, b) -> bool:
+    return (a is None and b is None) or (a is not None and b is not None and
+                                         np.array_equal(a.matrix(), b.matrix()))
+
+
+def test_regressor_can_refine_its_ransac_pose_on_every_prediction(small_map, scene_dir):
+    """With `refine_on_all`, the regressor's pose is RANSAC's on the confident share, refined
+    from there on all predictions; `localize` and `localize_features` give the same answer."""
+    loc = make_localizer(small_map, "regressor", refine_on_all=True)
+    only_share = make_localizer(small_map, "regressor")
+    moved = 0
+    for query in load_dataset(scene_dir).frames("test")[:5]:
+        image = read_image(query.image_path)
+        feats = loc.extractor.extract(image, query.camera)
+        result = loc.localize_features(feats, query.camera)
+        assert _same(loc.localize(image, query.camera).estimate.cam_from_world,
+                     result.estimate.cam_from_world)
+        kp, pts = loc.correspondences(feats)
+        ransac = estimate_pose(kp, pts, query.camera.pinhole, loc.pnp)
+        assert _same(only_share.localize_features(feats, query.camera).estimate.cam_from_world,
+                     ransac.cam_from_world)
+        if not ransac.success:
+            continue
+        points, _ = loc.predict(feats.descriptors)
+        assert len(points) > len(pts)  # the refinement sees more than RANSAC did
+        expected = refine_pose(ransac.cam_from_world, feats.keypoints, points,
+                               query.camera.pinhole, loc.pnp)
+        assert _same(result.estimate.cam_from_world, expected)
+        assert result.estimate.num_inliers == ransac.num_inliers
+        assert 0.0 < result.inlier_confidence <= 1.0
+        moved += not _same(expected, ransac.cam_from_world)
+    assert moved >= 3
 
 
 def test_unlocalizable_image_is_reported_and_the_command_goes_on(small_map, scene_dir, tmp_path):

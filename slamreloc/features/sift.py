@@ -42,9 +42,15 @@ class Sift(Extractor):
     def __init__(self, config: SiftConfig | None = None, **overrides) -> None:
         super().__init__(config, **overrides)
         c = self.config
+        # OpenCV's default doubling maps pixel x to 2x + 0.5, which shifts its keypoints by
+        # +0.25 px; the precise doubling maps x to 2x. Halved images (upsample=False) keep the
+        # default: there the +0.25 half-resolution px cancel INTER_AREA's -0.5 px (a halved
+        # pixel i covers full-resolution pixels 2i and 2i + 1), so both settings return
+        # unbiased full-resolution keypoints (tests/test_features.py mirrors an image to check)
         self._sift = cv2.SIFT_create(nfeatures=c.max_keypoints, nOctaveLayers=c.n_octave_layers,
                                      contrastThreshold=c.contrast_threshold,
-                                     edgeThreshold=c.edge_threshold)
+                                     edgeThreshold=c.edge_threshold,
+                                     enable_precise_upscale=c.upsample)
 
     def extract_grey(self, grey: np.ndarray) -> Features:
         scale = 1.0
