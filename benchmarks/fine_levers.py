@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 from slamreloc.datasets import load_dataset, read_image
 from slamreloc.geometry import pose_error
 from slamreloc.localizer import make_localizer
-from slamreloc.pnp import PnPConfig, estimate_pose, refine_pose, reprojection_px
+from slamreloc.pnp import PnPConfig, estimate_pose, refine_from, reprojection_px
 from slamreloc.scene_map import SceneMap
 
 
@@ -102,10 +102,12 @@ def main() -> None:
         predicted, _ = reg.predict(feats.descriptors)
         kp, pts, _ = reg.confident_correspondences(feats)
         coarse = estimate_pose(kp, pts, camera, reg.pnp)
+        default = reg.localize_features(feats, frame.camera)
         add(f"regressor (default: refine loss {reg.pnp.refine_loss_px:g} px)",
-            reg.localize_features(feats, frame.camera).estimate.world_from_cam, truth)
-        add("all predictions within 12 px (refine_on_all)", on_all.localize_features(
-            feats, frame.camera).estimate.world_from_cam, truth)
+            default.estimate.world_from_cam, truth)
+        refined = on_all.localize_features(feats, frame.camera)
+        add("all predictions within 12 px (refine_on_all)", refined.estimate.world_from_cam,
+            truth, refined.timings_ms["pnp"] - default.timings_ms["pnp"])
         for loss in (1.0, 2.0, 8.0):
             add(f"refine loss {loss:g} px", estimate_pose(
                 kp, pts, camera, replace(reg.pnp, refine_loss_px=loss)).world_from_cam, truth)
@@ -121,11 +123,11 @@ def main() -> None:
             residual = reprojection_px(coarse.cam_from_world, kp, pts, camera)
             med = float(np.median(residual[coarse.inlier_mask]))
             for k in (1.0, 2.0):
-                est = refine_pose(coarse.cam_from_world, kp, pts, camera,
+                est = refine_from(coarse.cam_from_world, kp, pts, camera,
                                   replace(reg.pnp, refine_loss_px=k * med))
                 add(f"scale {k:g} x median residual",
                     est.inverse() if est is not None else coarse.world_from_cam, truth)
-            est = refine_pose(coarse.cam_from_world, feats.keypoints, predicted, camera,
+            est = refine_from(coarse.cam_from_world, feats.keypoints, predicted, camera,
                               reg.pnp, max_error_px=6.0)
             add("all predictions within 6 px",
                 est.inverse() if est is not None else coarse.world_from_cam, truth)
@@ -140,7 +142,7 @@ def main() -> None:
             t0 = time.perf_counter()
             k3, p3 = rematch(feats.keypoints, feats.descriptors, predicted)
             t1 = time.perf_counter()
-            best = None if not coarse.success else refine_pose(coarse.cam_from_world, k3, p3,
+            best = None if not coarse.success else refine_from(coarse.cam_from_world, k3, p3,
                                                                camera, PnPConfig())
             t2 = time.perf_counter()
             est = best.inverse() if best is not None else coarse.world_from_cam
@@ -151,7 +153,7 @@ def main() -> None:
                 if ransac.success else coarse.world_from_cam, truth, 1000 * (t3 - t2 + t1 - t0))
             if coarse.success:
                 inl = coarse.inlier_mask
-                both = refine_pose(coarse.cam_from_world,
+                both = refine_from(coarse.cam_from_world,
                                    np.concatenate([kp[inl].astype(np.float64), k3]),
                                    np.concatenate([pts[inl].astype(np.float64), p3]), camera)
                 add(f"union {radius} m", both.inverse() if both is not None

@@ -4,8 +4,8 @@
 
 The regressor trains with input noise and input dropout (`TrainConfig.noise`,
 `input_dropout`): robustness to the descriptor changes of new views, at the price of a looser
-fit (a median 1.1 px reprojection error of its predictions on the training keypoints, against
-the labels' 0.67 px on the RedKitchen SfM map). Each variant continues a trained map's regressor
+fit to the labels (the table's final training loss: the mean distance in the last epoch, under
+that epoch's augmentation). Each variant continues a trained map's regressor
 for a few epochs (`train_regressor(..., fine_tune=True)`) with other augmentation and learning
 rate, in memory, and scores the regressor on the dataset's test frames against the poses the
 map was trained on; `as trained` is the map itself. Nothing is written to the maps.

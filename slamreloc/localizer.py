@@ -15,7 +15,7 @@ import torch
 
 from slamreloc.features import make_extractor
 from slamreloc.features.matcher import LOCALIZER_DB_CHUNK, match_descriptors
-from slamreloc.pnp import PnPConfig, PoseEstimate, estimate_pose, refine_pose
+from slamreloc.pnp import PnPConfig, PoseEstimate, estimate_pose, refine_from
 from slamreloc.precision import autocast, resolve_precision
 from slamreloc.regressor.train import resolve_device
 from slamreloc.scene_map import SceneMap
@@ -136,7 +136,7 @@ class RegressorLocalizer(Localizer):
         if est.success and self.refine_on_all:
             # Regressed points scatter by a few pixels; RANSAC needs the confident share to
             # find the pose, but near it every prediction that agrees adds its constraint
-            refined = refine_pose(est.cam_from_world, feats.keypoints, points, camera.pinhole,
+            refined = refine_from(est.cam_from_world, feats.keypoints, points, camera.pinhole,
                                   self.pnp)
             if refined is not None:
                 est = replace(est, cam_from_world=refined)

@@ -90,7 +90,7 @@ def reprojection_px(cam_from_world: Rigid3, points2d: np.ndarray, points3d: np.n
     return np.where(x[:, 2] > 1e-6, err, np.inf)
 
 
-def refine_pose(cam_from_world: Rigid3, points2d: np.ndarray, points3d: np.ndarray,
+def refine_from(cam_from_world: Rigid3, points2d: np.ndarray, points3d: np.ndarray,
                 camera: Camera, config: PnPConfig = PnPConfig(),
                 max_error_px: float | None = None) -> Rigid3 | None:
     """The final refinement alone, from a given pose: Levenberg-Marquardt with the Cauchy loss

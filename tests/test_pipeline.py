@@ -12,7 +12,7 @@ from slamreloc.geometry import tum_line
 from slamreloc.labels import depth_points
 from slamreloc.localizer import make_localizer
 from slamreloc.pipeline import run_evaluation
-from slamreloc.pnp import estimate_pose, refine_pose
+from slamreloc.pnp import estimate_pose, refine_from
 from slamreloc.scene_map import SceneMap
 
 CONTRACT_KEYS = {"method", "n_queries", "n_localized", "median_translation_m",
@@ -133,7 +133,7 @@ def test_regressor_can_refine_its_ransac_pose_on_every_prediction(small_map, sce
             continue
         points, _ = loc.predict(feats.descriptors)
         assert len(points) > len(pts)  # the refinement sees more than RANSAC did
-        expected = refine_pose(ransac.cam_from_world, feats.keypoints, points,
+        expected = refine_from(ransac.cam_from_world, feats.keypoints, points,
                                query.camera.pinhole, loc.pnp)
         assert _same(result.estimate.cam_from_world, expected)
         assert result.estimate.num_inliers == ransac.num_inliers

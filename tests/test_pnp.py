@@ -6,7 +6,7 @@ from hypothesis import strategies as st
 
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, look_at, pose_error
 from slamreloc.localizer import REGRESSOR_PNP
-from slamreloc.pnp import PnPConfig, estimate_pose, refine_pose, reprojection_px
+from slamreloc.pnp import PnPConfig, estimate_pose, refine_from, reprojection_px
 from slamreloc.types import Camera
 
 CAMERA = Camera(640, 480, 525.0, 525.0, 320.0, 240.0)
@@ -70,7 +70,7 @@ def _nudged(cam_from_world: Rigid3, rng: np.random.Generator, metres: float,
 
 @settings(max_examples=25, deadline=None)
 @given(st.integers(0, 2**31 - 1))
-def test_refine_pose_returns_to_the_pose_from_a_nearby_start(seed):
+def test_refine_from_returns_to_the_pose_from_a_nearby_start(seed):
     """From a start 1 cm / 0.2 deg off (a few pixels), the refinement alone finds the pose of
     the exact correspondences; 30 % outliers, 30-200 px off, stay outside its window."""
     rng = np.random.default_rng(seed)
@@ -81,29 +81,30 @@ def test_refine_pose_returns_to_the_pose_from_a_nearby_start(seed):
         [np.cos(angle), np.sin(angle)])
     truth = world_from_cam.inverse()
     start = _nudged(truth, rng, 0.01, np.radians(0.2))
-    refined = refine_pose(start, pixels, points, CAMERA, REGRESSOR_PNP)
+    refined = refine_from(start, pixels, points, CAMERA, REGRESSOR_PNP)
     assert refined is not None
     dt, dr = pose_error(refined.inverse(), world_from_cam)
     assert dt < 1e-5 and dr < 1e-3
     assert np.all(reprojection_px(start, pixels[out], points[out], CAMERA) > 12.0)
 
 
-def test_refine_pose_needs_enough_correspondences_in_its_window():
+def test_refine_from_needs_enough_correspondences_in_its_window():
     rng = np.random.default_rng(3)
     world_from_cam, points, pixels = scene(rng, 60)
     truth = world_from_cam.inverse()
     config = PnPConfig(min_inliers=20)
-    assert refine_pose(truth, pixels[:20], points[:20], CAMERA, config) is not None
-    assert refine_pose(truth, pixels[:19], points[:19], CAMERA, config) is None
+    assert refine_from(truth, pixels[:20], points[:20], CAMERA, config) is not None
+    assert refine_from(truth, pixels[:19], points[:19], CAMERA, config) is None
     # a start so far off that no correspondence reprojects within the threshold
     far = _nudged(truth, rng, 1.0, np.radians(30))
-    assert refine_pose(far, pixels, points, CAMERA, config, max_error_px=2.0) is None
+    assert refine_from(far, pixels, points, CAMERA, config, max_error_px=2.0) is None
 
 
 def test_more_correspondences_near_the_pose_refine_it_further():
     """What the regressor's last step relies on: RANSAC sees a confident share of the
     predictions; refining from its pose on every prediction within the threshold (three
-    times as many, same 3 px noise) is more precise over 40 seeded scenes."""
+    times as many, same 3 px noise) is more precise over 40 seeded scenes (median translation
+    error; about 1/sqrt(4) of RANSAC's is expected)."""
     errors = {"share": [], "all": []}
     for seed in range(40):
         rng = np.random.default_rng(seed)
@@ -111,7 +112,7 @@ def test_more_correspondences_near_the_pose_refine_it_further():
         noisy = pixels + rng.normal(0, 3.0, pixels.shape)
         share = rng.random(len(points)) < 0.25
         est = estimate_pose(noisy[share], points[share], CAMERA, REGRESSOR_PNP)
-        refined = refine_pose(est.cam_from_world, noisy, points, CAMERA, REGRESSOR_PNP)
+        refined = refine_from(est.cam_from_world, noisy, points, CAMERA, REGRESSOR_PNP)
         errors["share"].append(pose_error(est.world_from_cam, world_from_cam)[0])
         errors["all"].append(pose_error(refined.inverse(), world_from_cam)[0])
-    assert np.median(errors["all"]) < 0.8 * np.median(errors["share"])
+    assert np.median(errors["all"]) < 0.6 * np.median(errors["share"])  # 0.41 measured
