@@ -46,7 +46,7 @@ class Sift(Extractor):
         # +0.25 px; the precise doubling maps x to 2x. Halved images (upsample=False) keep the
         # default: there the +0.25 half-resolution px cancel INTER_AREA's -0.5 px (a halved
         # pixel i covers full-resolution pixels 2i and 2i + 1), so both settings return
-        # unbiased full-resolution keypoints (tests/test_features.py mirrors an image to check)
+        # unbiased full-resolution keypoints (tests/test_sift.py mirrors an image to check)
         self._sift = cv2.SIFT_create(nfeatures=c.max_keypoints, nOctaveLayers=c.n_octave_layers,
                                      contrastThreshold=c.contrast_threshold,
                                      edgeThreshold=c.edge_threshold,
