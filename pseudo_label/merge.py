@@ -11,10 +11,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from slamreloc.labels import build_labels, depth_points
+from slamreloc.labels import MIN_DEPTH_M, build_labels, depth_points
 from slamreloc.map_format import NEW, PSEUDO
+from slamreloc.pnp import reprojection_px
 from slamreloc.pseudo_label.config import PseudoLabelConfig
-from slamreloc.pseudo_label.register import reprojection_errors
 
 
 def label_frames(frames, feats, states, depths, config: PseudoLabelConfig):
@@ -55,8 +55,8 @@ def apply_labels(frames, feats, states, depths, config: PseudoLabelConfig,
             add = has_tri & (s.source < 0)
             s.points[add] = tri[add]
             s.source[add] = NEW
-            s.error_px[add] = reprojection_errors(s.world_from_cam, cam, feats[i].keypoints[add],
-                                                  tri[add])
+            s.error_px[add] = reprojection_px(s.world_from_cam.inverse(), feats[i].keypoints[add],
+                                              tri[add], cam, min_depth_m=MIN_DEPTH_M)
             n_new += int(add.sum())
         if depths is not None and frames[i].depth_path is not None:
             # the frame's depth verifies every label

@@ -16,9 +16,10 @@ import numpy as np
 import torch
 
 from slamreloc.features.matcher import match_descriptors
-from slamreloc.geometry import Rigid3, project, rotation_angle_deg
+from slamreloc.geometry import Rigid3, rotation_angle_deg
+from slamreloc.labels import MIN_DEPTH_M
 from slamreloc.map_format import PSEUDO
-from slamreloc.pnp import PnPConfig, estimate_pose
+from slamreloc.pnp import PnPConfig, estimate_pose, reprojection_px
 from slamreloc.types import Camera, Features
 
 
@@ -101,16 +102,6 @@ class FrameState:
         return self.world_from_cam is not None
 
 
-def reprojection_errors(world_from_cam: Rigid3, camera: Camera, keypoints: np.ndarray,
-                        points: np.ndarray) -> np.ndarray:
-    """Pixels; inf behind the camera or for NaN points."""
-    cam = world_from_cam.inverse().transform(np.asarray(points, np.float64))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        uv = project(cam, *camera.params())
-        err = np.linalg.norm(uv - keypoints, axis=1)
-    return np.where(cam[:, 2] > 0.05, err, np.inf)
-
-
 def neighbour_correspondences(i: int, feats: list[Features], states: list[FrameState],
                               config: RegistrationConfig
                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -185,7 +176,8 @@ def inherit_labels(world_from_cam: Rigid3, f: Features, camera: Camera, q_idx: n
                    pts: np.ndarray, rows: np.ndarray, config: RegistrationConfig) -> FrameState:
     """The frame at this pose, labelled with the matched points that reproject within
     `label_max_error_px`."""
-    err = reprojection_errors(world_from_cam, camera, f.keypoints[q_idx], pts)
+    err = reprojection_px(world_from_cam.inverse(), f.keypoints[q_idx], pts, camera,
+                          min_depth_m=MIN_DEPTH_M)
     good = err <= config.label_max_error_px
     state = FrameState.empty(len(f))
     state.world_from_cam = world_from_cam

@@ -18,9 +18,13 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from slamreloc.features.matcher import match_descriptors
-from slamreloc.geometry import Rigid3, project
+from slamreloc.geometry import Rigid3
+from slamreloc.pnp import reprojection_px
 from slamreloc.progress import track
 from slamreloc.types import Features, Frame
+
+# a labelled point lies at least this far in front of every camera that labels it (metres)
+MIN_DEPTH_M = 0.05
 
 
 @dataclass(frozen=True)
@@ -151,11 +155,8 @@ def triangulate_tracks(frames, feats, track_of, config, progress=True):
     errors = np.full(len(kp_xy), np.nan)
     for k, frame in enumerate(frames):
         sl = slice(offsets[k], offsets[k + 1])
-        pts_cam = frame.world_from_cam.inverse().transform(points[sl])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            uv = project(pts_cam, *frame.camera.params())
-            errors[sl] = np.where(pts_cam[:, 2] > 0.05,
-                                  np.linalg.norm(uv - kp_xy[sl], axis=1), np.inf)
+        errors[sl] = reprojection_px(frame.world_from_cam.inverse(), kp_xy[sl], points[sl],
+                                     frame.camera, min_depth_m=MIN_DEPTH_M)
     bad = ~(errors <= config.max_reproj_px)
     points[bad] = np.nan
     return points, np.where(bad, np.nan, errors)

@@ -121,9 +121,9 @@ class RegressorLocalizer(Localizer):
 
     def _confident(self, confidence: np.ndarray | None) -> np.ndarray | slice:
         """Indices of the `keep_fraction` most confident predictions (all: a slice)."""
-        n = 0 if confidence is None else len(confidence)
-        if confidence is None or self.keep_fraction >= 1 or n == 0:
+        if confidence is None or self.keep_fraction >= 1 or len(confidence) == 0:
             return slice(None)
+        n = len(confidence)
         n_keep = max(round(self.keep_fraction * n), min(n, 50))
         return np.argsort(-confidence, kind="stable")[:n_keep]
 

@@ -56,6 +56,11 @@ def _refinement_options(config: PnPConfig) -> pycolmap.AbsolutePoseRefinementOpt
     return ref
 
 
+def _rigid(pose: pycolmap.Rigid3d) -> Rigid3:
+    m = pose.matrix()
+    return Rigid3(m[:, :3].copy(), m[:, 3].copy())
+
+
 def estimate_pose(points2d: np.ndarray, points3d: np.ndarray, camera: Camera,
                   config: PnPConfig = PnPConfig()) -> PoseEstimate:
     """points2d: (N, 2) pixels; points3d: (N, 3) world metres."""
@@ -75,19 +80,19 @@ def estimate_pose(points2d: np.ndarray, points3d: np.ndarray, camera: Camera,
             fail.num_inliers, fail.inlier_mask = int(res["num_inliers"]), np.asarray(res["inlier_mask"])
         fail.cam_from_world = None
         return fail
-    m = res["cam_from_world"].matrix()
-    return PoseEstimate(Rigid3(m[:, :3].copy(), m[:, 3].copy()), int(res["num_inliers"]), n,
+    return PoseEstimate(_rigid(res["cam_from_world"]), int(res["num_inliers"]), n,
                         np.asarray(res["inlier_mask"]))
 
 
 def reprojection_px(cam_from_world: Rigid3, points2d: np.ndarray, points3d: np.ndarray,
-                    camera: Camera) -> np.ndarray:
+                    camera: Camera, min_depth_m: float = 1e-6) -> np.ndarray:
     """(N,) pixel distance between each keypoint and its world point (metres) projected by the
-    pose (inf behind the camera). `camera` is a pinhole: keypoints are undistorted."""
+    pose; inf for a NaN point or one at most `min_depth_m` in front of the camera. Keypoints
+    are undistorted pixels: `camera`'s pinhole intrinsics project."""
     x = cam_from_world.transform(np.asarray(points3d, np.float64))
     with np.errstate(invalid="ignore", divide="ignore"):
         err = np.linalg.norm(project(x, *camera.params()) - points2d, axis=1)
-    return np.where(x[:, 2] > 1e-6, err, np.inf)
+    return np.where(x[:, 2] > min_depth_m, err, np.inf)
 
 
 def refine_from(cam_from_world: Rigid3, points2d: np.ndarray, points3d: np.ndarray,
@@ -108,7 +113,4 @@ def refine_from(cam_from_world: Rigid3, points2d: np.ndarray, points3d: np.ndarr
                              cam_from_world.translation)
     res = pycolmap.refine_absolute_pose(start, points2d, points3d, inliers,
                                         camera.to_pycolmap(), _refinement_options(config))
-    if res is None:
-        return None
-    m = res["cam_from_world"].matrix()
-    return Rigid3(m[:, :3].copy(), m[:, 3].copy())
+    return None if res is None else _rigid(res["cam_from_world"])
