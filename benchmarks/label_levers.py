@@ -72,22 +72,32 @@ def query_features(frames, scene_map: SceneMap) -> tuple[list, float]:
     return feats, float(np.median(ms))
 
 
-def score_method(scene_map: SceneMap, method: str, frames, feats, **options) -> str:
-    """Recalls and median of one localization method (`make_localizer` options) over the
-    queries (a table's cells)."""
+def method_errors(scene_map: SceneMap, method: str, frames, feats, **options) -> np.ndarray:
+    """(N, 2) translation (m) and rotation (deg) errors of one localization method
+    (`make_localizer` options) over the queries; inf where it failed."""
     loc = make_localizer(scene_map, method, **options)
     errors = []
     for frame, f in zip(frames, feats):
         est = loc.localize_features(f, frame.camera).estimate
         errors.append(pose_error(est.world_from_cam, frame.world_from_cam)
                       if est.success else (np.inf, np.inf))
-    return scores(errors)
+    return np.array(errors, dtype=float)
 
 
-def scores(errors: list[tuple[float, float]]) -> str:
-    e = np.array(errors)
-    rec = [100 * np.mean((e[:, 0] <= t) & (e[:, 1] <= r)) for t, r in THRESHOLDS.values()]
-    return (" / ".join(f"{v:.1f}" for v in rec) +
+def score_method(scene_map: SceneMap, method: str, frames, feats, **options) -> str:
+    """Recalls and median of one localization method over the queries (a table's cells)."""
+    return scores(method_errors(scene_map, method, frames, feats, **options))
+
+
+def recalls(errors: np.ndarray) -> list[float]:
+    """Per cent of queries within each of evaluate.THRESHOLDS."""
+    e = np.asarray(errors)
+    return [100 * float(np.mean((e[:, 0] <= t) & (e[:, 1] <= r))) for t, r in THRESHOLDS.values()]
+
+
+def scores(errors: np.ndarray) -> str:
+    e = np.asarray(errors)
+    return (" / ".join(f"{v:.1f}" for v in recalls(e)) +
             f" | {100 * np.median(e[:, 0]):.3f} cm / {np.median(e[:, 1]):.3f} deg")
 
 

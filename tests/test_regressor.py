@@ -116,3 +116,26 @@ def test_device_resolution():
         assert resolve_device("auto").type == "cpu"
         with pytest.raises(ValueError, match="CUDA"):
             resolve_device("cuda")
+
+
+def test_weight_averaging_ends_on_the_mean_of_the_last_epochs_weights():
+    """average_tail=0.5 of 6 epochs: the model ends on the mean of its weights after epochs
+    3, 4 and 5, each seen by on_epoch_end before averaging replaces them."""
+    desc, points = _toy(n_points=100)
+    model = SceneCoordinateRegressor(RegressorConfig(128, (64, 32), head="clusters",
+                                                     n_clusters=16))
+    seen = {}
+
+    def snapshot(epoch, loss_m):
+        assert loss_m > 0
+        seen[epoch] = {k: v.clone() for k, v in model.named_parameters()}
+
+    stats = train_regressor(model, desc, points,
+                            TrainConfig(epochs=6, batch_size=256, average_tail=0.5,
+                                        precision="fp32"),
+                            "cpu", progress=False, on_epoch_end=snapshot)
+    assert sorted(seen) == list(range(6)) and stats["averaged_epochs"] == 3
+    for name, p in model.named_parameters():
+        mean = sum(seen[e][name] for e in (3, 4, 5)) / 3
+        assert torch.allclose(p, mean, atol=1e-6), name
+        assert not torch.allclose(p, seen[5][name], atol=1e-4), name  # the weights did move

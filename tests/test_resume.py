@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -39,11 +40,13 @@ class Killed(Exception):
     """Stands for kill -9 right after a checkpoint was written."""
 
 
-def test_killed_and_resumed_run_matches_an_uninterrupted_one(tmp_path, monkeypatch):
+@pytest.mark.parametrize("average_tail", [0.0, 0.7])  # 0.7: epochs 2-5, one of them before the kill
+def test_killed_and_resumed_run_matches_an_uninterrupted_one(tmp_path, monkeypatch, average_tail):
     desc, points = _data()
     torch.set_num_threads(1)
+    config = replace(CONFIG, average_tail=average_tail)
     reference = _model()
-    train_regressor(reference, desc, points, CONFIG, "cpu", progress=False)
+    train_regressor(reference, desc, points, config, "cpu", progress=False)
 
     saves = {"n": 0}
     real_save = train_mod.save_checkpoint
@@ -57,12 +60,13 @@ def test_killed_and_resumed_run_matches_an_uninterrupted_one(tmp_path, monkeypat
     ckpt = tmp_path / "ckpt.pt"
     monkeypatch.setattr(train_mod, "save_checkpoint", save_then_die)
     with pytest.raises(Killed):
-        train_regressor(_model(), desc, points, CONFIG, "cpu", progress=False, checkpoint=ckpt)
+        train_regressor(_model(), desc, points, config, "cpu", progress=False, checkpoint=ckpt)
     monkeypatch.setattr(train_mod, "save_checkpoint", real_save)
     resumed = _model()
-    stats = train_regressor(resumed, desc, points, CONFIG, "cpu", progress=False,
+    stats = train_regressor(resumed, desc, points, config, "cpu", progress=False,
                             checkpoint=ckpt, resume=True)
     assert stats["resumed_at_epoch"] == 3
+    assert stats["averaged_epochs"] == (4 if average_tail else 0)
     for (name, a), b in zip(reference.state_dict().items(), resumed.state_dict().values()):
         assert torch.allclose(a, b, atol=1e-5), name
 

@@ -1,7 +1,7 @@
 """Training checkpoints: resume an interrupted `slamreloc map` where it stopped.
 
-A checkpoint holds the model, optimiser, lr schedule and random-generator states after a whole
-epoch, plus a fingerprint of the training data and recipe; it is only resumed from when the
+A checkpoint holds the model, optimiser, lr schedule, weight-average and random-generator
+states after a whole epoch, plus a fingerprint of the training data and recipe; it is only resumed from when the
 fingerprint matches (same labels, same config). Written atomically; loaded with torch's
 weights-only unpickler, so a checkpoint file cannot run code.
 """
@@ -37,10 +37,11 @@ def fingerprint(descriptors: np.ndarray, points: np.ndarray, recipe: dict) -> st
 
 
 def save_checkpoint(path: Path, fp: str, epoch: int, losses: list[float], model, opt, sched,
-                    gen: torch.Generator) -> None:
+                    gen: torch.Generator, average) -> None:
     state = {"fingerprint": fp, "epoch": epoch, "losses": losses,
              "model": model.state_dict(), "optimizer": opt.state_dict(),
-             "scheduler": sched.state_dict(), "generator": gen.get_state()}
+             "scheduler": sched.state_dict(), "generator": gen.get_state(),
+             "average": average.state_dict()}
     with atomic_file(path) as tmp:
         torch.save(state, tmp)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -31,6 +32,10 @@ class TrainConfig:
     noise: float = 0.2
     noise_anneal: bool = False
     input_dropout: float = 0.2
+    # Weight averaging (SWA, Izmailov et al. 2018): the final weights are the mean of the
+    # weights at the end of each epoch in the last `average_tail` fraction of training (0: the
+    # last epoch's weights). With lr_halvings=5, 0.2 averages the lowest-lr stage.
+    average_tail: float = 0.0
     precision: str = "auto"  # auto | fp32 | bf16 (slamreloc.precision: bf16 where native)
     seed: int = 0
     checkpoint_every_s: float = 30.0  # training state saved this often (when a path is given)
@@ -54,13 +59,16 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
                     config: TrainConfig = TrainConfig(), device: str = "auto",
                     progress: bool = True, checkpoint: Path | None = None,
                     resume: bool = False, weights: np.ndarray | None = None,
-                    fine_tune: bool = False) -> dict:
+                    fine_tune: bool = False,
+                    on_epoch_end: Callable[[int, float], None] | None = None) -> dict:
     """Fit `model` to (N, D) descriptors -> (N, 3) world points (metres). Returns training stats.
 
     checkpoint: a file to save training state to every `config.checkpoint_every_s` seconds
     and on Ctrl-C (which then raises `Interrupted`); resume: continue from it.
     weights: per-sample loss weights (label quality); fine_tune: continue from the model's
-    weights, normalisation and regions instead of initialising them from the data."""
+    weights, normalisation and regions instead of initialising them from the data.
+    on_epoch_end(epoch, loss_m): called after each epoch (0-based) with its mean training
+    distance (metres), before any weight averaging is applied to the model."""
     t_cpu = time.process_time()
     dev = resolve_device(device)
     precision = resolve_precision(config.precision, dev.type)
@@ -92,12 +100,15 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
     sched = torch.optim.lr_scheduler.StepLR(
         opt, step_size=max(1, config.epochs * steps_per_epoch // config.lr_halvings), gamma=0.5)
     start, losses = 0, []
+    average = WeightAverage(model)
+    first_averaged = config.epochs - round(config.average_tail * config.epochs)
     if state is not None:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])
         gen.set_state(state["generator"])
         start, losses = int(state["epoch"]), list(state["losses"])
+        average.load_state_dict(state["average"])
         if model.config.head == "clusters":
             cluster = model.assign_clusters(y_n)
         if progress:
@@ -121,22 +132,60 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
                 sched.step()
                 epoch_loss += dist
             losses.append(float(epoch_loss) / steps_per_epoch * float(model.out_scale))
+            if epoch >= first_averaged:
+                average.update(model)
+            if on_epoch_end is not None:
+                on_epoch_end(epoch, losses[-1])
             if checkpoint and time.monotonic() - last_save > config.checkpoint_every_s:
-                save_checkpoint(checkpoint, fp, epoch + 1, losses, model, opt, sched, gen)
+                save_checkpoint(checkpoint, fp, epoch + 1, losses, model, opt, sched, gen,
+                                average)
                 last_save = time.monotonic()
     except KeyboardInterrupt:
         if not checkpoint:
             raise
         # the interrupted epoch is redone from the state it had reached
-        save_checkpoint(checkpoint, fp, epoch, losses, model, opt, sched, gen)
+        save_checkpoint(checkpoint, fp, epoch, losses, model, opt, sched, gen, average)
         raise Interrupted(
             f"{checkpoint}: training interrupted at epoch {epoch + 1}/{config.epochs}; its "
             "state is saved there: run the same command with --resume to continue") from None
+    averaged = average.copy_to(model)
     model.eval().cpu()
     return {"final_loss_m": losses[-1] if losses else None, "epochs": config.epochs,
+            "averaged_epochs": averaged,
             "resumed_at_epoch": start if state is not None else None,
             "n_samples": len(x), "device": dev.type, "precision": precision,
             "cpu_s": time.process_time() - t_cpu}  # CPU time of this process (all threads)
+
+
+class WeightAverage:
+    """Running mean of a model's parameters over the snapshots given to `update`."""
+
+    def __init__(self, model: nn.Module) -> None:
+        self.count = 0
+        self.sums = {name: torch.zeros_like(p, dtype=torch.float32)
+                     for name, p in model.named_parameters()}
+
+    @torch.no_grad()
+    def update(self, model: nn.Module) -> None:
+        for name, p in model.named_parameters():
+            self.sums[name] += p.float()
+        self.count += 1
+
+    @torch.no_grad()
+    def copy_to(self, model: nn.Module) -> int:
+        """Set the model's parameters to the mean (if any snapshot was taken); returns the
+        number of snapshots averaged."""
+        if self.count:
+            for name, p in model.named_parameters():
+                p.copy_(self.sums[name] / self.count)
+        return self.count
+
+    def state_dict(self) -> dict:
+        return {"count": self.count, "sums": self.sums}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.count = int(state["count"])
+        self.sums = {name: t.clone() for name, t in state["sums"].items()}
 
 
 def _step(model, opt, xb, yb, wb, target, noise, config, gen, precision) -> torch.Tensor:
