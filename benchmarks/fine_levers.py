@@ -38,6 +38,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from slamreloc.datasets import load_dataset, read_image
+from slamreloc.evaluate import THRESHOLDS, recalls
 from slamreloc.geometry import pose_error
 from slamreloc.localizer import make_localizer
 from slamreloc.pnp import PnPConfig, estimate_pose, refine_from, reprojection_px
@@ -169,12 +170,11 @@ def main() -> None:
 
     lines = [(f"map `{args.map}`, {len(frames)} queries of `{args.dataset}` ({args.split}), "
              f"scored against {args.poses or 'the dataset poses'}"), "",
-             "| variant | 1cm1deg | 2cm2deg | 5cm5deg | 10cm5deg | median | extra ms |",
-             "|---|---|---|---|---|---|---|"]
+             "| variant | " + " | ".join(THRESHOLDS) + " | median | extra ms |",
+             "|---" * (len(THRESHOLDS) + 3) + "|"]
     for name, (errors, ms) in scores.items():
         e = np.array(errors)
-        rec = [100 * np.mean((e[:, 0] <= t) & (e[:, 1] <= r))
-               for t, r in ((0.01, 1), (0.02, 2), (0.05, 5), (0.10, 5))]
+        rec = [100 * v for v in recalls(e[:, 0], e[:, 1]).values()]
         lines.append(f"| {name} | " + " | ".join(f"{v:.1f} %" for v in rec) +
                      f" | {100 * np.median(e[:, 0]):.2f} cm / {np.median(e[:, 1]):.3f} deg | "
                      f"{np.median(ms):.1f} |")

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from slamreloc import evaluate
 from slamreloc.datasets import load_dataset, read_image
 from slamreloc.evaluate import THRESHOLDS
 from slamreloc.geometry import pose_error
@@ -90,9 +91,9 @@ def score_method(scene_map: SceneMap, method: str, frames, feats, **options) -> 
 
 
 def recalls(errors: np.ndarray) -> list[float]:
-    """Per cent of queries within each of evaluate.THRESHOLDS."""
-    e = np.asarray(errors)
-    return [100 * float(np.mean((e[:, 0] <= t) & (e[:, 1] <= r))) for t, r in THRESHOLDS.values()]
+    """Per cent of queries within each of evaluate.THRESHOLDS, for (N, 2) errors."""
+    e = np.asarray(errors, dtype=float)
+    return [100 * v for v in evaluate.recalls(e[:, 0], e[:, 1]).values()]
 
 
 def scores(errors: np.ndarray) -> str:

@@ -8,8 +8,9 @@ with today's recipe plus `TrainConfig.average_tail`. The same run gives both row
 `last epoch` is the weights after the last epoch (what the recipe without averaging ends
 with: averaging does not change the iterates), `averaged x` the mean of the epoch-end weights
 over the last fraction x of training (`--average-tail` by `train_regressor` itself,
-`--other-tails` alongside it from the same iterates). Both are scored with the default localizer on the
-dataset's test frames against the poses the map was trained on (the dataset's, or `--poses`).
+`--other-tails` alongside it from the same iterates). All are scored with the default
+localizer on the dataset's test frames against the poses the map was trained on (the
+dataset's, or `--poses`).
 Nothing is written to the map. A row per seed, then the medians over seeds.
 """
 
@@ -38,13 +39,12 @@ def train_seed(scene_map: SceneMap, seed: int, average_tail: float, other_tails:
     itself; those over `other_tails` are averaged alongside from the same iterates."""
     config = TrainConfig(epochs=epochs, seed=seed, average_tail=average_tail)
     model = SceneCoordinateRegressor(scene_map.regressor.config)
-    others = {tail: WeightAverage(model) for tail in other_tails}
+    others = {tail: WeightAverage(model, epochs, tail) for tail in other_tails}
     models = {}
 
     def snapshot(epoch: int, _loss: float) -> None:
-        for tail, average in others.items():
-            if epoch >= epochs - round(tail * epochs):
-                average.update(model)
+        for average in others.values():
+            average.update(model, epoch)
         if epoch == epochs - 1:
             models["last epoch"] = copy.deepcopy(model).eval()
             for tail, average in others.items():
@@ -92,7 +92,8 @@ def main() -> None:
         for name, model in sorted(models.items(), key=lambda kv: kv[0] != "last epoch"):
             scene_map.regressor = model
             errors = method_errors(scene_map, "regressor", frames, feats)
-            rows.setdefault(name, []).append(recalls(errors) + [100 * float(np.median(errors[:, 0]))])
+            median_cm = 100 * float(np.median(errors[:, 0]))
+            rows.setdefault(name, []).append(recalls(errors) + [median_cm])
             lines.append(f"| {seed} | {name} | {stats['wall_s']:.0f} | {scores(errors)} |")
             print(lines[-1], flush=True)
     for name, values in rows.items():

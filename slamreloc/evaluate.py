@@ -62,6 +62,15 @@ def evaluate_frames(localizer: Localizer, frames: list[Frame], progress: bool = 
     return results
 
 
+def recalls(translation_m, rotation_deg) -> dict[str, float]:
+    """Fraction of queries within each of THRESHOLDS (metres, degrees; a failure is inf, so
+    outside all); 0 for no queries."""
+    t = np.asarray(translation_m, dtype=float)
+    r = np.asarray(rotation_deg, dtype=float)
+    return {k: float(np.mean((t <= tt) & (r <= rr))) if len(t) else 0.0
+            for k, (tt, rr) in THRESHOLDS.items()}
+
+
 def summarize(results: list[QueryResult], method: str) -> dict:
     """Median errors, recalls, median stage timings (failures count as infinite error)."""
     t = np.array([r.translation_error_m for r in results])
@@ -76,8 +85,7 @@ def summarize(results: list[QueryResult], method: str) -> dict:
         "n_localized": int(np.sum([q.world_from_cam is not None for q in results])),
         "median_translation_m": finite(np.median(t)) if len(t) else None,
         "median_rotation_deg": finite(np.median(r)) if len(r) else None,
-        "recall": {k: float(np.mean((t <= tt) & (r <= rr))) if len(t) else 0.0
-                   for k, (tt, rr) in THRESHOLDS.items()},
+        "recall": recalls(t, r),
         "timing_ms": timing,
     }
 

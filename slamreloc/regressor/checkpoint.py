@@ -1,9 +1,9 @@
 """Training checkpoints: resume an interrupted `slamreloc map` where it stopped.
 
 A checkpoint holds the model, optimiser, lr schedule, weight-average and random-generator
-states after a whole epoch, plus a fingerprint of the training data and recipe; it is only resumed from when the
-fingerprint matches (same labels, same config). Written atomically; loaded with torch's
-weights-only unpickler, so a checkpoint file cannot run code.
+states after a whole epoch, plus a fingerprint of the training data and recipe; it is only
+resumed from when the fingerprint matches (same labels, same config). Written atomically;
+loaded with torch's weights-only unpickler, so a checkpoint file cannot run code.
 """
 
 from __future__ import annotations

@@ -100,8 +100,7 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
     sched = torch.optim.lr_scheduler.StepLR(
         opt, step_size=max(1, config.epochs * steps_per_epoch // config.lr_halvings), gamma=0.5)
     start, losses = 0, []
-    average = WeightAverage(model)
-    first_averaged = config.epochs - round(config.average_tail * config.epochs)
+    average = WeightAverage(model, config.epochs, config.average_tail)
     if state is not None:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
@@ -132,8 +131,7 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
                 sched.step()
                 epoch_loss += dist
             losses.append(float(epoch_loss) / steps_per_epoch * float(model.out_scale))
-            if epoch >= first_averaged:
-                average.update(model)
+            average.update(model, epoch)
             if on_epoch_end is not None:
                 on_epoch_end(epoch, losses[-1])
             if checkpoint and time.monotonic() - last_save > config.checkpoint_every_s:
@@ -158,15 +156,20 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
 
 
 class WeightAverage:
-    """Running mean of a model's parameters over the snapshots given to `update`."""
+    """Running mean of a model's parameters after each epoch of the last `tail` fraction of
+    `epochs` (TrainConfig.average_tail)."""
 
-    def __init__(self, model: nn.Module) -> None:
+    def __init__(self, model: nn.Module, epochs: int, tail: float) -> None:
+        self.first_epoch = epochs - round(tail * epochs)  # 0-based; == epochs: none
         self.count = 0
         self.sums = {name: torch.zeros_like(p, dtype=torch.float32)
                      for name, p in model.named_parameters()}
 
     @torch.no_grad()
-    def update(self, model: nn.Module) -> None:
+    def update(self, model: nn.Module, epoch: int) -> None:
+        """Add the weights after 0-based `epoch` if it is in the tail."""
+        if epoch < self.first_epoch:
+            return
         for name, p in model.named_parameters():
             self.sums[name] += p.float()
         self.count += 1
