@@ -92,6 +92,28 @@ def test_cluster_head_confidence_is_a_probability():
     assert seen.median() > unseen.median()  # training descriptors are the confident ones
 
 
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_the_seed_alone_fixes_the_trained_model(precision):
+    """Two trainings with one seed end on the same weights, whatever state torch's global
+    generator was in when each model was built; another seed gives another model."""
+    if precision == "bf16" and not torch.backends.mkldnn.is_available():
+        pytest.skip("no oneDNN for bf16 on this CPU build")
+    desc, points = _toy(n_points=100)
+    config = RegressorConfig(128, (256, 64, 32), head="clusters", n_clusters=16)
+
+    def trained(seed, global_seed):
+        torch.manual_seed(global_seed)  # another caller's use of the global generator
+        model = SceneCoordinateRegressor(config)
+        train_regressor(model, desc, points, TrainConfig(epochs=3, batch_size=128, seed=seed,
+                                                         precision=precision),
+                        "cpu", progress=False)
+        return model.state_dict()
+
+    a, b, other = trained(0, 1), trained(0, 2), trained(1, 1)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not torch.equal(a["mlp.2.weight"], other["mlp.2.weight"])
+
+
 def test_unknown_head():
     with pytest.raises(ValueError, match="unknown head"):
         SceneCoordinateRegressor(RegressorConfig(128, (64,), head="mixture"))

@@ -8,6 +8,7 @@ world coordinates inside `forward`, so callers only see metres.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from math import sqrt
 
 import torch
 from torch import nn
@@ -86,6 +87,18 @@ class SceneCoordinateRegressor(nn.Module):
         self.in_std.copy_(descriptors.std(0).clamp_min(1e-4))
         self.out_mean.copy_(points.mean(0))
         self.out_scale.copy_((points - points.mean(0)).norm(dim=1).mean().clamp_min(1e-3))
+
+    @torch.no_grad()
+    def reset_parameters(self, generator: torch.Generator) -> None:
+        """Draw every layer's weights and biases anew from `generator`, as `nn.Linear` does
+        (uniform in +-1/sqrt(fan_in)). Building the model draws them from torch's global
+        generator, in whatever state the process left it: training from scratch calls this so
+        that its seed alone fixes the initial model."""
+        for layer in self.mlp:
+            if isinstance(layer, nn.Linear):
+                nn.init.kaiming_uniform_(layer.weight, a=sqrt(5), generator=generator)
+                bound = 1 / sqrt(layer.in_features)
+                nn.init.uniform_(layer.bias, -bound, bound, generator=generator)
 
     @torch.no_grad()
     def init_prototypes(self, desc_normalised: torch.Tensor, generator: torch.Generator) -> None:

@@ -89,6 +89,8 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
     x = model.normalise_input(x)
     y_n = (y - model.out_mean) / model.out_scale
     gen = torch.Generator(device=dev).manual_seed(config.seed)
+    if state is None and not fine_tune:
+        model.reset_parameters(gen)
     if model.config.prototype_init and state is None and not fine_tune:
         model.init_prototypes(x, gen)
     cluster = None
