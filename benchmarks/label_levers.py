@@ -96,6 +96,22 @@ def recalls(errors: np.ndarray) -> list[float]:
     return [100 * v for v in evaluate.recalls(e[:, 0], e[:, 1]).values()]
 
 
+def summary(errors: np.ndarray) -> list[float]:
+    """`recalls` and the median translation error (cm), for (N, 2) errors."""
+    return recalls(errors) + [100 * float(np.median(np.asarray(errors, dtype=float)[:, 0]))]
+
+
+def median_rows(rows: dict[str, list[list[float]]]) -> list[str]:
+    """Table rows `| median of n | name | | recalls | median cm |`: the median over runs of
+    each name's `summary` values."""
+    lines = []
+    for name, values in rows.items():
+        med = np.median(np.array(values), axis=0)
+        lines.append(f"| median of {len(values)} | {name} | | "
+                     + " / ".join(f"{v:.2f}" for v in med[:-1]) + f" | {med[-1]:.3f} cm |")
+    return lines
+
+
 def scores(errors: np.ndarray) -> str:
     e = np.asarray(errors)
     return (" / ".join(f"{v:.1f}" for v in recalls(e)) +

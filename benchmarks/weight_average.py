@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.label_levers import method_errors, query_features, recalls, scores
+from benchmarks.label_levers import median_rows, method_errors, query_features, scores, summary
 from slamreloc.datasets import load_dataset
 from slamreloc.evaluate import THRESHOLDS
 from slamreloc.regressor.model import SceneCoordinateRegressor
@@ -92,14 +92,10 @@ def main() -> None:
         for name, model in sorted(models.items(), key=lambda kv: kv[0] != "last epoch"):
             scene_map.regressor = model
             errors = method_errors(scene_map, "regressor", frames, feats)
-            median_cm = 100 * float(np.median(errors[:, 0]))
-            rows.setdefault(name, []).append(recalls(errors) + [median_cm])
+            rows.setdefault(name, []).append(summary(errors))
             lines.append(f"| {seed} | {name} | {stats['wall_s']:.0f} | {scores(errors)} |")
             print(lines[-1], flush=True)
-    for name, values in rows.items():
-        med = np.median(np.array(values), axis=0)
-        lines.append(f"| median of {len(values)} | {name} | | "
-                     + " / ".join(f"{v:.2f}" for v in med[:-1]) + f" | {med[-1]:.3f} cm |")
+    lines += median_rows(rows)
     args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
