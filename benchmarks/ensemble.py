@@ -12,7 +12,8 @@ PnP-RANSAC, refinement):
 - `confident`: the point of the model more confident about that keypoint;
 - `agree`: the average where the two points lie within `--agree-m` of each other, otherwise
   the more confident model's point at half its confidence.
-A pair costs two forward passes: about twice one model's regressor time per query (the
+The last line counts the queries that all, some or none of the single models put within
+1 cm / 1 deg, and the errors of those they dispute. A pair costs two forward passes: about twice one model's regressor time per query (the
 `regressor ms` column, one torch thread, median over queries). Scored against the poses the
 map was trained on (the dataset's, or `--poses`). Nothing is written to the map.
 """
@@ -96,6 +97,20 @@ def regressor_ms(scene_map: SceneMap, feats) -> float:
     return float(np.median(ms))
 
 
+def verdicts(errors: list[np.ndarray], threshold: str = "1cm1deg") -> str:
+    """How many queries each single model puts within `threshold` (evaluate.THRESHOLDS):
+    all of them, some of them, none; and the translation errors of the disputed ones."""
+    t_max, r_max = THRESHOLDS[threshold]
+    within = np.array([(e[:, 0] <= t_max) & (e[:, 1] <= r_max) for e in errors])
+    every, some = within.all(0), within.any(0) & ~within.all(0)
+    disputed = np.concatenate([e[some, 0] for e in errors]) * 100
+    spread = (f"; their translation errors over the models: median {np.median(disputed):.2f} "
+              f"cm, 10-90 % {np.percentile(disputed, 10):.2f}-{np.percentile(disputed, 90):.2f}"
+              " cm" if some.any() else "")
+    return (f"Within {threshold} for all {len(errors)} single models: {every.sum()} queries; "
+            f"for some but not all: {some.sum()}; for none: {(~within.any(0)).sum()}" + spread)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("map", type=Path, help="a map: its labelled database and architecture")
@@ -126,16 +141,16 @@ def main() -> None:
               f"| models | combination | regressor ms | {head} | median |", "|---" * 5 + "|"]
     rows: dict[str, list[list[float]]] = {}
 
-    def score(name: str, combination: str, regressor) -> None:
+    def score(name: str, combination: str, regressor) -> np.ndarray:
         scene_map.regressor = regressor
         ms = regressor_ms(scene_map, feats)
         errors = method_errors(scene_map, "regressor", frames, feats)
         rows.setdefault(combination, []).append(summary(errors))
         lines.append(f"| {name} | {combination} | {ms:.1f} | {scores(errors)} |")
         print(lines[-1], flush=True)
+        return errors
 
-    for seed, model in models.items():
-        score(f"seed {seed}", "alone", model)
+    alone = [score(f"seed {seed}", "alone", model) for seed, model in models.items()]
     for (sa, a), (sb, b) in itertools.combinations(models.items(), 2):
         for combination in COMBINATIONS:
             score(f"seeds {sa} + {sb}", combination, PairedRegressor(a, b, combination,
@@ -143,6 +158,7 @@ def main() -> None:
     if args.matching:
         errors = method_errors(scene_map, "matching", frames, feats)
         lines.append(f"| matching | | | {scores(errors)} |")
+    lines += ["", verdicts(alone)]
     lines += median_rows(rows)
     args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
