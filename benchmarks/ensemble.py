@@ -4,8 +4,8 @@
         [--workdir W] [--matching] --out ensemble.md
 
 Each seed trains a fresh regressor (MAP's architecture, today's recipe) on MAP's labelled
-database. The seed fixes the model, so a seed's weights are kept in WORKDIR/seed-<s>.pt and
-reused by a later run. Rows: each model alone (the spread of one training), then each pair
+database. The seed fixes the model, so a seed's weights are kept in
+WORKDIR/seed-<s>-epochs-<e>.pt and reused by a later run. Rows: each model alone (the spread of one training), then each pair
 of models combined per keypoint, scored with the default localizer (its confident half,
 PnP-RANSAC, refinement):
 - `mean`: the average of the two predicted points, confidence the mean of the two;
@@ -13,8 +13,8 @@ PnP-RANSAC, refinement):
 - `agree`: the average where the two points lie within `--agree-m` of each other, otherwise
   the more confident model's point at half its confidence.
 The last line counts the queries that all, some or none of the single models put within
-1 cm / 1 deg, and the errors of those they dispute. A pair costs two forward passes: about twice one model's regressor time per query (the
-`regressor ms` column, one torch thread, median over queries). Scored against the poses the
+1 cm / 1 deg, and the errors of those they dispute. A pair costs two forward passes: about
+twice one model's regressor time per query (the `regressor ms` column, one torch thread, median over queries). Scored against the poses the
 map was trained on (the dataset's, or `--poses`). Nothing is written to the map.
 """
 
@@ -30,6 +30,7 @@ import torch
 from torch import nn
 
 from benchmarks.label_levers import median_rows, method_errors, query_features, scores, summary
+from slamreloc import evaluate
 from slamreloc.datasets import load_dataset
 from slamreloc.evaluate import THRESHOLDS
 from slamreloc.localizer import make_localizer
@@ -100,8 +101,7 @@ def regressor_ms(scene_map: SceneMap, feats) -> float:
 def verdicts(errors: list[np.ndarray], threshold: str = "1cm1deg") -> str:
     """How many queries each single model puts within `threshold` (evaluate.THRESHOLDS):
     all of them, some of them, none; and the translation errors of the disputed ones."""
-    t_max, r_max = THRESHOLDS[threshold]
-    within = np.array([(e[:, 0] <= t_max) & (e[:, 1] <= r_max) for e in errors])
+    within = np.array([evaluate.within(e[:, 0], e[:, 1])[threshold] for e in errors])
     every, some = within.all(0), within.any(0) & ~within.all(0)
     disputed = np.concatenate([e[some, 0] for e in errors]) * 100
     spread = (f"; their translation errors over the models: median {np.median(disputed):.2f} "
@@ -158,8 +158,7 @@ def main() -> None:
     if args.matching:
         errors = method_errors(scene_map, "matching", frames, feats)
         lines.append(f"| matching | | | {scores(errors)} |")
-    lines += ["", verdicts(alone)]
-    lines += median_rows(rows)
+    lines += median_rows(rows) + ["", verdicts(alone)]
     args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

@@ -62,13 +62,18 @@ def evaluate_frames(localizer: Localizer, frames: list[Frame], progress: bool = 
     return results
 
 
-def recalls(translation_m, rotation_deg) -> dict[str, float]:
-    """Fraction of queries within each of THRESHOLDS (metres, degrees; a failure is inf, so
-    outside all); 0 for no queries."""
+def within(translation_m, rotation_deg) -> dict[str, np.ndarray]:
+    """Per query, whether it is within each of THRESHOLDS (metres, degrees; a failure is inf,
+    so outside all)."""
     t = np.asarray(translation_m, dtype=float)
     r = np.asarray(rotation_deg, dtype=float)
-    return {k: float(np.mean((t <= tt) & (r <= rr))) if len(t) else 0.0
-            for k, (tt, rr) in THRESHOLDS.items()}
+    return {k: (t <= tt) & (r <= rr) for k, (tt, rr) in THRESHOLDS.items()}
+
+
+def recalls(translation_m, rotation_deg) -> dict[str, float]:
+    """Fraction of queries within each of THRESHOLDS (see `within`); 0 for no queries."""
+    return {k: float(np.mean(ok)) if len(ok) else 0.0
+            for k, ok in within(translation_m, rotation_deg).items()}
 
 
 def summarize(results: list[QueryResult], method: str) -> dict:

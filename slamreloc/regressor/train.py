@@ -91,8 +91,8 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
     gen = torch.Generator(device=dev).manual_seed(config.seed)
     if state is None and not fine_tune:
         model.reset_parameters(gen)
-    if model.config.prototype_init and state is None and not fine_tune:
-        model.init_prototypes(x, gen)
+        if model.config.prototype_init:
+            model.init_prototypes(x, gen)
     cluster = None
     if model.config.head == "clusters" and state is None:
         cluster = model.assign_clusters(y_n) if fine_tune else model.set_clusters(y_n, gen)
