@@ -1,21 +1,24 @@
 """Two regressors per query against the spread of one training: each seed alone, then pairs.
 
     python -m benchmarks.ensemble MAP DATASET [--poses FILE] [--seeds 0 1 2] \
-        [--workdir W] [--matching] --out ensemble.md
+        [--epochs 100] [--workdir W] [--matching] --out ensemble.md
 
 Each seed trains a fresh regressor (MAP's architecture, today's recipe) on MAP's labelled
 database. The seed fixes the model, so a seed's weights are kept in
-WORKDIR/seed-<s>-epochs-<e>.pt and reused by a later run. Rows: each model alone (the spread of one training), then each pair
-of models combined per keypoint, scored with the default localizer (its confident half,
-PnP-RANSAC, refinement):
+WORKDIR/seed-<s>-epochs-<e>.pt and reused by a later run. The database holds float16
+descriptors and `slamreloc map` trains on the float32 ones before storing them, so seed s
+here is another training than `map`'s seed s. Rows: each model alone (the spread of one
+training), then each pair of models combined per keypoint, scored with the default localizer
+(its confident half, PnP-RANSAC, refinement):
 - `mean`: the average of the two predicted points, confidence the mean of the two;
 - `confident`: the point of the model more confident about that keypoint;
 - `agree`: the average where the two points lie within `--agree-m` of each other, otherwise
   the more confident model's point at half its confidence.
 The last line counts the queries that all, some or none of the single models put within
 1 cm / 1 deg, and the errors of those they dispute. A pair costs two forward passes: about
-twice one model's regressor time per query (the `regressor ms` column, one torch thread, median over queries). Scored against the poses the
-map was trained on (the dataset's, or `--poses`). Nothing is written to the map.
+twice one model's regressor time per query (the `regressor ms` column, one torch thread,
+median over queries). Scored against the poses the map was trained on (the dataset's, or
+`--poses`). Nothing is written to the map.
 """
 
 from __future__ import annotations
