@@ -1,15 +1,16 @@
 """Two regressors per query against the spread of one training: each seed alone, then pairs.
 
     python -m benchmarks.ensemble MAP DATASET [--poses FILE] [--seeds 0 1 2] \
-        [--epochs 100] [--workdir W] [--matching] --out ensemble.md
+        [--epochs 100] [--batch-size 1024 --lr 2e-3] [--workdir W] [--matching] --out ensemble.md
 
 Each seed trains a fresh regressor (MAP's architecture, today's recipe) on MAP's labelled
-database. The seed fixes the model, so a seed's weights are kept in
-WORKDIR/seed-<s>-epochs-<e>.pt and reused by a later run. The database holds float16
-descriptors and `slamreloc map` trains on the float32 ones before storing them, so seed s
-here is another training than `map`'s seed s. Rows: each model alone (the spread of one
-training), then each pair of models combined per keypoint, scored with the default localizer
-(its confident half, PnP-RANSAC, refinement):
+database (`--epochs`, `--batch-size` and `--lr` change today's recipe). The seed fixes the
+model, so a seed's weights are kept in WORKDIR/seed-<s>-epochs-<e>[-batch-<b>-lr-<lr>].pt and
+reused by a later run. The database holds float16 descriptors and `slamreloc map` trains on
+the float32 ones before storing them, so seed s here is another training than `map`'s seed s.
+
+Rows: each model alone (the spread of one training), then each pair of models combined per
+keypoint, scored with the default localizer (its confident half, PnP-RANSAC, refinement):
 - `mean`: the average of the two predicted points, confidence the mean of the two;
 - `confident`: the point of the model more confident about that keypoint;
 - `agree`: the average where the two points lie within `--agree-m` of each other, otherwise
@@ -26,6 +27,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -71,11 +73,14 @@ class PairedRegressor(nn.Module):
 
 
 def seed_model(scene_map: SceneMap, seed: int, workdir: Path, threads: int,
-               epochs: int) -> tuple[SceneCoordinateRegressor, float | None]:
+               recipe: TrainConfig) -> tuple[SceneCoordinateRegressor, float | None]:
     """The regressor of `seed` on the map's database, and its training wall time (s; None when
     it was loaded from WORKDIR)."""
     model = SceneCoordinateRegressor(scene_map.regressor.config)
-    path = workdir / f"seed-{seed}-epochs-{epochs}.pt"
+    name = f"seed-{seed}-epochs-{recipe.epochs}"
+    if (recipe.batch_size, recipe.lr) != (TrainConfig.batch_size, TrainConfig.lr):
+        name += f"-batch-{recipe.batch_size}-lr-{recipe.lr:g}"
+    path = workdir / f"{name}.pt"
     if path.is_file():
         model.load_state_dict(torch.load(path))
         return model.eval(), None
@@ -83,7 +88,7 @@ def seed_model(scene_map: SceneMap, seed: int, workdir: Path, threads: int,
     db = scene_map.database
     t0 = time.perf_counter()
     train_regressor(model, db.descriptors.astype(np.float32), db.points,
-                    TrainConfig(epochs=epochs, seed=seed), "cpu", progress=True)
+                    replace(recipe, seed=seed), "cpu", progress=True)
     wall_s = time.perf_counter() - t0
     workdir.mkdir(parents=True, exist_ok=True)
     torch.save(model.state_dict(), path)
@@ -121,6 +126,8 @@ def main() -> None:
     ap.add_argument("--poses", type=Path, default=None)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--epochs", type=int, default=TrainConfig.epochs)
+    ap.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
+    ap.add_argument("--lr", type=float, default=TrainConfig.lr)
     ap.add_argument("--agree-m", type=float, default=0.05)
     ap.add_argument("--threads", type=int, default=2, help="torch threads for training")
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/slamreloc-ensemble"))
@@ -129,10 +136,10 @@ def main() -> None:
     args = ap.parse_args()
     frames = load_dataset(args.dataset, args.poses).frames("test")
     scene_map = SceneMap.load(args.map)
+    recipe = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr)
     models, lines = {}, []
     for seed in args.seeds:
-        models[seed], wall_s = seed_model(scene_map, seed, args.workdir, args.threads,
-                                          args.epochs)
+        models[seed], wall_s = seed_model(scene_map, seed, args.workdir, args.threads, recipe)
         if wall_s is not None:
             print(f"seed {seed}: trained in {wall_s:.0f} s", flush=True)
     torch.set_num_threads(1)
@@ -140,7 +147,8 @@ def main() -> None:
     head = " / ".join(THRESHOLDS)
     lines += [(f"`{args.map}` labels, `{args.dataset}` queries scored against "
                f"{args.poses or 'the dataset poses'}, {len(frames)} queries, {args.epochs} "
-               f"epochs; `agree` within {100 * args.agree_m:g} cm"), "",
+               f"epochs, batch {args.batch_size}, lr {args.lr:g}; "
+               f"`agree` within {100 * args.agree_m:g} cm"), "",
               f"| models | combination | regressor ms | {head} | median |", "|---" * 5 + "|"]
     rows: dict[str, list[list[float]]] = {}
 
