@@ -113,7 +113,7 @@ def test_bad_camera_strings_are_one_line_errors(text, problem, tmp_path):
 @pytest.fixture(scope="module")
 def lens_maps(scene_dir, small_map, tmp_path_factory):
     """The small scene rendered through each lens, and a map of each. The distorted maps train
-    a quarter of the pinhole session map's epochs (to keep the suite short): the comparison
+    half the pinhole session map's epochs (to keep the suite short): the comparison
     favours the pinhole scene."""
     root = tmp_path_factory.mktemp("lenses")
     out = {"pinhole": (scene_dir, small_map)}
