@@ -1,7 +1,8 @@
 """Two regressors per query against the spread of one training: each seed alone, then pairs.
 
     python -m benchmarks.ensemble MAP DATASET [--poses FILE] [--seeds 0 1 2] \
-        [--epochs 100] [--batch-size 1024 --lr 2e-3] [--workdir W] [--matching] --out ensemble.md
+        [--epochs 100] [--batch-size 1024 --lr 2e-3] [--keep 0.5 1.0] [--no-pairs] \
+        [--workdir W] [--matching] --out ensemble.md
 
 Each seed trains a fresh regressor (MAP's architecture, today's recipe) on MAP's labelled
 database (`--epochs`, `--batch-size` and `--lr` change today's recipe). The seed fixes the
@@ -15,7 +16,9 @@ keypoint, scored with the default localizer (its confident half, PnP-RANSAC, ref
 - `confident`: the point of the model more confident about that keypoint;
 - `agree`: the average where the two points lie within `--agree-m` of each other, otherwise
   the more confident model's point at half its confidence.
-The last line counts the queries that all, some or none of the single models put within
+`--keep` adds rows for each model alone with PnP on another share of its predictions (the
+localizer's `keep_fraction`; the default localizer keeps 0.5); `--no-pairs` leaves the pairs
+out. The last line counts the queries that all, some or none of the single models put within
 1 cm / 1 deg, and the errors of those they dispute. A pair costs two forward passes: about
 twice one model's regressor time per query (the `regressor ms` column, one torch thread,
 median over queries). Scored against the poses the map was trained on (the dataset's, or
@@ -129,6 +132,9 @@ def main() -> None:
     ap.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
     ap.add_argument("--lr", type=float, default=TrainConfig.lr)
     ap.add_argument("--agree-m", type=float, default=0.05)
+    ap.add_argument("--keep", type=float, nargs="+", default=[],
+                    help="also score each model alone at these keep fractions")
+    ap.add_argument("--no-pairs", action="store_true", help="single models only")
     ap.add_argument("--threads", type=int, default=2, help="torch threads for training")
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/slamreloc-ensemble"))
     ap.add_argument("--matching", action="store_true", help="score matching on the map too")
@@ -152,17 +158,21 @@ def main() -> None:
               f"| models | combination | regressor ms | {head} | median |", "|---" * 5 + "|"]
     rows: dict[str, list[list[float]]] = {}
 
-    def score(name: str, combination: str, regressor) -> np.ndarray:
+    def score(name: str, combination: str, regressor, **options) -> np.ndarray:
         scene_map.regressor = regressor
         ms = regressor_ms(scene_map, feats)
-        errors = method_errors(scene_map, "regressor", frames, feats)
+        errors = method_errors(scene_map, "regressor", frames, feats, **options)
         rows.setdefault(combination, []).append(summary(errors))
         lines.append(f"| {name} | {combination} | {ms:.1f} | {scores(errors)} |")
         print(lines[-1], flush=True)
         return errors
 
     alone = [score(f"seed {seed}", "alone", model) for seed, model in models.items()]
-    for (sa, a), (sb, b) in itertools.combinations(models.items(), 2):
+    for keep in args.keep:
+        for seed, model in models.items():
+            score(f"seed {seed}", f"alone, keep {keep:g}", model, keep_fraction=keep)
+    pairs = [] if args.no_pairs else itertools.combinations(models.items(), 2)
+    for (sa, a), (sb, b) in pairs:
         for combination in COMBINATIONS:
             score(f"seeds {sa} + {sb}", combination, PairedRegressor(a, b, combination,
                                                                       args.agree_m))

@@ -21,6 +21,8 @@ the poses the map was trained on (the dataset's, or `--poses`, as `evaluate` doe
 - `all predictions within T px`: the refinement once more, from the default's pose, on
   every prediction (not only the confident share RANSAC saw) that reprojects within T px of
   it (12 px: the localizer's `refine_on_all`);
+- `query SIFT contrast C`: the default localizer on query keypoints detected with a lower
+  contrast threshold than the map's (more, weaker keypoints; the map is unchanged);
 - `matching`: the classical baseline (nearest database descriptor over the whole map).
 `extra ms` is each variant's time beyond extraction, regression and the coarse PnP (for
 `matching`: its matching and PnP). Timings are medians per query on one thread.
@@ -39,6 +41,7 @@ from scipy.spatial import cKDTree
 
 from slamreloc.datasets import load_dataset, read_image
 from slamreloc.evaluate import THRESHOLDS, recalls
+from slamreloc.features import make_extractor
 from slamreloc.geometry import pose_error
 from slamreloc.localizer import make_localizer
 from slamreloc.pnp import PnPConfig, estimate_pose, refine_from, reprojection_px
@@ -89,6 +92,10 @@ def main() -> None:
     on_all = make_localizer(scene_map, "regressor", refine_on_all=True)
     matcher = make_localizer(scene_map, "matching")
     rematchers = {r: DatabaseRematcher(scene_map, r) for r in (0.1, 0.2)}
+    feature_options = {k: v for k, v in scene_map.meta["features"].items() if k != "name"}
+    query_extractors = {} if scene_map.info.feature_name != "sift" else {
+        c: make_extractor("sift", **{**feature_options, "contrast_threshold": c})
+        for c in (0.006, 0.004) if c < feature_options["contrast_threshold"]}
     scores: dict[str, tuple[list, list]] = {}
 
     def add(name, world_from_cam, truth, ms=0.0):
@@ -99,13 +106,24 @@ def main() -> None:
 
     for frame in frames:
         truth, camera = frame.world_from_cam, frame.camera.pinhole
-        feats = reg.extractor.extract(read_image(frame.image_path), frame.camera)
+        image = read_image(frame.image_path)
+        t0 = time.perf_counter()
+        feats = reg.extractor.extract(image, frame.camera)
+        extract_ms = 1000 * (time.perf_counter() - t0)
         predicted, _ = reg.predict(feats.descriptors)
         kp, pts, _ = reg.confident_correspondences(feats)
         coarse = estimate_pose(kp, pts, camera, reg.pnp)
         default = reg.localize_features(feats, frame.camera)
         add(f"regressor (default: refine loss {reg.pnp.refine_loss_px:g} px)",
             default.estimate.world_from_cam, truth)
+        for contrast, extractor in query_extractors.items():
+            t0 = time.perf_counter()
+            more = extractor.extract(image, frame.camera)
+            extra = 1000 * (time.perf_counter() - t0) - extract_ms
+            result = reg.localize_features(more, frame.camera)
+            add(f"query SIFT contrast {contrast:g}", result.estimate.world_from_cam, truth,
+                extra + result.timings_ms["regressor"] + result.timings_ms["pnp"]
+                - default.timings_ms["regressor"] - default.timings_ms["pnp"])
         refined = on_all.localize_features(feats, frame.camera)
         add("all predictions within 12 px (refine_on_all)", refined.estimate.world_from_cam,
             truth, refined.timings_ms["pnp"] - default.timings_ms["pnp"])
