@@ -86,8 +86,9 @@ def test_video_is_sampled_and_reconstructed(scene_dir, tmp_path):
     assert summary["n_registered"] >= 0.8 * summary["n_images"]
     assert sorted(p.name for p in (out / "images" / "walk").iterdir())[0] == "frame-000000.jpg"
     # the same video again, on one OpenMP thread (what a server in the same process leaves
-    # behind): the same matches, so the same images registered and the same points (COLMAP's
-    # faiss-based matcher once registered 21 images here instead of 29)
+    # behind): the same matches, so the same images registered (COLMAP's faiss-based matcher
+    # once registered 21 images here instead of 29) and the same points, up to the few that
+    # multi-threaded bundle adjustment's float rounding can move across a filter threshold
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -97,7 +98,7 @@ def test_video_is_sampled_and_reconstructed(scene_dir, tmp_path):
     assert status == 0, err
     again = json.loads((tmp_path / "again" / "sfm.json").read_text())
     assert summary["exact_matching"] and again["unregistered"] == summary["unregistered"]
-    assert again["n_points"] == summary["n_points"]
+    assert abs(again["n_points"] - summary["n_points"]) <= 0.002 * summary["n_points"]
 
 
 def _one_line_error(args, *expected, after_work: bool = False):
