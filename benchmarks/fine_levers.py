@@ -92,10 +92,10 @@ def main() -> None:
     on_all = make_localizer(scene_map, "regressor", refine_on_all=True)
     matcher = make_localizer(scene_map, "matching")
     rematchers = {r: DatabaseRematcher(scene_map, r) for r in (0.1, 0.2)}
-    feature_options = {k: v for k, v in scene_map.meta["features"].items() if k != "name"}
+    options = scene_map.info.feature_options
     query_extractors = {} if scene_map.info.feature_name != "sift" else {
-        c: make_extractor("sift", **{**feature_options, "contrast_threshold": c})
-        for c in (0.006, 0.004) if c < feature_options["contrast_threshold"]}
+        c: make_extractor("sift", **{**options, "contrast_threshold": c})
+        for c in (0.006, 0.004) if c < options["contrast_threshold"]}
     scores: dict[str, tuple[list, list]] = {}
 
     def add(name, world_from_cam, truth, ms=0.0):
