@@ -16,6 +16,7 @@ import cv2
 import grpc
 import numpy as np
 import pytest
+import torch
 
 from slamreloc.client import Client, RemoteError, confirmed_frames, frame_poses
 from slamreloc.datasets import load_dataset
@@ -237,7 +238,9 @@ def test_sessions_are_freed_and_bounded(small_map, scene_dir):
 def test_map_replaced_under_load_fails_no_request(small_map, queries, tmp_path):
     served = tmp_path / "served"
     shutil.copytree(small_map.root, served)
+    threads_before = (torch.get_num_threads(), cv2.getNumThreads())
     running = start_server({"live": served}, ServeConfig(port=0, watch_s=0.1, workers=2))
+    assert cv2.getNumThreads() == 1  # each worker's OpenCV runs on its own core
     answers, failures, stop = [], [], threading.Event()
 
     def hammer():
@@ -272,6 +275,8 @@ def test_map_replaced_under_load_fails_no_request(small_map, queries, tmp_path):
         for t in threads:
             t.join()
         running.stop()
+    # the thread counts are process-wide: stopping gives the embedding process its own back
+    assert (torch.get_num_threads(), cv2.getNumThreads()) == threads_before
     assert len(set(versions)) == 3, versions  # each replacement was picked up
     assert not failures and len(answers) > 10
     assert set(answers) <= set(versions) and answers[-1] == versions[-1]

@@ -235,31 +235,50 @@ class RunningServer:
     registry: MapRegistry
     host: str
     port: int
+    threads_before: tuple[int, int] | None = None  # (torch, OpenCV) counts split_threads replaced
 
     @property
     def address(self) -> str:
         return f"{self.host}:{self.port}"
 
     def stop(self, grace_s: float | None = 1.0) -> None:
+        """Stop serving, and give the process back the thread counts it had before."""
         self.registry.close()
         self.server.stop(grace_s).wait()
+        if self.threads_before is not None:
+            set_threads(*self.threads_before)
+            self.threads_before = None
 
 
-def split_threads(workers: int) -> None:
-    """Give each of `workers` concurrent localizations its share of the cores."""
-    if workers > 1:
-        import cv2
-        import torch
+def set_threads(torch_threads: int, cv2_threads: int) -> None:
+    """Set torch's and OpenCV's process-wide thread counts."""
+    import cv2
+    import torch
 
-        torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))
-        cv2.setNumThreads(1)
+    torch.set_num_threads(torch_threads)
+    cv2.setNumThreads(cv2_threads)
+
+
+def split_threads(workers: int) -> tuple[int, int] | None:
+    """Give each of `workers` concurrent localizations its share of the cores.
+
+    The counts are process-wide, so an embedding process gets them back from
+    `RunningServer.stop`: returns the (torch, OpenCV) counts it replaced, None if it kept them.
+    """
+    if workers <= 1:
+        return None
+    import cv2
+    import torch
+
+    before = (torch.get_num_threads(), cv2.getNumThreads())
+    set_threads(max(1, (os.cpu_count() or 1) // workers), 1)
+    return before
 
 
 def start_server(maps: dict[str, Path], config: ServeConfig = ServeConfig()) -> RunningServer:
     """Load `maps` (name -> folder), bind, start serving; returns at once."""
     config.check()
     registry = MapRegistry(maps)
-    split_threads(config.workers)
     service = RelocalizerService(registry, config)
     options = [("grpc.max_receive_message_length", config.max_request_bytes),
                ("grpc.max_send_message_length", config.max_request_bytes),
@@ -277,11 +296,12 @@ def start_server(maps: dict[str, Path], config: ServeConfig = ServeConfig()) -> 
     if port == 0:
         raise InputError(f"cannot listen on {address} (in use, or not an address of this "
                          "machine)")
+    threads_before = split_threads(config.workers)
     server.start()
     if config.watch_s > 0:
         registry.watch(config.watch_s, lambda m: _log(f"map {m.name!r} replaced on disk: "
                                                       f"now version {m.version}"))
-    return RunningServer(server, service, registry, config.host, port)
+    return RunningServer(server, service, registry, config.host, port, threads_before)
 
 
 def serve_forever(maps: dict[str, Path], config: ServeConfig) -> None:
