@@ -1,7 +1,7 @@
 """Two regressors per query against the spread of one training: each seed alone, then pairs.
 
     python -m benchmarks.ensemble MAP DATASET [--poses FILE] [--seeds 0 1 2] \
-        [--epochs 100] [--batch-size 1024 --lr 2e-3] [--keep 0.5 1.0] [--no-pairs] \
+        [--epochs 100] [--batch-size 1024 --lr 2e-3] [--keep 0.5 1.0] [--no-pairs] [--unguided] \
         [--workdir W] [--matching] --out ensemble.md
 
 Each seed trains a fresh regressor (MAP's architecture, today's recipe) on MAP's labelled
@@ -17,8 +17,9 @@ keypoint, scored with the default localizer (its confident half, PnP-RANSAC, ref
 - `agree`: the average where the two points lie within `--agree-m` of each other, otherwise
   the more confident model's point at half its confidence.
 `--keep` adds rows for each model alone with PnP on another share of its predictions (the
-localizer's `keep_fraction`; the default localizer keeps 0.5); `--no-pairs` leaves the pairs
-out. The last line counts the queries that all, some or none of the single models put within
+localizer's `keep_fraction`; the default localizer keeps 0.5); `--unguided` adds rows for each
+model alone without the guided refinement (the pose RANSAC's on the regressed points, as
+before 2026-12-04); `--no-pairs` leaves the pairs out. The last line counts the queries that all, some or none of the single models put within
 1 cm / 1 deg, and the errors of those they dispute. A pair costs two forward passes: about
 twice one model's regressor time per query (the `regressor ms` column, one torch thread,
 median over queries). Scored against the poses the map was trained on (the dataset's, or
@@ -135,6 +136,8 @@ def main() -> None:
     ap.add_argument("--keep", type=float, nargs="+", default=[],
                     help="also score each model alone at these keep fractions")
     ap.add_argument("--no-pairs", action="store_true", help="single models only")
+    ap.add_argument("--unguided", action="store_true",
+                    help="also score each model alone without the guided refinement")
     ap.add_argument("--threads", type=int, default=2, help="torch threads for training")
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/slamreloc-ensemble"))
     ap.add_argument("--matching", action="store_true", help="score matching on the map too")
@@ -171,6 +174,9 @@ def main() -> None:
     for keep in args.keep:
         for seed, model in models.items():
             score(f"seed {seed}", f"alone, keep {keep:g}", model, keep_fraction=keep)
+    if args.unguided:
+        for seed, model in models.items():
+            score(f"seed {seed}", "alone, unguided", model, guided=None)
     pairs = [] if args.no_pairs else itertools.combinations(models.items(), 2)
     for (sa, a), (sb, b) in pairs:
         for combination in COMBINATIONS:

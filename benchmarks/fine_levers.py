@@ -5,7 +5,9 @@
 Every variant starts from the same extracted features (extracted once) and is scored against
 the poses the map was trained on (the dataset's, or `--poses`, as `evaluate` does). Variants:
 - `regressor`: the default localizer (the most confident half of the predictions,
-  PnP-RANSAC at 12 px, refinement on the inliers with a Cauchy loss of scale 4 px); the
+  PnP-RANSAC at 12 px, refinement on the inliers with a Cauchy loss of scale 4 px, then the
+  guided refinement on the map's database points near that pose);
+- `unguided`: the same without the guided refinement (the default before 2026-12-04); the
   variants below start from its pose where they refine further;
 - `refine loss S px`: another scale of that loss (1 px: pycolmap's default, and the
   localizer's before 2026-12-03), also with a tighter gradient tolerance (default 1.0);
@@ -88,8 +90,9 @@ def main() -> None:
     torch.set_num_threads(1)
     scene_map = SceneMap.load(args.map)
     frames = load_dataset(args.dataset, args.poses).frames(args.split)
-    reg = make_localizer(scene_map, "regressor")
-    on_all = make_localizer(scene_map, "regressor", refine_on_all=True)
+    guided = make_localizer(scene_map, "regressor")
+    reg = make_localizer(scene_map, "regressor", guided=None)
+    on_all = make_localizer(scene_map, "regressor", refine_on_all=True, guided=None)
     matcher = make_localizer(scene_map, "matching")
     rematchers = {r: DatabaseRematcher(scene_map, r) for r in (0.1, 0.2)}
     options = scene_map.info.feature_options
@@ -113,8 +116,11 @@ def main() -> None:
         predicted, _ = reg.predict(feats.descriptors)
         kp, pts, _ = reg.confident_correspondences(feats)
         coarse = estimate_pose(kp, pts, camera, reg.pnp)
+        result = guided.localize_features(feats, frame.camera)
         default = reg.localize_features(feats, frame.camera)
-        add(f"regressor (default: refine loss {reg.pnp.refine_loss_px:g} px)",
+        add("regressor (default: guided refinement)", result.estimate.world_from_cam, truth,
+            result.timings_ms["pnp"] - default.timings_ms["pnp"])
+        add(f"unguided (refine loss {reg.pnp.refine_loss_px:g} px)",
             default.estimate.world_from_cam, truth)
         for contrast, extractor in query_extractors.items():
             t0 = time.perf_counter()

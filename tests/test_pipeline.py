@@ -114,10 +114,11 @@ def _same(a, b) -> bool:
 
 
 def test_regressor_can_refine_its_ransac_pose_on_every_prediction(small_map, scene_dir):
-    """With `refine_on_all`, the regressor's pose is RANSAC's on the confident share, refined
-    from there on all predictions; `localize` and `localize_features` give the same answer."""
-    loc = make_localizer(small_map, "regressor", refine_on_all=True)
-    only_share = make_localizer(small_map, "regressor")
+    """With `refine_on_all` (and no guided refinement), the regressor's pose is RANSAC's on the
+    confident share, refined from there on all predictions; `localize` and
+    `localize_features` give the same answer."""
+    loc = make_localizer(small_map, "regressor", refine_on_all=True, guided=None)
+    only_share = make_localizer(small_map, "regressor", guided=None)
     moved = 0
     for query in load_dataset(scene_dir).frames("test")[:5]:
         image = read_image(query.image_path)
