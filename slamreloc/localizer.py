@@ -8,6 +8,7 @@ baseline) takes the world point of the nearest labelled training descriptor.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -95,8 +96,9 @@ class RegressorLocalizer(Localizer):
         for ~2.5 ms more per query: off by default (BENCHMARKS.md, "Fine accuracy").
         guided: from the regressor's pose, match the query keypoints to the map's database
         near it (`guided_matching`) and run the final refinement on the database's world
-        points, which are as precise as the labels; None: the pose stays RANSAC's on the
-        regressed points, and the database is never read. On RedKitchen (SfM reference,
+        points, which are as precise as the labels; None (or a map shipped without its
+        database, with a warning): the pose stays RANSAC's on the regressed points, and the
+        database is never read. On RedKitchen (SfM reference,
         eight trainings) 1 cm / 1 deg goes from 78-83.5 % to 83.5-86.5 % for ~3 ms
         (BENCHMARKS.md, "Fine accuracy")."""
         super().__init__(scene_map, pnp, device)
@@ -104,7 +106,12 @@ class RegressorLocalizer(Localizer):
         self.precision = resolve_precision(precision, self.device.type)
         self.keep_fraction = keep_fraction
         self.refine_on_all = refine_on_all
-        self.guided = None if guided is None else GuidedMatcher(scene_map.database, guided)
+        self.guided = None
+        if guided is not None and scene_map.has_database:
+            self.guided = GuidedMatcher(scene_map.database, guided)
+        elif guided is not None:
+            warnings.warn(f"{scene_map.root}: no training database, so no guided refinement: "
+                          "poses come from the regressed points alone", stacklevel=2)
 
     def predict(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """(N, D) descriptors -> world points (N, 3), metres, and confidences (N,) or None."""

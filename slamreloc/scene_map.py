@@ -200,9 +200,16 @@ class SceneMap:
                              arrays["quality"].astype(np.float32))
 
     def size_bytes(self) -> int:
-        """What localization with the regressor needs: weights + metadata."""
+        """The network: weights + metadata (with the guided refinement, localization also
+        reads the database, `database_bytes`)."""
         return ((self.root / weights_name(self.meta)).stat().st_size
                 + (self.root / META).stat().st_size)
 
     def database_bytes(self) -> int:
         return (self.root / DATABASE).stat().st_size
+
+    @property
+    def has_database(self) -> bool:
+        """Whether the folder holds its training database (a map can be shipped without it:
+        the regressor then localizes without the guided refinement)."""
+        return (self.root / DATABASE).is_file()

@@ -1,7 +1,10 @@
 """Guided matching (`slamreloc.guided_matching`) and the regressor's guided refinement, on the
 small synthetic scene (its database labels come from rendered depth, so they are exact)."""
 
+import shutil
+
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -11,7 +14,7 @@ from slamreloc.guided_matching import GuidedConfig, GuidedMatcher
 from slamreloc.labels import depth_points
 from slamreloc.localizer import make_localizer
 from slamreloc.pnp import refine_from
-from slamreloc.scene_map import MapDatabase
+from slamreloc.scene_map import MapDatabase, SceneMap
 
 
 def _queries(scene_dir, n=None):
@@ -119,3 +122,19 @@ def test_matches_do_not_depend_on_the_world_frame(small_map, scene_dir, seed):
                                                        feats, query.camera)
     assert len(a2d) > 100 and np.array_equal(a2d, b2d)
     np.testing.assert_allclose(motion.transform(a3d), b3d, atol=1e-4)
+
+
+def test_a_map_shipped_without_its_database_localizes_on_the_regressed_points(
+        small_map, scene_dir, tmp_path):
+    slim = tmp_path / "slim"
+    shutil.copytree(small_map.root, slim)
+    (slim / "database.npz").unlink()
+    with pytest.warns(UserWarning, match="no training database"):
+        loc = make_localizer(SceneMap.load(slim), "regressor")
+    query = _queries(scene_dir, 1)[0]
+    result = loc.localize(read_image(query.image_path), query.camera)
+    unguided = make_localizer(small_map, "regressor", guided=None).localize(
+        read_image(query.image_path), query.camera)
+    assert result.estimate.success and result.n_guided == 0
+    assert np.array_equal(result.estimate.cam_from_world.matrix(),
+                          unguided.estimate.cam_from_world.matrix())
