@@ -98,9 +98,9 @@ class RegressorLocalizer(Localizer):
         near it (`guided_matching`) and run the final refinement on the database's world
         points, which are as precise as the labels; None (or a map shipped without its
         database, with a warning): the pose stays RANSAC's on the regressed points, and the
-        database is never read. On RedKitchen (SfM reference,
-        eight trainings) 1 cm / 1 deg goes from 78-83.5 % to 83.5-86.5 % for ~3 ms
-        (BENCHMARKS.md, "Fine accuracy")."""
+        database is never read. On RedKitchen (SfM reference, nine trainings) 1 cm / 1 deg
+        goes from 76.5-83.5 % to 83.5-86.5 % for ~3.4 ms per query (BENCHMARKS.md, "Fine
+        accuracy: guided refinement")."""
         super().__init__(scene_map, pnp, device)
         self.model = scene_map.regressor.to(self.device).eval()
         self.precision = resolve_precision(precision, self.device.type)
