@@ -30,6 +30,17 @@ class GuidedConfig:
     neighbours: int = 16  # rows considered per query keypoint (nearest projections first)
     ratio: float = 0.9  # descriptor distance ratio to the best row of another world point
     same_point_m: float = 0.01  # rows whose world points lie closer are one point
+    # The step refines onto the labels, so it only helps where they are more precise than the
+    # regression: it runs on maps whose training tracks reproject within this median (pixels)
+    # with the map's poses (`MapMeta.label_reproj_error_px`; a map that did not record it
+    # counts as within). RedKitchen: 0.67 px with the SfM poses, where the step gains 2.5-8.5
+    # points at 1 cm / 1 deg; 1.25 px with the depth-SLAM poses, where it costs 1-4 points at
+    # 5 cm / 5 deg on three trainings of four (BENCHMARKS.md, "Fine accuracy: guided refinement").
+    max_label_error_px: float = 1.0
+
+    def applies_to(self, label_reproj_error_px: float | None) -> bool:
+        """Whether the step runs on a map whose labels reproject with this median (pixels)."""
+        return label_reproj_error_px is None or label_reproj_error_px <= self.max_label_error_px
 
 
 class GuidedMatcher:

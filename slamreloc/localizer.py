@@ -96,9 +96,10 @@ class RegressorLocalizer(Localizer):
         for ~2.5 ms more per query: off by default (BENCHMARKS.md, "Fine accuracy").
         guided: from the regressor's pose, match the query keypoints to the map's database
         near it (`guided_matching`) and run the final refinement on the database's world
-        points, which are as precise as the labels; None (or a map shipped without its
-        database, with a warning): the pose stays RANSAC's on the regressed points, and the
-        database is never read. On RedKitchen (SfM reference, nine trainings) 1 cm / 1 deg
+        points, which are as precise as the labels. It runs on maps whose labels agree with
+        their images (`GuidedConfig.max_label_error_px`). None (or a map whose labels do not,
+        or one shipped without its database, with a warning): the pose stays RANSAC's on the
+        regressed points, and the database is never read. On RedKitchen (SfM reference, nine trainings) 1 cm / 1 deg
         goes from 76.5-83.5 % to 83.5-86.5 % for ~3.4 ms per query (BENCHMARKS.md, "Fine
         accuracy: guided refinement")."""
         super().__init__(scene_map, pnp, device)
@@ -107,11 +108,13 @@ class RegressorLocalizer(Localizer):
         self.keep_fraction = keep_fraction
         self.refine_on_all = refine_on_all
         self.guided = None
-        if guided is not None and scene_map.has_database:
-            self.guided = GuidedMatcher(scene_map.database, guided)
-        elif guided is not None:
-            warnings.warn(f"{scene_map.root}: no training database, so no guided refinement: "
-                          "poses come from the regressed points alone", stacklevel=2)
+        if guided is not None and guided.applies_to(scene_map.info.label_reproj_error_px):
+            if scene_map.has_database:
+                self.guided = GuidedMatcher(scene_map.database, guided)
+            else:
+                warnings.warn(f"{scene_map.root}: no training database, so no guided "
+                              "refinement: poses come from the regressed points alone",
+                              stacklevel=2)
 
     def predict(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """(N, D) descriptors -> world points (N, 3), metres, and confidences (N,) or None."""

@@ -136,6 +136,8 @@ def evaluate_method(scene_map: SceneMap, dataset_dir: Path, split: str = "test",
     results = evaluate_frames(localizer, frames, progress, refine)
     summary = summarize(results, method)
     summary["refine"] = "depth" if depth else None
+    # the regressor's last refinement on the map's database points (guided_matching)
+    summary["guided_refinement"] = getattr(localizer, "guided", None) is not None
     summary["map"] = {"parameters": scene_map.regressor.num_parameters(),
                       "size_bytes": scene_map.size_bytes(),
                       "database_bytes": scene_map.database_bytes(),

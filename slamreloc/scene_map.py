@@ -11,6 +11,7 @@ map_format.py's; writing it is map_write.py's.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 from functools import cached_property
 from pathlib import Path
@@ -86,6 +87,9 @@ class MapMeta:
     frame_names: tuple[str, ...]  # database frames (empty for maps that did not record them)
     dataset_root: Path | None  # the dataset the map was built from, when recorded
     n_frames_updated: int  # frames the map's last update registered, appended last (0: none)
+    # median reprojection error (pixels) of the training tracks triangulated with the map's
+    # poses: how well labels and images agree (None: not recorded)
+    label_reproj_error_px: float | None = None
 
     @staticmethod
     def from_json(meta: dict) -> MapMeta:
@@ -95,6 +99,9 @@ class MapMeta:
         root = dataset.get("root") if isinstance(dataset, dict) else None
         update = meta.get("pseudo_label")
         n_updated = update.get("n_frames_registered", 0) if isinstance(update, dict) else 0
+        error = meta["labels"].get("median_reproj_error_px")
+        finite = isinstance(error, (int, float)) and not isinstance(error, bool) \
+            and math.isfinite(error)
         return MapMeta(
             meta["format_version"], meta.get("slamreloc_version"),
             Camera.from_dict(meta["camera"]),
@@ -103,7 +110,8 @@ class MapMeta:
             meta["regressor"]["parameters"], meta["labels"]["n_labelled"],
             _train_config(meta.get("train")), tuple(meta.get("frame_names", [])),
             Path(root) if isinstance(root, str) else None,
-            n_updated if isinstance(n_updated, int) else 0)
+            n_updated if isinstance(n_updated, int) else 0,
+            float(error) if finite else None)
 
 
 def _train_config(train) -> TrainConfig:

@@ -138,3 +138,22 @@ def test_a_map_shipped_without_its_database_localizes_on_the_regressed_points(
     assert result.estimate.success and result.n_guided == 0
     assert np.array_equal(result.estimate.cam_from_world.matrix(),
                           unguided.estimate.cam_from_world.matrix())
+
+
+def test_the_step_is_left_out_on_maps_whose_labels_disagree_with_their_images(small_map,
+                                                                               scene_dir):
+    """The step refines onto the labels, so it runs only where they reproject within
+    `max_label_error_px` (this scene's: ~0.14 px, so a limit of 0.05 px leaves it out)."""
+    error = small_map.info.label_reproj_error_px
+    assert error is not None and 0.05 < error < GuidedConfig().max_label_error_px
+    strict = GuidedConfig(max_label_error_px=0.05)
+    assert not strict.applies_to(error) and strict.applies_to(None)
+    loc = make_localizer(small_map, "regressor", guided=strict)
+    assert loc.guided is None
+    query = _queries(scene_dir, 1)[0]
+    image = read_image(query.image_path)
+    result = loc.localize(image, query.camera)
+    unguided = make_localizer(small_map, "regressor", guided=None).localize(image, query.camera)
+    assert result.n_guided == 0 and np.array_equal(result.estimate.cam_from_world.matrix(),
+                                                   unguided.estimate.cam_from_world.matrix())
+    assert make_localizer(small_map, "regressor").guided is not None

@@ -70,6 +70,8 @@ def test_localizes_synthetic_queries(small_map, scene_dir, tmp_path, method, min
     report = run_evaluation(small_map.root, scene_dir, tmp_path / "r.json", "test", method,
                             trajectory=tmp_path / "poses.txt", progress=False)
     assert CONTRACT_KEYS <= set(report)
+    # this scene's labels reproject within 0.2 px: the regressor's guided step runs
+    assert report["guided_refinement"] == (method == "regressor")
     assert report["recall"]["5cm5deg"] >= min_recall, report
     assert report["median_translation_m"] < 0.03 and report["median_rotation_deg"] < 1.0
     on_disk = json.loads((tmp_path / "r.json").read_text())
