@@ -46,6 +46,7 @@ class Localization:
 
 class Localizer:
     method = ""
+    guided: GuidedMatcher | None = None  # the regressor's last refinement (RegressorLocalizer)
 
     def __init__(self, scene_map: SceneMap, pnp: PnPConfig = PnPConfig(), device: str = "cpu"):
         self.map = scene_map
@@ -97,11 +98,11 @@ class RegressorLocalizer(Localizer):
         guided: from the regressor's pose, match the query keypoints to the map's database
         near it (`guided_matching`) and run the final refinement on the database's world
         points, which are as precise as the labels. It runs on maps whose labels agree with
-        their images (`GuidedConfig.max_label_error_px`). None (or a map whose labels do not,
-        or one shipped without its database, with a warning): the pose stays RANSAC's on the
-        regressed points, and the database is never read. On RedKitchen (SfM reference, nine trainings) 1 cm / 1 deg
-        goes from 76.5-83.5 % to 83.5-86.5 % for ~3.4 ms per query (BENCHMARKS.md, "Fine
-        accuracy: guided refinement")."""
+        their images (`GuidedConfig.max_label_error_px`). None, a map whose labels do not, or
+        one shipped without its database (with a warning): the pose stays RANSAC's on the
+        regressed points, and the database is never read. On RedKitchen (SfM reference, nine
+        trainings) 1 cm / 1 deg goes from 76.5-83.5 % to 83.5-86.5 % for ~3.4 ms per query
+        (BENCHMARKS.md, "Fine accuracy: guided refinement")."""
         super().__init__(scene_map, pnp, device)
         self.model = scene_map.regressor.to(self.device).eval()
         self.precision = resolve_precision(precision, self.device.type)

@@ -137,7 +137,7 @@ def evaluate_method(scene_map: SceneMap, dataset_dir: Path, split: str = "test",
     summary = summarize(results, method)
     summary["refine"] = "depth" if depth else None
     # the regressor's last refinement on the map's database points (guided_matching)
-    summary["guided_refinement"] = getattr(localizer, "guided", None) is not None
+    summary["guided_refinement"] = localizer.guided is not None
     summary["map"] = {"parameters": scene_map.regressor.num_parameters(),
                       "size_bytes": scene_map.size_bytes(),
                       "database_bytes": scene_map.database_bytes(),
