@@ -18,7 +18,7 @@ from slamreloc.evaluate import (
 )
 from slamreloc.fileio import check_outputs, write_json
 from slamreloc.geometry import Rigid3, Sim3, tum_line
-from slamreloc.localizer import make_localizer
+from slamreloc.localizer import Localizer, make_localizer
 from slamreloc.map_format import check_is_map
 from slamreloc.scene_map import SceneMap
 from slamreloc.surface import frame_cloud, refine_pose
@@ -111,14 +111,23 @@ def prepare_reference(path: Path, label: str, scene_map: SceneMap, dataset: Data
     return ScoringReference(label, reference.source, ref_queries, ref_from_map, alignment)
 
 
+def _localizer(scene_map: SceneMap, method: str, guided: bool, **kwargs) -> Localizer:
+    """`make_localizer`; `guided` False: the regressor without its guided refinement (the
+    matching baseline has none)."""
+    if not guided and method == "regressor":
+        kwargs["guided"] = None
+    return make_localizer(scene_map, method, **kwargs)
+
+
 def evaluate_method(scene_map: SceneMap, dataset_dir: Path, split: str = "test",
                     method: str = "regressor", device: str = "cpu", progress: bool = True,
                     depth: bool = False, poses: Path | None = None,
-                    references: list[Path] | tuple[Path, ...] = ()):
+                    references: list[Path] | tuple[Path, ...] = (), guided: bool = True):
     """Localize a split with one method (`depth`: refine each pose by ICP of the frame's depth
     against the map's surface) and score it against the dataset's poses, or `poses` (a pose
     file, `datasets.poses`), and against each of `references` (aligned to the map's frame on
-    its training cameras). Everything is read and checked before the work. Returns (report
+    its training cameras). `guided`: False leaves the regressor's guided refinement out
+    (`RegressorLocalizer`). Everything is read and checked before the work. Returns (report
     dict, per-query results, frames)."""
     labels = reference_labels(list(references))
     dataset = load_dataset(dataset_dir, poses)
@@ -132,7 +141,7 @@ def evaluate_method(scene_map: SceneMap, dataset_dir: Path, split: str = "test",
     scoring = [prepare_reference(Path(p), label, scene_map, dataset, frames)
                for p, label in zip(references, labels)]
     refine = depth_refiner(scene_map, dataset) if depth else None
-    localizer = make_localizer(scene_map, method, device=device)
+    localizer = _localizer(scene_map, method, guided, device=device)
     results = evaluate_frames(localizer, frames, progress, refine)
     summary = summarize(results, method)
     summary["refine"] = "depth" if depth else None
@@ -159,16 +168,16 @@ def run_evaluation(map_dir: Path, dataset_dir: Path, report: Path, split: str = 
                    method: str = "regressor", trajectory: Path | None = None,
                    plot: Path | None = None, device: str = "cpu", progress: bool = True,
                    depth: bool = False, poses: Path | None = None,
-                   references: list[Path] | tuple[Path, ...] = ()) -> dict:
+                   references: list[Path] | tuple[Path, ...] = (), guided: bool = True) -> dict:
     """Localize a split, write REPORT.json (and the estimated poses as a TUM `trajectory`, a
-    plot); returns the report. `poses`, `references`: `evaluate_method`."""
+    plot); returns the report. `poses`, `references`, `guided`: `evaluate_method`."""
     check_is_map(map_dir)  # what the inputs are, then where the outputs may go
     check_outputs({"--report": report, "--trajectory": trajectory, "--plot": plot},
                   {"the map": map_dir, "the dataset": dataset_dir, "--poses": poses,
                    **{f"--reference {p}": p for p in references}})
     summary, results, frames = evaluate_method(SceneMap.load(map_dir), dataset_dir, split,
                                                method, device, progress, depth, poses,
-                                               references)
+                                               references, guided)
     write_json(report, summary)
     if trajectory:
         write_tum(trajectory, results)
@@ -181,18 +190,18 @@ def run_evaluation(map_dir: Path, dataset_dir: Path, report: Path, split: str = 
 
 def localize_images(map_dir: Path, images: list[Path],
                     intrinsics: Camera | tuple[float, float, float, float] | None = None,
-                    method: str = "regressor"):
+                    method: str = "regressor", guided: bool = True):
     """Yield (line, status) per image (or per frame of a ROS bag among `images`): a TUM line
     plus inlier count ("ok"), `# name: not localized` ("failed"), or `error: ...` for an
     image that cannot be read or is out of bounds ("error"). `intrinsics`: a Camera (any lens
     model, scaled to each image), pinhole (fx, fy, cx, cy) in pixels, else the bag's camera
-    or the map's, scaled to each image."""
+    or the map's, scaled to each image. `guided`: `evaluate_method`."""
     if intrinsics is not None and not isinstance(intrinsics, Camera):
         problem = camera_problem(1, 1, *intrinsics)
         if problem:
             raise InputError(f"--intrinsics: {problem}")
     scene_map = SceneMap.load(map_dir)
-    localizer = make_localizer(scene_map, method)
+    localizer = _localizer(scene_map, method, guided)
     for name, path, own_camera in _query_images(images):
         try:
             # the bounds, the extractor's included, are checked before anything is decoded

@@ -108,6 +108,17 @@ def test_cli_evaluate_and_localize(small_map, scene_dir, tmp_path):
                                                           query.camera).estimate
     assert res.stdout.split() == [*tum_line(name, api.world_from_cam).split(),
                                   str(api.num_inliers)]
+    # --no-guided: the pose from the regressed points alone, as the API's guided=None gives it
+    res = cli("localize", small_map.root, query.image_path, "--no-guided")
+    assert res.returncode == 0, res.stderr
+    api = make_localizer(small_map, "regressor", guided=None).localize(
+        read_image(query.image_path), query.camera).estimate
+    assert res.stdout.split() == [*tum_line(name, api.world_from_cam).split(),
+                                  str(api.num_inliers)]
+    res = cli("evaluate", small_map.root, scene_dir, "--report", tmp_path / "u.json",
+              "--no-guided")
+    assert res.returncode == 0, res.stderr
+    assert json.loads((tmp_path / "u.json").read_text())["guided_refinement"] is False
 
 
 def _same(a, b) -> bool:

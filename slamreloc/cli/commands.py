@@ -25,6 +25,9 @@ from slamreloc.errors import InputError
 POSES_HELP = ("take the frames' poses from this file instead of the dataset's: a COLMAP model "
               "folder, 'name tx ty tz qx qy qz qw' lines, a TUM file or another dataset "
               "folder (docs/formats.md)")
+GUIDED_HELP = ("regressor: refine the pose on the map's database points matched near it, on maps "
+               "whose labels agree with their images (docs/method.md); --no-guided: the pose "
+               "from the regressed points alone")
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Camera relocalization with a lightweight scene-coordinate regressor.")
 app.command()(serve)
@@ -114,13 +117,14 @@ def evaluate(
         metavar="FILE", help="also score against this reference (read as --poses is), moved "
         "into the map's frame by a similarity fitted on the map's training cameras only; "
         "repeatable")] = None,
+    guided: Annotated[bool, typer.Option(help=GUIDED_HELP)] = True,
 ) -> None:
     """Localize every frame of a split against MAP and score it against ground truth."""
     from slamreloc.pipeline import run_evaluation
 
     summary = run_evaluation(map_dir, dataset, report, split, method.value, trajectory, plot,
                              device.value, depth=depth, poses=poses,
-                             references=list(reference or []))
+                             references=list(reference or []), guided=guided)
     from slamreloc.evaluate import print_summary
 
     print_summary([summary])
@@ -138,6 +142,7 @@ def localize(
         help="a COLMAP camera string, any lens model: \"OPENCV 640 480 fx fy cx cy k1 k2 p1 "
              "p2\" (as in cameras.txt; scaled to an image of another size)")] = None,
     method: Annotated[Method, typer.Option()] = Method.regressor,
+    guided: Annotated[bool, typer.Option(help=GUIDED_HELP)] = True,
 ) -> None:
     """Print `name tx ty tz qx qy qz qw inliers` (camera-to-world) for each image."""
     from slamreloc.pipeline import localize_images
@@ -151,7 +156,8 @@ def localize(
     else:
         query_camera = intrinsics
     errors = 0
-    for line, status in localize_images(map_dir, images, query_camera, method.value):
+    for line, status in localize_images(map_dir, images, query_camera, method.value,
+                                          guided):
         if status == "error":
             errors += 1
             typer.echo(line, err=True)
