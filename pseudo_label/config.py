@@ -8,7 +8,6 @@ from slamreloc.labels import LabelConfig
 from slamreloc.pseudo_label.finetune import FinetuneConfig
 from slamreloc.pseudo_label.register import RegistrationConfig
 
-UPDATES = ("finetune", "retrain")
 
 
 @dataclass(frozen=True)

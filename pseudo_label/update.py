@@ -29,7 +29,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from slamreloc.pseudo_label.config import UPDATES, PseudoLabelConfig
+from slamreloc.pseudo_label.config import PseudoLabelConfig
 from slamreloc.pseudo_label.merge import count_new_points
 from slamreloc.pseudo_label.rounds import register_sequence
 from slamreloc.pseudo_label.score import map_views, score
@@ -45,6 +45,7 @@ from slamreloc.labels import LabelConfig
 from slamreloc.map_format import LABELLED, NEW, PSEUDO
 from slamreloc.map_lock import map_write_lock
 from slamreloc.map_write import check_map_target
+from slamreloc.registry import UPDATES
 from slamreloc.rgbd import registered_depths
 from slamreloc.scene_map import MapDatabase, SceneMap
 from slamreloc.surface import extend_surface, frame_cloud

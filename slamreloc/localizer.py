@@ -19,11 +19,11 @@ from slamreloc.features.matcher import LOCALIZER_DB_CHUNK, match_descriptors
 from slamreloc.guided_matching import GuidedConfig, GuidedMatcher
 from slamreloc.pnp import PnPConfig, PoseEstimate, estimate_pose, refine_from
 from slamreloc.precision import autocast, resolve_precision
+from slamreloc.registry import METHODS
 from slamreloc.regressor.train import resolve_device
 from slamreloc.scene_map import SceneMap
 from slamreloc.types import Camera, Features
 
-METHODS = ("regressor", "matching")
 # Regressed world points scatter by a few centimetres, a few pixels once projected: the final
 # refinement's Cauchy loss gets that scale (4 px) instead of pycolmap's 1 px, which is made for
 # matched points and down-weights most regressed inliers. On RedKitchen (SfM reference) it

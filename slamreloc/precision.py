@@ -16,7 +16,8 @@ from functools import lru_cache
 
 import torch
 
-PRECISIONS = ("auto", "fp32", "bf16")
+from slamreloc.registry import PRECISIONS
+
 # oneDNN ISA caps (ONEDNN_MAX_CPU_ISA) under which bf16 matmuls are emulated
 _ONEDNN_NO_BF16 = {"SSE41", "AVX", "AVX2", "AVX2_VNNI", "AVX2_VNNI_2", "AVX512_CORE",
                    "AVX512_CORE_VNNI"}

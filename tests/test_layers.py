@@ -235,3 +235,27 @@ def test_a_bad_import_is_reported_with_its_line(tmp_path):
     assert [(i.source, i.target, i.where) for i in cycle] == [
         ("slamreloc.a", "slamreloc.slam.b", "slamreloc.a.py:4"),
         ("slamreloc.slam.b", "slamreloc.a", "slamreloc.slam.b.py:1")]
+
+
+def test_the_command_line_loads_its_pipeline_only_when_a_command_runs():
+    """Importing the CLI (what `slamreloc --help` and typer's argument checks need) imports none
+    of the heavy libraries: each command imports its pipeline when it runs. The choices come
+    from `slamreloc.registry`, plain data."""
+    import subprocess
+    import sys
+
+    heavy = ("torch", "pycolmap", "gtsam", "open3d", "scipy", "kiss_icp", "viser", "grpc")
+    code = ("import sys; import slamreloc.cli; "
+            f"print(' '.join(m for m in {heavy!r} if m in sys.modules))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert res.stdout.split() == [], res.stdout
+    # and a command still finds the names it acts on
+    from slamreloc.cli.choices import Arch, Method, Precision, Update
+    from slamreloc.regressor.model import RegressorConfig
+
+    assert [a.value for a in Arch] == ["paper", "tiny", "wide"]
+    assert RegressorConfig.preset("wide", 128).n_clusters == 1024
+    assert {m.value for m in Method} == {"regressor", "matching"}
+    assert {p.value for p in Precision} == {"auto", "fp32", "bf16"}
+    assert {u.value for u in Update} == {"finetune", "retrain"}

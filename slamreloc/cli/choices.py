@@ -8,11 +8,7 @@ from collections.abc import Iterable
 from enum import Enum
 
 from slamreloc.features import EXTRACTORS
-from slamreloc.localizer import METHODS
-from slamreloc.precision import PRECISIONS
-from slamreloc.pseudo_label.config import UPDATES
-from slamreloc.regressor.model import PRESETS
-from slamreloc.regressor.train import DEVICES
+from slamreloc.registry import DEVICES, METHODS, PRECISIONS, PRESETS, UPDATES
 from slamreloc.service import ENGINES
 from slamreloc.sfm import MAPPERS, MATCHING
 

@@ -13,17 +13,8 @@ from math import sqrt
 import torch
 from torch import nn
 
+from slamreloc.registry import PRESETS
 from slamreloc.regressor.regions import kmeans, nearest_centres
-
-PRESETS: dict[str, dict] = {
-    # the paper's two MLPs, plain xyz regression
-    "paper": {"hidden": (512, 1024, 1024, 512)},  # ~2.3 M parameters with 256-d input
-    "tiny": {"hidden": (512, 512, 512, 128)},  # ~0.7 M
-    # slamreloc's default: a wide first (prototype) layer, a narrow tail and a
-    # region-classification head (~1.4 M with 128-d SIFT); see BENCHMARKS.md. The tail was
-    # (512, 512, 128) until 0.2: as accurate, but 1.8x the compute per descriptor
-    "wide": {"hidden": (2048, 256, 256, 128), "head": "clusters", "n_clusters": 1024},
-}
 
 
 @dataclass(frozen=True)

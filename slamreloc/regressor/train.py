@@ -44,9 +44,6 @@ class TrainConfig:
         return asdict(self)
 
 
-DEVICES = ("auto", "cpu", "cuda")  # what the CLI offers; resolve_device also takes "cuda:N"
-
-
 def resolve_device(device: str) -> torch.device:
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
