@@ -9,7 +9,6 @@ from slamreloc.pseudo_label.finetune import FinetuneConfig
 from slamreloc.pseudo_label.register import RegistrationConfig
 
 
-
 @dataclass(frozen=True)
 class PseudoLabelConfig:
     rounds: int = 8  # registration + extension rounds (stops early when nothing changes)

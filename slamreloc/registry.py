@@ -2,7 +2,7 @@
 
 The command line builds its choices from these (`slamreloc.cli.choices`) without importing the
 pipeline, so `slamreloc --help` and an argument error answer at once; the modules that act on a
-name check it against the same tuple and re-export it (`slamreloc.localizer.METHODS`, ...).
+name check it against the same tuple (`slamreloc.localizer.make_localizer`, ...).
 """
 
 from __future__ import annotations
