@@ -1,11 +1,12 @@
 """Training-step and query-time micro-benchmark of the regressor, fp32 vs bf16, on this CPU and
-on this CPU restricted to AVX2 (ONEDNN_MAX_CPU_ISA=AVX2, ATEN_CPU_CAPABILITY=avx2), each in a
-fresh process because both variables are read when torch loads.
+on this CPU restricted to AVX2 (ONEDNN_MAX_CPU_ISA=AVX2, ATEN_CPU_CAPABILITY=avx2), and on an AMX
+CPU with AMX off (ONEDNN_MAX_CPU_ISA=AVX512_CORE_BF16: an AVX512-BF16 CPU's kernels), each in a
+fresh process because these variables are read when torch loads.
 
     python benchmarks/precision_bench.py [--threads 1] [--arch wide]
 
 Prints a markdown table: median ms per training step (batch 1024, region head, AdamW) and per
-query batch (1536 descriptors, padded as the localizer pads), and what `auto` picks.
+query batch (1536 descriptors, padded as the localizer pads), and what `auto` picks for each.
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ import sys
 import time
 
 AVX2 = {"ONEDNN_MAX_CPU_ISA": "AVX2", "ATEN_CPU_CAPABILITY": "avx2"}
+# oneDNN without AMX: on an AMX CPU, an AVX512-BF16 CPU's kernels (elsewhere no change)
+NO_AMX = {"ONEDNN_MAX_CPU_ISA": "AVX512_CORE_BF16"}
 
 
 def measure(arch: str, threads: int, repeats: int = 15) -> dict:
@@ -64,7 +67,8 @@ def measure(arch: str, threads: int, repeats: int = 15) -> dict:
             times.append(time.perf_counter() - t0)
         return 1000 * sorted(times)[len(times) // 2]
 
-    out = {"auto": resolve_precision("auto", "cpu"), "reason": bf16_support("cpu")[1]}
+    out = {"auto": resolve_precision("auto", "cpu"), "reason": bf16_support("cpu")[1],
+           "auto_query": resolve_precision("auto", "cpu", use="query")}
     for name, fn in (("train", train_step), ("query", query_step)):
         for precision in ("fp32", "bf16"):
             for _ in range(2):
@@ -75,7 +79,7 @@ def measure(arch: str, threads: int, repeats: int = 15) -> dict:
                 fn(precision)
                 times.append(time.perf_counter() - t0)
             out[f"{name}_{precision}_ms"] = 1000 * sorted(times)[len(times) // 2]
-    auto = out["auto"]
+    auto = out["auto_query"]
     varying(auto, True)  # warm-up
     out["varying_padded_ms"], out["varying_unpadded_ms"] = varying(auto, True), varying(auto, False)
     return out
@@ -92,15 +96,16 @@ def main() -> None:
         return
     print(f"arch {args.arch}, {args.threads} thread(s); ms per training step (batch 1024) / "
           "per query (1536 descriptors), medians\n")
-    print("| CPU as seen by torch | auto picks | train fp32 | train bf16 | query fp32 | "
-          "query bf16 | varying sizes, auto: padded / unpadded |")
+    print("| CPU as seen by torch | auto picks: train / query | train fp32 | train bf16 | "
+          "query fp32 | query bf16 | varying sizes, query auto: padded / unpadded |")
     print("|---|---|---|---|---|---|---|")
-    for label, env in (("native", {}), ("restricted to AVX2", AVX2)):
+    for label, env in (("native", {}), ("no AMX", NO_AMX), ("restricted to AVX2", AVX2)):
         res = subprocess.run([sys.executable, __file__, "--child", "--threads",
                               str(args.threads), "--arch", args.arch],
                              env={**os.environ, **env}, capture_output=True, text=True, check=True)
         r = json.loads(res.stdout)
-        print(f"| {label} ({r['reason']}) | {r['auto']} | {r['train_fp32_ms']:.0f} | "
+        print(f"| {label} ({r['reason']}) | {r['auto']} / {r['auto_query']} | "
+              f"{r['train_fp32_ms']:.0f} | "
               f"{r['train_bf16_ms']:.0f} | {r['query_fp32_ms']:.1f} | {r['query_bf16_ms']:.1f} | "
               f"{r['varying_padded_ms']:.1f} / {r['varying_unpadded_ms']:.1f} |")
 

@@ -88,7 +88,8 @@ class RegressorLocalizer(Localizer):
     def __init__(self, scene_map: SceneMap, pnp: PnPConfig = REGRESSOR_PNP, device: str = "cpu",
                  precision: str = "auto", keep_fraction: float = 0.5,
                  refine_on_all: bool = False, guided: GuidedConfig | None = GuidedConfig()):
-        """precision: auto | fp32 | bf16 (auto: bf16 where the hardware runs it natively).
+        """precision: auto | fp32 | bf16 (auto: bf16 on AMX CPUs and CUDA, where it is the
+        faster; `slamreloc.precision`).
         keep_fraction: PnP-RANSAC uses this share of the predictions, the most confident ones,
         but at least 50 (a regressor without a confidence output always uses all).
         refine_on_all: the final refinement then runs again from RANSAC's pose on every
@@ -105,7 +106,7 @@ class RegressorLocalizer(Localizer):
         (BENCHMARKS.md, "Fine accuracy: guided refinement")."""
         super().__init__(scene_map, pnp, device)
         self.model = scene_map.regressor.to(self.device).eval()
-        self.precision = resolve_precision(precision, self.device.type)
+        self.precision = resolve_precision(precision, self.device.type, use="query")
         self.keep_fraction = keep_fraction
         self.refine_on_all = refine_on_all
         self.guided = None

@@ -8,7 +8,10 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
+import slamreloc.precision as precision_module
+from slamreloc.localizer import make_localizer
 from slamreloc.precision import EmulatedBf16Warning, bf16_support, resolve_precision
 
 PROBE = ("import json; from slamreloc.precision import bf16_support, resolve_precision; "
@@ -32,6 +35,42 @@ def test_restricting_onednn_and_aten_to_avx2_means_fp32():
     precision, reason = _probe(ONEDNN_MAX_CPU_ISA="AVX2", ATEN_CPU_CAPABILITY="avx2")
     assert precision == "fp32"
     assert "CPU" in reason
+
+
+# (CPU flags, ONEDNN_MAX_CPU_ISA, ATen capability) -> what auto picks for training / queries
+HARDWARE = [
+    ({"avx512_bf16", "amx_bf16", "amx_tile"}, "", "AVX512", "bf16", "bf16"),
+    ({"avx512_bf16", "amx_bf16"}, "AVX512_CORE_AMX", "AVX512", "bf16", "bf16"),
+    ({"avx512_bf16", "amx_bf16"}, "AVX512_CORE_BF16", "AVX512", "bf16", "fp32"),
+    ({"avx512_bf16"}, "", "AVX512", "bf16", "fp32"),
+    ({"avx512_bf16", "amx_bf16"}, "AVX2", "AVX512", "fp32", "fp32"),
+    ({"avx512_bf16", "amx_bf16"}, "", "AVX2", "fp32", "fp32"),
+    ({"avx2", "fma"}, "", "AVX2", "fp32", "fp32"),
+]
+
+
+@pytest.mark.parametrize("flags, cap, aten, train, query", HARDWARE)
+def test_auto_for_training_and_for_queries(monkeypatch, flags, cap, aten, train, query):
+    """bf16 trains faster wherever it is native; a query's single small batch only gains from
+    it with AMX (BENCHMARKS.md, "Query precision by hardware")."""
+    monkeypatch.setattr(precision_module, "_cpu_flags", lambda: set(flags))
+    monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: aten)
+    monkeypatch.delenv("DNNL_MAX_CPU_ISA", raising=False)
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", cap)
+    precision_module._bf16_kind.cache_clear()
+    try:
+        assert resolve_precision("auto", "cpu") == train
+        assert resolve_precision("auto", "cpu", use="query") == query
+        assert bf16_support("cpu")[0] == (train == "bf16")
+    finally:
+        precision_module._bf16_kind.cache_clear()
+
+
+def test_the_localizer_asks_for_query_precision(small_map):
+    localizer = make_localizer(small_map, "regressor", guided=None)
+    assert localizer.precision == resolve_precision("auto", "cpu", use="query")
+    with pytest.raises(ValueError, match="unknown use"):
+        resolve_precision("auto", "cpu", use="serve")
 
 
 def test_explicit_requests_are_honoured():
