@@ -139,9 +139,11 @@ class SceneCoordinateRegressor(nn.Module):
             logits = nn.functional.linear(hidden, out.weight[:k], out.bias[:k])
             if cluster is None:
                 cluster = logits.argmax(1)
-            # only the chosen cluster's 3 offset rows are evaluated
-            w = out.weight[k:].view(k, 3, -1)[cluster]
-            b = out.bias[k:].view(k, 3)[cluster]
+            # only the chosen cluster's 3 offset rows are evaluated; index_select, not
+            # indexing: the latter's backward adds rows from all threads in racing order, so
+            # one seed gave other weights from run to run
+            w = out.weight[k:].view(k, 3, -1).index_select(0, cluster)
+            b = out.bias[k:].view(k, 3).index_select(0, cluster)
             offset = torch.bmm(w, hidden.unsqueeze(2)).squeeze(2) + b
             return self.centres[cluster] + offset * self.offset_scale, logits
 
