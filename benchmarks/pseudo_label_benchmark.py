@@ -61,6 +61,11 @@ def build(dataset: Path, out: Path, epochs: int, reuse: bool,
 RECALLS = ("1cm1deg", "2cm2deg", "5cm5deg", "10cm5deg")
 
 
+def pct(value: float | None, spec: str = ".1f", scale: float = 100) -> str:
+    """`scale * value` formatted, or "n/a" where the report has none (e.g. no frame registered)."""
+    return "n/a" if value is None else format(scale * value, spec)
+
+
 def row(name: str, s: dict) -> str:
     r = s["recall"]
     med = ("inf" if s["median_translation_m"] is None else
@@ -169,15 +174,15 @@ def main() -> None:
         "",
         f"- registration: {rep['n_frames_registered']}/{rep['n_frames']} unlabelled frames "
         f"({100 * rep['registered_fraction']:.1f} %), median pose error "
-        f"{100 * rep['median_pose_error_m']:.2f} cm / {rep['median_pose_error_deg']:.2f} deg, "
-        f"{100 * rep['registered_within_5cm2deg']:.1f} % of them within 5 cm / 2 deg, "
-        f"worst {100 * rep['max_pose_error_m']:.1f} cm",
+        f"{pct(rep['median_pose_error_m'], '.2f')} cm / {pct(rep['median_pose_error_deg'], '.2f', 1)} deg, "
+        f"{pct(rep['registered_within_5cm2deg'])} % of them within 5 cm / 2 deg, "
+        f"worst {pct(rep['max_pose_error_m'])} cm",
         f"- pseudo-labels: {rep['n_pseudo_labels']} ({rep['n_inherited_labels']} inherited, "
         f"{rep['n_triangulated_labels']} triangulated; {rep['n_new_points']} new points); "
-        f"precision within 10 cm {100 * rep['pseudo_label_precision_10cm']:.1f} % "
+        f"precision within 10 cm {pct(rep['pseudo_label_precision_10cm'])} % "
         f"(inherited {100 * (rep['precision_inherited_10cm'] or 0):.1f} %, triangulated "
         f"{100 * (rep['precision_new_10cm'] or 0):.1f} %; within 5 cm "
-        f"{100 * rep['pseudo_label_precision_5cm']:.1f} %), scored on "
+        f"{pct(rep['pseudo_label_precision_5cm'])} %), scored on "
         f"{100 * rep['scored_fraction']:.0f} % of them",
         f"- time: pseudo-labelling {rep['timings_s']['pseudo_label_s']:.0f} s; regressor "
         f"fine-tune {t_ft:.0f} s vs full retraining {t_rt:.0f} s (ratio {t_ft / t_rt:.2f}); "

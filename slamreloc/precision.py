@@ -35,7 +35,7 @@ USES = ("train", "query")
 
 
 @lru_cache(maxsize=None)
-def _bf16_kind(device_type: str) -> tuple[str | None, str]:
+def bf16_kind(device_type: str = "cpu") -> tuple[str | None, str]:
     """("cuda" | "amx" | "avx512_bf16" | None, reason): which native bf16 `device_type` has,
     as torch will use it (None: emulated)."""
     if device_type == "cuda":
@@ -64,7 +64,7 @@ def _bf16_kind(device_type: str) -> tuple[str | None, str]:
 
 def bf16_support(device_type: str = "cpu") -> tuple[bool, str]:
     """(native, reason): does `device_type` ("cpu" | "cuda") run bf16 matmuls natively?"""
-    kind, reason = _bf16_kind(device_type)
+    kind, reason = bf16_kind(device_type)
     return kind is not None, reason
 
 
@@ -77,7 +77,7 @@ def resolve_precision(request: str = "auto", device_type: str = "cpu", use: str 
         raise ValueError(f"unknown precision '{request}' (known: {', '.join(PRECISIONS)})")
     if use not in USES:
         raise ValueError(f"unknown use '{use}' (known: {', '.join(USES)})")
-    kind, reason = _bf16_kind(device_type)
+    kind, reason = bf16_kind(device_type)
     if request == "auto":
         fast = kind is not None if use == "train" else kind in ("amx", "cuda")
         return "bf16" if fast else "fp32"

@@ -57,13 +57,13 @@ def test_auto_for_training_and_for_queries(monkeypatch, flags, cap, aten, train,
     monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: aten)
     monkeypatch.delenv("DNNL_MAX_CPU_ISA", raising=False)
     monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", cap)
-    precision_module._bf16_kind.cache_clear()
+    precision_module.bf16_kind.cache_clear()
     try:
         assert resolve_precision("auto", "cpu") == train
         assert resolve_precision("auto", "cpu", use="query") == query
         assert bf16_support("cpu")[0] == (train == "bf16")
     finally:
-        precision_module._bf16_kind.cache_clear()
+        precision_module.bf16_kind.cache_clear()
 
 
 def test_the_localizer_asks_for_query_precision(small_map):

@@ -155,8 +155,8 @@ def test_retrain_update_chooses_precision_for_this_machine(small_map, scene_dir,
     meta = json.loads(meta_path.read_text())
     meta["train"]["precision"] = "bf16"
     meta_path.write_text(json.dumps(meta))
-    monkeypatch.setattr(precision, "bf16_support",
-                        lambda device_type="cpu": (False, "test: bf16 emulated here"))
+    monkeypatch.setattr(precision, "bf16_kind",
+                        lambda device_type="cpu": (None, "test: bf16 emulated here"))
     data = unposed_copy(scene_dir, tmp_path / "unlabelled")
     with warnings.catch_warnings():
         warnings.simplefilter("error", precision.EmulatedBf16Warning)
