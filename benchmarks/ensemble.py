@@ -2,12 +2,12 @@
 
     python -m benchmarks.ensemble MAP DATASET [--poses FILE] [--seeds 0 1 2] \
         [--epochs 100] [--batch-size 1024 --lr 2e-3] [--keep 0.5 1.0] [--no-pairs] [--unguided] \
-        [--workdir W] [--matching] --out ensemble.md
+        [--precision auto|fp32|bf16] [--workdir W] [--matching] --out ensemble.md
 
 Each seed trains a fresh regressor (MAP's architecture, today's recipe) on MAP's labelled
-database (`--epochs`, `--batch-size` and `--lr` change today's recipe). The seed fixes the
-model, so a seed's weights are kept in WORKDIR/seed-<s>-epochs-<e>[-batch-<b>-lr-<lr>].pt and
-reused by a later run. The database holds float16 descriptors and `slamreloc map` trains on
+database (`--epochs`, `--batch-size`, `--lr` and `--precision` change today's recipe). The
+seed fixes the model, so a seed's weights are kept in
+WORKDIR/seed-<s>-epochs-<e>[-batch-<b>-lr-<lr>][-<precision>].pt and reused by a later run. The database holds float16 descriptors and `slamreloc map` trains on
 the float32 ones before storing them, so seed s here is another training than `map`'s seed s.
 
 Rows: each model alone (the spread of one training), then each pair of models combined per
@@ -84,6 +84,8 @@ def seed_model(scene_map: SceneMap, seed: int, workdir: Path, threads: int,
     name = f"seed-{seed}-epochs-{recipe.epochs}"
     if (recipe.batch_size, recipe.lr) != (TrainConfig.batch_size, TrainConfig.lr):
         name += f"-batch-{recipe.batch_size}-lr-{recipe.lr:g}"
+    if recipe.precision != "auto":
+        name += f"-{recipe.precision}"
     path = workdir / f"{name}.pt"
     if path.is_file():
         model.load_state_dict(torch.load(path))
@@ -139,13 +141,15 @@ def main() -> None:
     ap.add_argument("--unguided", action="store_true",
                     help="also score each model alone without the guided refinement")
     ap.add_argument("--threads", type=int, default=2, help="torch threads for training")
+    ap.add_argument("--precision", default="auto", help="training precision: auto | fp32 | bf16")
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/slamreloc-ensemble"))
     ap.add_argument("--matching", action="store_true", help="score matching on the map too")
     ap.add_argument("--out", type=Path, default=Path("ensemble.md"))
     args = ap.parse_args()
     frames = load_dataset(args.dataset, args.poses).frames("test")
     scene_map = SceneMap.load(args.map)
-    recipe = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr)
+    recipe = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
+                         precision=args.precision)
     models, lines = {}, []
     for seed in args.seeds:
         models[seed], wall_s = seed_model(scene_map, seed, args.workdir, args.threads, recipe)
