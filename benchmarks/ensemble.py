@@ -7,8 +7,9 @@
 Each seed trains a fresh regressor (MAP's architecture, today's recipe) on MAP's labelled
 database (`--epochs`, `--batch-size`, `--lr` and `--precision` change today's recipe). The
 seed fixes the model, so a seed's weights are kept in
-WORKDIR/seed-<s>-epochs-<e>[-batch-<b>-lr-<lr>][-<precision>].pt and reused by a later run. The database holds float16 descriptors and `slamreloc map` trains on
-the float32 ones before storing them, so seed s here is another training than `map`'s seed s.
+WORKDIR/seed-<s>-epochs-<e>[-batch-<b>-lr-<lr>][-<precision>].pt and reused by a later run.
+The database holds float16 descriptors and `slamreloc map` trains on the float32 ones before
+storing them, so seed s here is another training than `map`'s seed s.
 
 Rows: each model alone (the spread of one training), then each pair of models combined per
 keypoint, scored with the default localizer (its confident half, PnP-RANSAC, refinement):

@@ -174,7 +174,8 @@ def main() -> None:
         "",
         f"- registration: {rep['n_frames_registered']}/{rep['n_frames']} unlabelled frames "
         f"({100 * rep['registered_fraction']:.1f} %), median pose error "
-        f"{pct(rep['median_pose_error_m'], '.2f')} cm / {pct(rep['median_pose_error_deg'], '.2f', 1)} deg, "
+        f"{pct(rep['median_pose_error_m'], '.2f')} cm / "
+        f"{pct(rep['median_pose_error_deg'], '.2f', 1)} deg, "
         f"{pct(rep['registered_within_5cm2deg'])} % of them within 5 cm / 2 deg, "
         f"worst {pct(rep['max_pose_error_m'])} cm",
         f"- pseudo-labels: {rep['n_pseudo_labels']} ({rep['n_inherited_labels']} inherited, "

@@ -39,9 +39,9 @@ def bf16_kind(device_type: str = "cpu") -> tuple[str | None, str]:
     """("cuda" | "amx" | "avx512_bf16" | None, reason): which native bf16 `device_type` has,
     as torch will use it (None: emulated)."""
     if device_type == "cuda":
-        ok = torch.cuda.is_available() and torch.cuda.is_bf16_supported()
-        return ("cuda" if ok else None), "CUDA device supports bf16" if ok else \
-            "CUDA device without bf16"
+        if torch.cuda.is_available() and torch.cuda.is_bf16_supported():
+            return "cuda", "CUDA device supports bf16"
+        return None, "CUDA device without bf16"
     flags = _cpu_flags()
     if "amx_bf16" in flags:
         hw = "AMX"

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 # localization methods (slamreloc.localizer.make_localizer)
 METHODS = ("regressor", "matching")
-# compute precisions (slamreloc.precision.resolve_precision; auto: bf16 where native)
+# compute precisions (slamreloc.precision.resolve_precision; auto: bf16 where native for
+# training, on AMX CPUs and CUDA only for queries)
 PRECISIONS = ("auto", "fp32", "bf16")
 # training devices the command line offers (slamreloc.regressor.train.resolve_device, which
 # also takes "cuda:N")
