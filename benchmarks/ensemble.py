@@ -40,13 +40,13 @@ import torch
 from torch import nn
 
 from benchmarks.label_levers import median_rows, method_errors, query_features, scores, summary
-from slamreloc import evaluate
+from slamreloc.localize import evaluate
 from slamreloc.datasets import load_dataset
-from slamreloc.evaluate import THRESHOLDS
-from slamreloc.localizer import make_localizer
+from slamreloc.localize.evaluate import THRESHOLDS
+from slamreloc.localize.localizer import make_localizer
 from slamreloc.regressor.model import SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.scene_map import SceneMap
 
 COMBINATIONS = ("mean", "confident", "agree")
 

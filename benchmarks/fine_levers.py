@@ -42,12 +42,12 @@ import torch
 from scipy.spatial import cKDTree
 
 from slamreloc.datasets import load_dataset, read_image
-from slamreloc.evaluate import THRESHOLDS, recalls
+from slamreloc.localize.evaluate import THRESHOLDS, recalls
 from slamreloc.features import make_extractor
 from slamreloc.geometry import pose_error
-from slamreloc.localizer import make_localizer
-from slamreloc.pnp import PnPConfig, estimate_pose, refine_from, reprojection_px
-from slamreloc.scene_map import SceneMap
+from slamreloc.localize.localizer import make_localizer
+from slamreloc.localize.pnp import PnPConfig, estimate_pose, refine_from, reprojection_px
+from slamreloc.map.scene_map import SceneMap
 
 
 class DatabaseRematcher:

@@ -21,11 +21,11 @@ import numpy as np
 import torch
 
 from slamreloc.datasets import load_dataset, read_image
-from slamreloc.evaluate import THRESHOLDS, recalls
+from slamreloc.localize.evaluate import THRESHOLDS, recalls
 from slamreloc.geometry import pose_error
-from slamreloc.localizer import make_localizer
-from slamreloc.precision import bf16_support
-from slamreloc.scene_map import SceneMap
+from slamreloc.localize.localizer import make_localizer
+from slamreloc.runtime.precision import bf16_support
+from slamreloc.map.scene_map import SceneMap
 
 STAGES = ("features", "regressor", "pnp", "total")
 

@@ -18,9 +18,9 @@ import torch
 
 from slamreloc.datasets import load_dataset, read_image
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, pose_error
-from slamreloc.localizer import RegressorLocalizer
-from slamreloc.scene_map import SceneMap
-from slamreloc.surface import IcpConfig, frame_cloud, refine_pose
+from slamreloc.localize.localizer import RegressorLocalizer
+from slamreloc.map.scene_map import SceneMap
+from slamreloc.map.surface import IcpConfig, frame_cloud, refine_pose
 
 PERTURBATIONS = ((0.07, 2.5), (0.15, 5.0), (0.5, 0.0), (0.0, 20.0))  # metres, degrees
 

@@ -79,8 +79,8 @@ def jpeg_bomb(path: Path, side: int = 65000) -> None:
 def largest_allowed(map_dir: Path) -> int:
     """The side of the largest square image the bounds let MAP's extractor take."""
     from slamreloc.features import make_extractor
-    from slamreloc.limits import limits
-    from slamreloc.scene_map import SceneMap
+    from slamreloc.io.limits import limits
+    from slamreloc.map.scene_map import SceneMap
 
     info = SceneMap.load(map_dir, regressor=False).info
     ex = make_extractor(info.feature_name, **info.feature_options)

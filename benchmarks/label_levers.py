@@ -30,13 +30,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from slamreloc import evaluate
+from slamreloc.localize import evaluate
 from slamreloc.datasets import load_dataset, read_image
-from slamreloc.evaluate import THRESHOLDS
+from slamreloc.localize.evaluate import THRESHOLDS
 from slamreloc.geometry import pose_error
-from slamreloc.localizer import METHODS, make_localizer
-from slamreloc.mapping import MapConfig, build_map
-from slamreloc.scene_map import SceneMap
+from slamreloc.localize.localizer import METHODS, make_localizer
+from slamreloc.map.build import MapConfig, build_map
+from slamreloc.map.scene_map import SceneMap
 
 VARIANTS = {  # name: (LabelConfig fields, TrainConfig fields, feature options)
     "default": ({}, {}, {}),

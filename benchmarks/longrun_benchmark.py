@@ -41,10 +41,10 @@ import numpy as np
 from slamreloc.datasets import load_dataset, read_image
 from slamreloc.cli.demo import DEMO_KIDNAP
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, pose_error
-from slamreloc.localizer import RegressorLocalizer
-from slamreloc.mapping import MapConfig, build_map
+from slamreloc.localize.localizer import RegressorLocalizer
+from slamreloc.map.build import MapConfig, build_map
 from slamreloc.regressor.train import TrainConfig
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.scene_map import SceneMap
 from slamreloc.slam.backend import BackendConfig, SlamBackend
 from slamreloc.slam.events import load_plugin
 from slamreloc.slam.feed import feed, read_frames

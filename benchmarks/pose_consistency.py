@@ -23,12 +23,12 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.datasets import load_dataset
-from slamreloc.extract import extract_frames
+from slamreloc.features.extract import extract_frames
 from slamreloc.features import make_extractor
 from slamreloc.geometry import Rigid3, pose_error
-from slamreloc.pnp import PnPConfig, estimate_pose
+from slamreloc.localize.pnp import PnPConfig, estimate_pose
 from slamreloc.pseudo_label.register import Database, RegistrationConfig
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.scene_map import SceneMap
 from slamreloc.types import Camera
 
 REG = RegistrationConfig()

@@ -26,7 +26,7 @@ NO_AMX = {"ONEDNN_MAX_CPU_ISA": "AVX512_CORE_BF16"}
 def measure(arch: str, threads: int, repeats: int = 15) -> dict:
     import torch
 
-    from slamreloc.precision import autocast, bf16_support, resolve_precision
+    from slamreloc.runtime.precision import autocast, bf16_support, resolve_precision
     from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 
     torch.set_num_threads(threads)

@@ -33,13 +33,13 @@ import numpy as np
 import torch
 
 from slamreloc.datasets import load_dataset
-from slamreloc.guided_matching import GuidedConfig
-from slamreloc.mapping import MapConfig, build_map
-from slamreloc.pipeline import evaluate_method
+from slamreloc.localize.guided import GuidedConfig
+from slamreloc.map.build import MapConfig, build_map
+from slamreloc.cli.pipeline import evaluate_method
 from slamreloc.pseudo_label import PseudoLabelConfig
 from slamreloc.pseudo_label.update import pseudo_label
 from slamreloc.pseudo_label.write import write_updated_map
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.scene_map import SceneMap
 
 ROOT = Path(__file__).resolve().parents[1]
 

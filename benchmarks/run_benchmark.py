@@ -31,12 +31,12 @@ from pathlib import Path
 import torch
 
 from slamreloc.datasets import load_dataset
-from slamreloc.fileio import write_json
-from slamreloc.mapping import MapConfig, build_map
-from slamreloc.pipeline import evaluate_method
-from slamreloc.plots import plot_evaluation
-from slamreloc.precision import bf16_support
-from slamreloc.scene_map import SceneMap
+from slamreloc.io.fileio import write_json
+from slamreloc.map.build import MapConfig, build_map
+from slamreloc.cli.pipeline import evaluate_method
+from slamreloc.localize.plots import plot_evaluation
+from slamreloc.runtime.precision import bf16_support
+from slamreloc.map.scene_map import SceneMap
 
 METHODS = (("regressor", False), ("matching", False), ("regressor", True))  # (method, depth)
 # Published 5cm5deg on the official RedKitchen split, depth-SLAM vs SfM reference (Brachmann

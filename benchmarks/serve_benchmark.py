@@ -34,14 +34,14 @@ import numpy as np
 from benchmarks.run_benchmark import cpu_name
 from slamreloc.client import Client, RemoteError, confirmed_frames, frame_poses
 from slamreloc.datasets import load_dataset
-from slamreloc.fileio import write_json
-from slamreloc.images import decode_rgb
-from slamreloc.localizer import RegressorLocalizer
-from slamreloc.map_format import SURFACE
-from slamreloc.map_write import save_map
+from slamreloc.io.fileio import write_json
+from slamreloc.io.images import decode_rgb
+from slamreloc.localize.localizer import RegressorLocalizer
+from slamreloc.map.format import SURFACE
+from slamreloc.map.write import save_map
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import transform_msg
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.scene_map import SceneMap
 from slamreloc.slam.feed import read_frames
 from slamreloc.slam.report import kidnap_stats
 from slamreloc.slam.run import kidnap_schedule

@@ -26,12 +26,12 @@ from pathlib import Path, PurePosixPath
 
 from benchmarks.run_benchmark import cpu_name
 from slamreloc.datasets import load_dataset
-from slamreloc.evaluate import align_to_reference, rescore, summarize
-from slamreloc.fileio import write_json
+from slamreloc.localize.evaluate import align_to_reference, rescore, summarize
+from slamreloc.io.fileio import write_json
 from slamreloc.geometry import read_tum_trajectory
-from slamreloc.mapping import MapConfig, build_map
-from slamreloc.pipeline import evaluate_method
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.build import MapConfig, build_map
+from slamreloc.cli.pipeline import evaluate_method
+from slamreloc.map.scene_map import SceneMap
 from slamreloc.sfm import IMAGE_SUFFIXES, SfmConfig, run_sfm
 
 

@@ -60,9 +60,9 @@ def run_odometry(name, frames, inputs, depth_k):
 def relocalization_cost(map_dir, dataset, frames, n=30):
     """Median ms per call: (SIFT + regressor + PnP wall, its CPU time, depth ICP wall or None
     when the map has no surface)."""
-    from slamreloc.localizer import RegressorLocalizer
-    from slamreloc.pipeline import depth_refiner
-    from slamreloc.scene_map import SceneMap
+    from slamreloc.localize.localizer import RegressorLocalizer
+    from slamreloc.cli.pipeline import depth_refiner
+    from slamreloc.map.scene_map import SceneMap
 
     scene_map = SceneMap.load(map_dir)
     loc = RegressorLocalizer(scene_map)

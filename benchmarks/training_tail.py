@@ -21,9 +21,9 @@ import torch
 
 from benchmarks.label_levers import query_features, score_method
 from slamreloc.datasets import load_dataset
-from slamreloc.evaluate import THRESHOLDS
+from slamreloc.localize.evaluate import THRESHOLDS
 from slamreloc.regressor.train import TrainConfig, train_regressor
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.scene_map import SceneMap
 
 NO_AUGMENTATION = {"noise": 0.0, "input_dropout": 0.0}
 TAILS = {  # name: TrainConfig fields of the extra epochs (None: the map as trained)

@@ -26,10 +26,10 @@ import torch
 
 from benchmarks.label_levers import median_rows, method_errors, query_features, scores, summary
 from slamreloc.datasets import load_dataset
-from slamreloc.evaluate import THRESHOLDS
+from slamreloc.localize.evaluate import THRESHOLDS
 from slamreloc.regressor.model import SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, WeightAverage, train_regressor
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.scene_map import SceneMap
 
 
 def train_seed(scene_map: SceneMap, seed: int, average_tail: float, other_tails: list[float],

@@ -9,7 +9,7 @@
     and the next frames are relocalized: if a later one agrees with it the track was wrong
     (re-anchor: `reanchor_votes`, 4, in all), if not within the window they are rejected.
 Inputs to every decision: the PnP inlier count and the regressor's confidence (gating.py).
-Where the frame has depth and the map a surface (slamreloc.surface), each PnP pose is refined by
+Where the frame has depth and the map a surface (slamreloc.map.surface), each PnP pose is refined by
 point-to-plane ICP against the map's surface before it is judged (RedKitchen: recovered poses
 6.3 -> ~1-2 cm); a fit that does not converge onto the surface leaves the PnP pose as it was.
 """
@@ -25,7 +25,7 @@ from slamreloc.plugins.relocstats import RelocStats
 from slamreloc.geometry import Rigid3
 from slamreloc.slam.backend import TrackState
 from slamreloc.slam.events import Event, EventKind, FrameData
-from slamreloc.surface import IcpConfig, depth_cloud, refine_pose
+from slamreloc.map.surface import IcpConfig, depth_cloud, refine_pose
 
 
 @dataclass(frozen=True)
@@ -45,8 +45,8 @@ class RelocalizationPlugin:
         """depth_intrinsics: the depth camera's (fx, fy, cx, cy) at 640x480 where depth is not
         registered to the image (`Dataset.depth_intrinsics`), else None."""
         if localizer is None:
-            from slamreloc.localizer import RegressorLocalizer
-            from slamreloc.scene_map import SceneMap
+            from slamreloc.localize.localizer import RegressorLocalizer
+            from slamreloc.map.scene_map import SceneMap
 
             localizer = RegressorLocalizer(SceneMap.load(map_dir), device=device,
                                            keep_fraction=config.keep_fraction)

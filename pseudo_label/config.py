@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from slamreloc.labels import LabelConfig
+from slamreloc.map.labels import LabelConfig
 from slamreloc.pseudo_label.finetune import FinetuneConfig
 from slamreloc.pseudo_label.register import RegistrationConfig
 

@@ -11,9 +11,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from slamreloc.labels import MIN_DEPTH_M, build_labels, depth_points
-from slamreloc.map_format import NEW, PSEUDO
-from slamreloc.pnp import reprojection_px
+from slamreloc.map.labels import MIN_DEPTH_M, build_labels, depth_points
+from slamreloc.map.format import NEW, PSEUDO
+from slamreloc.localize.pnp import reprojection_px
 from slamreloc.pseudo_label.config import PseudoLabelConfig
 
 

@@ -17,9 +17,9 @@ import torch
 
 from slamreloc.features.matcher import match_descriptors
 from slamreloc.geometry import Rigid3, rotation_angle_deg
-from slamreloc.labels import MIN_DEPTH_M
-from slamreloc.map_format import PSEUDO
-from slamreloc.pnp import PnPConfig, estimate_pose, reprojection_px
+from slamreloc.map.labels import MIN_DEPTH_M
+from slamreloc.map.format import PSEUDO
+from slamreloc.localize.pnp import PnPConfig, estimate_pose, reprojection_px
 from slamreloc.types import Camera, Features
 
 

@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from slamreloc.progress import console, track
+from slamreloc.runtime.progress import console, track
 from slamreloc.pseudo_label.config import PseudoLabelConfig
 from slamreloc.pseudo_label.merge import apply_labels
 from slamreloc.pseudo_label.register import (Database, FrameState, consistent,
                                              continuity_sweep, register_frame)
 from slamreloc.pseudo_label.smooth import smooth_states
-from slamreloc.scene_map import MapDatabase
+from slamreloc.map.scene_map import MapDatabase
 from slamreloc.types import Frame
 
 

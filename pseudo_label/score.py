@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.geometry import Rigid3, pose_error
-from slamreloc.labels import LabelConfig, build_labels, depth_points
-from slamreloc.map_format import NEW, PSEUDO
-from slamreloc.scene_map import MapDatabase
+from slamreloc.map.labels import LabelConfig, build_labels, depth_points
+from slamreloc.map.format import NEW, PSEUDO
+from slamreloc.map.scene_map import MapDatabase
 from slamreloc.types import Features, Frame
 
 

@@ -21,10 +21,10 @@ import numpy as np
 
 from slamreloc.datasets import Dataset
 from slamreloc.geometry import Rigid3, pose_error
-from slamreloc.progress import track
+from slamreloc.runtime.progress import track
 from slamreloc.pseudo_label.register import (Database, FrameState, RegistrationConfig,
                                              label_at_pose, register_on)
-from slamreloc.scene_map import MapDatabase
+from slamreloc.map.scene_map import MapDatabase
 from slamreloc.slam.backend import SlamBackend, TrackState
 from slamreloc.slam.events import Event, EventKind, FrameData
 from slamreloc.slam.feed import feed_all, read_frames

@@ -38,17 +38,17 @@ from slamreloc.pseudo_label.write import PseudoLabels, base_provenance, write_up
 
 from slamreloc.datasets import Dataset, apply_poses, load_dataset, read_reference
 from slamreloc.errors import InputError
-from slamreloc.extract import extract_frames
+from slamreloc.features.extract import extract_frames
 from slamreloc.features import make_extractor
-from slamreloc.fileio import check_outputs
-from slamreloc.labels import LabelConfig
-from slamreloc.map_format import LABELLED, NEW, PSEUDO
-from slamreloc.map_lock import map_write_lock
-from slamreloc.map_write import check_map_target
+from slamreloc.io.fileio import check_outputs
+from slamreloc.map.labels import LabelConfig
+from slamreloc.map.format import LABELLED, NEW, PSEUDO
+from slamreloc.map.lock import map_write_lock
+from slamreloc.map.write import check_map_target
 from slamreloc.registry import UPDATES
 from slamreloc.rgbd import registered_depths
-from slamreloc.scene_map import MapDatabase, SceneMap
-from slamreloc.surface import extend_surface, frame_cloud
+from slamreloc.map.scene_map import MapDatabase, SceneMap
+from slamreloc.map.surface import extend_surface, frame_cloud
 from slamreloc.types import Frame
 
 

@@ -12,13 +12,13 @@ import numpy as np
 from slamreloc.pseudo_label.config import PseudoLabelConfig
 from slamreloc.pseudo_label.finetune import finetune_regressor
 
-from slamreloc.fileio import check_outputs
-from slamreloc.map_format import LABELLED, PROVENANCE, SURFACE
-from slamreloc.map_write import check_map_target, save_map
+from slamreloc.io.fileio import check_outputs
+from slamreloc.map.format import LABELLED, PROVENANCE, SURFACE
+from slamreloc.map.write import check_map_target, save_map
 from slamreloc.regressor.model import SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
-from slamreloc.scene_map import MapDatabase, SceneMap
-from slamreloc.surface import Surface
+from slamreloc.map.scene_map import MapDatabase, SceneMap
+from slamreloc.map.surface import Surface
 
 
 @dataclass

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.fileio import atomic_file
+from slamreloc.io.fileio import atomic_file
 
 RIGID_TOL = 1e-3  # max |R^T R - I| and |det R - 1| accepted for a pose read from a file
 MAX_COORDINATE = 1e9  # metres: beyond any map, and squares stay far from overflow

@@ -2,14 +2,14 @@
 
 The command line builds its choices from these (`slamreloc.cli.choices`) without importing the
 pipeline, so `slamreloc --help` and an argument error answer at once; the modules that act on a
-name check it against the same tuple (`slamreloc.localizer.make_localizer`, ...).
+name check it against the same tuple (`slamreloc.localize.localizer.make_localizer`, ...).
 """
 
 from __future__ import annotations
 
-# localization methods (slamreloc.localizer.make_localizer)
+# localization methods (slamreloc.localize.localizer.make_localizer)
 METHODS = ("regressor", "matching")
-# compute precisions (slamreloc.precision.resolve_precision; auto: bf16 where native for
+# compute precisions (slamreloc.runtime.precision.resolve_precision; auto: bf16 where native for
 # training, on AMX CPUs and CUDA only for queries)
 PRECISIONS = ("auto", "fp32", "bf16")
 # training devices the command line offers (slamreloc.regressor.train.resolve_device, which

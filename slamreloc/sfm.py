@@ -35,11 +35,11 @@ import numpy as np
 
 from slamreloc.camera_models import MODELS, PARAMS, colmap_head
 from slamreloc.errors import InputError
-from slamreloc.fileio import check_outputs, write_json
-from slamreloc.images import check_encoded_image
-from slamreloc.progress import console, make_progress
+from slamreloc.io.fileio import check_outputs, write_json
+from slamreloc.io.images import check_encoded_image
+from slamreloc.runtime.progress import console, make_progress
 from slamreloc.types import Camera
-from slamreloc.video import is_video, video_frames
+from slamreloc.io.video import is_video, video_frames
 
 SFM_JSON = "sfm.json"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
@@ -222,7 +222,7 @@ class _NoBar:
 
 
 def _tracked(items, description: str, progress: bool):
-    from slamreloc.progress import track
+    from slamreloc.runtime.progress import track
 
     return track(items, description, enabled=progress)
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from slamreloc.mapping import MapConfig
+from slamreloc.map.build import MapConfig
 from slamreloc.regressor.train import TrainConfig
 from slamreloc.synthetic import SceneConfig, render_scene
 
@@ -48,7 +48,7 @@ def scene_dir(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def small_map(scene_dir, tmp_path_factory):
     from slamreloc.datasets import load_dataset
-    from slamreloc.mapping import build_map
+    from slamreloc.map.build import build_map
 
     out = tmp_path_factory.mktemp("maps") / "small_map"
     return build_map(load_dataset(scene_dir), out, "train", SMALL_MAP, progress=False)

@@ -71,7 +71,7 @@ def _run_command(argv: list[str]):
 def _check_map(out: Path, result: Path):
     """The next start: load the map and its database; report its checksums."""
     def run():
-        from slamreloc.scene_map import SceneMap
+        from slamreloc.map.scene_map import SceneMap
 
         try:
             m = SceneMap.load(out)
@@ -221,6 +221,6 @@ if __name__ == "__main__":
 
     torch.set_num_threads(1)  # no thread pools in the forking parent
     import slamreloc.cli  # noqa: F401 - imported once, before forking
-    import slamreloc.mapping  # noqa: F401
+    import slamreloc.map.build  # noqa: F401
 
     print(json.dumps(run(json.loads(Path(sys.argv[1]).read_text()))))

@@ -12,7 +12,7 @@ import numpy as np
 
 from slamreloc.datasets.base import Dataset
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix
-from slamreloc.images import read_image
+from slamreloc.io.images import read_image
 from slamreloc.types import Camera, Frame
 
 T0 = 1_700_000_000  # seconds: a frame's stamp is T0 + its timestamp in the dataset

@@ -11,8 +11,8 @@ import pytest
 
 from slamreloc.datasets import load_dataset
 from slamreloc.datasets.rosbag import BagTopics, set_topics
-from slamreloc.evaluate import align_to_reference
-from slamreloc.scene_map import SceneMap
+from slamreloc.localize.evaluate import align_to_reference
+from slamreloc.map.scene_map import SceneMap
 from tests.fuzzing import run_cli, run_cli_output
 from tests.rosbag_support import write_bag
 

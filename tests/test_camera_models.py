@@ -14,11 +14,11 @@ from hypothesis import strategies as st
 
 from slamreloc.datasets import load_dataset
 from slamreloc.errors import InputError
-from slamreloc.evaluate import evaluate_frames, summarize
+from slamreloc.localize.evaluate import evaluate_frames, summarize
 from slamreloc.geometry import parse_tum_line, pose_error
-from slamreloc.localizer import make_localizer
-from slamreloc.mapping import build_map
-from slamreloc.scene_map import SceneMap
+from slamreloc.localize.localizer import make_localizer
+from slamreloc.map.build import build_map
+from slamreloc.map.scene_map import SceneMap
 from slamreloc.synthetic import render_scene
 from slamreloc.synthetic.render import RenderScene, render_frame
 from slamreloc.synthetic.room import build_room

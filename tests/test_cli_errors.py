@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from slamreloc.map_format import DATABASE, LEGACY_WEIGHTS, META, WEIGHTS
+from slamreloc.map.format import DATABASE, LEGACY_WEIGHTS, META, WEIGHTS
 from tests.test_fuzz_inputs import _tiny_map, make_sevenscenes
 from tests.test_map_format import Payload
 

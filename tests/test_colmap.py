@@ -13,7 +13,7 @@ import pytest
 
 from slamreloc.datasets import load_dataset
 from slamreloc.errors import InputError
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.scene_map import SceneMap
 from tests.colmap_project import write_colmap_project
 
 

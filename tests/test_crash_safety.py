@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 
 from slamreloc.errors import InputError
-from slamreloc.map_write import _exchange
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.write import _exchange
+from slamreloc.map.scene_map import SceneMap
 from tests import fuzzing
 from tests.test_map_format import make_map
 
@@ -107,7 +107,7 @@ def test_rename_exchange_swaps_atomically_here(tmp_path):
     assert (a / "x").read_text() == "b" and (b / "x").read_text() == "a"
 
 
-HOLD_LOCK = ("import sys, time; from slamreloc.map_lock import map_write_lock\n"
+HOLD_LOCK = ("import sys, time; from slamreloc.map.lock import map_write_lock\n"
              "with map_write_lock(sys.argv[1]):\n"
              "    print('locked', flush=True); time.sleep(float(sys.argv[2]))\n")
 
@@ -131,7 +131,7 @@ def test_second_writer_fails_cleanly_while_one_writes(tmp_path):
 
 RACE = ("import sys, time; from pathlib import Path\n"
         "from slamreloc.errors import InputError\n"
-        "from slamreloc.map_lock import map_write_lock\n"
+        "from slamreloc.map.lock import map_write_lock\n"
         "from tests.test_map_format import make_map\n"
         "out, tag, sync = Path(sys.argv[1]), sys.argv[2], Path(sys.argv[3])\n"
         "(sync / tag).touch()  # imports done: wait for the other writer, then go together\n"
@@ -180,7 +180,7 @@ def _small_dataset(scene_dir: Path, root: Path, frames: slice = slice(0, 6),
 
 def _tiny_map(ds: Path, out: Path) -> SceneMap:
     from slamreloc.datasets import load_dataset
-    from slamreloc.mapping import MapConfig, build_map
+    from slamreloc.map.build import MapConfig, build_map
     from slamreloc.regressor.train import TrainConfig
 
     return build_map(load_dataset(ds), out, "train",
@@ -263,7 +263,7 @@ def test_map_and_pseudo_label_take_the_write_lock_before_their_work(scene_dir, t
                                                                     monkeypatch):
     """While another process writes MAP, `build_map(..., MAP)` and `update_map(..., MAP)` fail
     at once with one line naming it: no feature is extracted, nothing is trained."""
-    from slamreloc import mapping
+    from slamreloc.map import build as mapping
     from slamreloc.datasets import load_dataset
     from slamreloc.pseudo_label import PseudoLabelConfig, update, update_map
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from slamreloc.geometry import names_sidecar, read_tum_trajectory
-from slamreloc.images import read_image
+from slamreloc.io.images import read_image
 from tests.fuzzing import run_cli
 
 

@@ -30,10 +30,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from slamreloc.errors import InputError
-from slamreloc.images import read_image
-from slamreloc.limits import InputLimits, limits, parse_limits, set_limits
-from slamreloc.map_format import META
-from slamreloc.scene_map import SceneMap
+from slamreloc.io.images import read_image
+from slamreloc.io.limits import InputLimits, limits, parse_limits, set_limits
+from slamreloc.map.format import META
+from slamreloc.map.scene_map import SceneMap
 from slamreloc.types import Camera
 from tests.fuzzing import COUNTS, fuzz_settings, no_hang, run_cli
 
@@ -187,7 +187,7 @@ def test_decompression_bombs_are_refused_before_decoding(small_map, bombs):
 def test_bombs_are_refused_in_process_by_every_image_reader(bombs, tmp_path):
     """The readers behind every command (colour, depth, header) refuse each bomb from its
     header: refusing reads no pixels, so this runs in the test process itself."""
-    from slamreloc.images import image_header, read_depth
+    from slamreloc.io.images import image_header, read_depth
 
     for path in bombs:
         for read in (read_image, read_depth, image_header):
@@ -241,7 +241,7 @@ def test_limit_flag_raises_a_bound(small_map, tmp_path):
 def test_limits_from_the_environment():
     assert parse_limits(["max_json_depth=12"]) == {"max_json_depth": 12}
     code = ("import os; os.environ['SLAMRELOC_MAX_IMAGE_PIXELS'] = '1e6';"
-            "from slamreloc.limits import limits; print(limits().max_image_pixels)")
+            "from slamreloc.io.limits import limits; print(limits().max_image_pixels)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "1000000"
 
@@ -450,7 +450,7 @@ def test_fuzz_map_metadata_values(small_map, tmp_path_factory, data):
     try:
         with no_hang(60):
             loaded = SceneMap.load(case)
-            from slamreloc.localizer import make_localizer
+            from slamreloc.localize.localizer import make_localizer
 
             for method in ("regressor", "matching"):
                 make_localizer(loaded, method).localize(image, loaded.camera.scaled_to(320, 240))

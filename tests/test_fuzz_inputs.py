@@ -35,9 +35,9 @@ from slamreloc.datasets import load_dataset, read_depth, read_image, read_pose
 from slamreloc.errors import InputError
 from slamreloc.geometry import look_at, names_sidecar, read_tum_trajectory, tum_line
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
-from slamreloc.map_format import DATABASE, META, WEIGHTS, sha256_file
-from slamreloc.map_write import save_map
-from slamreloc.scene_map import MapDatabase, SceneMap
+from slamreloc.map.format import DATABASE, META, WEIGHTS, sha256_file
+from slamreloc.map.write import save_map
+from slamreloc.map.scene_map import MapDatabase, SceneMap
 from tests import fuzzing
 from tests.colmap_project import write_colmap_project
 from tests.fuzzing import (COUNTS, damaged_bytes, damaged_json, damaged_text, fuzz_settings,

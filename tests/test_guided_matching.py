@@ -1,4 +1,4 @@
-"""Guided matching (`slamreloc.guided_matching`) and the regressor's guided refinement, on the
+"""Guided matching (`slamreloc.localize.guided`) and the regressor's guided refinement, on the
 small synthetic scene (its database labels come from rendered depth, so they are exact)."""
 
 import shutil
@@ -10,11 +10,11 @@ from hypothesis import strategies as st
 
 from slamreloc.datasets import load_dataset, read_depth, read_image
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, look_at, pose_error
-from slamreloc.guided_matching import GuidedConfig, GuidedMatcher
-from slamreloc.labels import depth_points
-from slamreloc.localizer import make_localizer
-from slamreloc.pnp import refine_from
-from slamreloc.scene_map import MapDatabase, SceneMap
+from slamreloc.localize.guided import GuidedConfig, GuidedMatcher
+from slamreloc.map.labels import depth_points
+from slamreloc.localize.localizer import make_localizer
+from slamreloc.localize.pnp import refine_from
+from slamreloc.map.scene_map import MapDatabase, SceneMap
 
 
 def _queries(scene_dir, n=None):

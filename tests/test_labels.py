@@ -8,10 +8,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from slamreloc.datasets import load_dataset, read_depth
-from slamreloc.extract import extract_frames
+from slamreloc.features.extract import extract_frames
 from slamreloc.features import make_extractor
 from slamreloc.geometry import project
-from slamreloc.labels import LabelConfig, build_labels, depth_points
+from slamreloc.map.labels import LabelConfig, build_labels, depth_points
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +72,7 @@ def test_refined_track_points_are_the_least_squares_points(seed, n_views, noise_
     from scipy.optimize import least_squares
 
     from slamreloc.geometry import look_at
-    from slamreloc.labels import refine_track_points
+    from slamreloc.map.labels import refine_track_points
     from slamreloc.types import Camera, Frame
 
     rng = np.random.default_rng(seed)

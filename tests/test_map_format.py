@@ -23,10 +23,10 @@ import torch
 import slamreloc
 from slamreloc.errors import InputError
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
-from slamreloc.map_format import (DATABASE, FORMAT_VERSION, LABELLED, LEGACY_WEIGHTS, META, NEW,
+from slamreloc.map.format import (DATABASE, FORMAT_VERSION, LABELLED, LEGACY_WEIGHTS, META, NEW,
                                   PROVENANCE, PSEUDO, WEIGHTS, sha256_file)
-from slamreloc.map_write import migrate_map, save_map
-from slamreloc.scene_map import MapDatabase, SceneMap
+from slamreloc.map.write import migrate_map, save_map
+from slamreloc.map.scene_map import MapDatabase, SceneMap
 
 FIXTURES = Path(__file__).parent / "data" / "maps"
 PROBE = np.linspace(-1, 1, 5 * 8, dtype=np.float32).reshape(5, 8)  # descriptors to predict

@@ -9,11 +9,11 @@ import pytest
 
 from slamreloc.datasets import load_dataset, read_depth, read_image
 from slamreloc.geometry import tum_line
-from slamreloc.labels import depth_points
-from slamreloc.localizer import make_localizer
-from slamreloc.pipeline import run_evaluation
-from slamreloc.pnp import estimate_pose, refine_from
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.labels import depth_points
+from slamreloc.localize.localizer import make_localizer
+from slamreloc.cli.pipeline import run_evaluation
+from slamreloc.localize.pnp import estimate_pose, refine_from
+from slamreloc.map.scene_map import SceneMap
 
 CONTRACT_KEYS = {"method", "n_queries", "n_localized", "median_translation_m",
                  "median_rotation_deg", "recall", "timing_ms", "map", "device"}
@@ -229,7 +229,7 @@ def test_demo_leaves_scene_map_and_report(scene_dir, tmp_path):
 def test_existing_map_is_replaced_whole(small_map, scene_dir, tmp_path):
     import shutil
 
-    from slamreloc.mapping import build_map
+    from slamreloc.map.build import build_map
     from tests.conftest import small_map_config
 
     target = tmp_path / "m"

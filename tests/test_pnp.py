@@ -1,12 +1,12 @@
-"""PnP-RANSAC and its final refinement (`slamreloc.pnp`), on synthetic correspondences."""
+"""PnP-RANSAC and its final refinement (`slamreloc.localize.pnp`), on synthetic correspondences."""
 
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, look_at, pose_error
-from slamreloc.localizer import REGRESSOR_PNP
-from slamreloc.pnp import PnPConfig, estimate_pose, refine_from, reprojection_px
+from slamreloc.localize.localizer import REGRESSOR_PNP
+from slamreloc.localize.pnp import PnPConfig, estimate_pose, refine_from, reprojection_px
 from slamreloc.types import Camera
 
 CAMERA = Camera(640, 480, 525.0, 525.0, 320.0, 240.0)

@@ -21,9 +21,9 @@ from hypothesis import strategies as st
 
 from slamreloc.datasets import apply_poses, load_dataset, read_poses
 from slamreloc.errors import InputError
-from slamreloc.evaluate import IDENTITY_RESIDUAL, reference_alignment
+from slamreloc.localize.evaluate import IDENTITY_RESIDUAL, reference_alignment
 from slamreloc.geometry import Rigid3, Sim3, axis_angle_to_matrix, pose_error, tum_line
-from slamreloc.map_format import META
+from slamreloc.map.format import META
 from tests.fuzzing import run_cli_output
 
 # a rigid motion (a map trained on moved poses stays metric) and a similarity with a scale
@@ -53,7 +53,7 @@ def cli(*args, hang_s: float = 600.0) -> tuple[int, str, str]:
 @contextmanager
 def wide_console(width: int = 200):
     """The CLI's tables at a terminal's width, whatever runs the tests."""
-    from slamreloc.progress import console
+    from slamreloc.runtime.progress import console
 
     saved = console._width  # rich has no public way back to "the terminal's width"
     console.width = width

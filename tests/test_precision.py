@@ -10,11 +10,11 @@ import sys
 import pytest
 import torch
 
-import slamreloc.precision as precision_module
-from slamreloc.localizer import make_localizer
-from slamreloc.precision import EmulatedBf16Warning, bf16_support, resolve_precision
+import slamreloc.runtime.precision as precision_module
+from slamreloc.localize.localizer import make_localizer
+from slamreloc.runtime.precision import EmulatedBf16Warning, bf16_support, resolve_precision
 
-PROBE = ("import json; from slamreloc.precision import bf16_support, resolve_precision; "
+PROBE = ("import json; from slamreloc.runtime.precision import bf16_support, resolve_precision; "
          "print(json.dumps([resolve_precision('auto'), bf16_support('cpu')[1]]))")
 
 

@@ -11,13 +11,13 @@ import warnings
 import numpy as np
 import pytest
 
-from slamreloc import precision
+from slamreloc.runtime import precision
 from slamreloc.datasets import load_dataset
-from slamreloc.map_format import PROVENANCE
-from slamreloc.pipeline import evaluate_method
+from slamreloc.map.format import PROVENANCE
+from slamreloc.cli.pipeline import evaluate_method
 from slamreloc.pseudo_label import PseudoLabelConfig, update_map
 from slamreloc.pseudo_label.register import Database
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.scene_map import SceneMap
 
 
 def cli(*args):

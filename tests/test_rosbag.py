@@ -26,7 +26,7 @@ from slamreloc.datasets.rosbag import (
 )
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix
-from slamreloc.images import read_depth, read_image
+from slamreloc.io.images import read_depth, read_image
 from slamreloc.slam.run import make_odometry
 from slamreloc.types import Camera
 from tests.fuzzing import run_cli

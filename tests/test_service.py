@@ -21,12 +21,12 @@ import torch
 from slamreloc.client import Client, RemoteError, confirmed_frames, frame_poses
 from slamreloc.datasets import load_dataset
 from slamreloc.geometry import Rigid3, write_tum_trajectory
-from slamreloc.images import decode_rgb, read_image
-from slamreloc.localizer import RegressorLocalizer
-from slamreloc.map_format import SURFACE
-from slamreloc.map_write import save_map
+from slamreloc.io.images import decode_rgb, read_image
+from slamreloc.localize.localizer import RegressorLocalizer
+from slamreloc.map.format import SURFACE
+from slamreloc.map.write import save_map
 from slamreloc.proto.messages import transform_msg
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.scene_map import SceneMap
 from slamreloc.service.server import ServeConfig, start_server
 from slamreloc.slam.feed import read_frames
 from slamreloc.slam.report import kidnap_stats

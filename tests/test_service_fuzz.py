@@ -142,7 +142,7 @@ def _png(img: np.ndarray) -> bytes:
 
 @pytest.fixture(scope="module")
 def wire(small_map, scene_dir) -> Wire:
-    from slamreloc.images import read_depth
+    from slamreloc.io.images import read_depth
 
     running = start_server({MAP: small_map.root},
                            ServeConfig(port=0, max_request_bytes=MAX_REQUEST, watch_s=0,

@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from slamreloc.datasets import load_dataset
-from slamreloc.evaluate import align_to_reference
-from slamreloc.images import read_image
+from slamreloc.localize.evaluate import align_to_reference
+from slamreloc.io.images import read_image
 from tests.fuzzing import run_cli
 
 

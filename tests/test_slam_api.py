@@ -170,7 +170,7 @@ def test_backend_hands_freed_heap_back_every_n_frames(monkeypatch):
     backend returns the allocator's free pages to the system (glibc malloc_trim)."""
     import platform
 
-    from slamreloc.memory import release_free_memory
+    from slamreloc.runtime.memory import release_free_memory
     from slamreloc.slam import backend as backend_module
     from slamreloc.slam.backend import BackendConfig
     from slamreloc.types import Camera

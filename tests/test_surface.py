@@ -11,9 +11,9 @@ from hypothesis import strategies as st
 from slamreloc.datasets import load_dataset, read_depth
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, pose_error, read_named_trajectory
-from slamreloc.map_format import SURFACE
-from slamreloc.scene_map import SceneMap
-from slamreloc.surface import IcpConfig, Surface, depth_cloud, frame_cloud, refine_pose
+from slamreloc.map.format import SURFACE
+from slamreloc.map.scene_map import SceneMap
+from slamreloc.map.surface import IcpConfig, Surface, depth_cloud, frame_cloud, refine_pose
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +53,7 @@ def _scene_points(rng) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def room():
-    from slamreloc.surface import build_surface
+    from slamreloc.map.surface import build_surface
 
     points = _scene_points(np.random.default_rng(0))
     return build_surface([(Rigid3.identity(), points)]), points

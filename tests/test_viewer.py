@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from slamreloc.errors import InputError
-from slamreloc.map_format import LABELLED, NEW
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.format import LABELLED, NEW
+from slamreloc.map.scene_map import SceneMap
 from slamreloc.viewer import ViewerInputs, build_scene, load_scene_data, make_server
 from slamreloc.viewer import colors as palette
 from slamreloc.viewer.gui import report_table

@@ -38,9 +38,9 @@ class ViewerCase:
 
 
 def build_map_folder(scene: Path, out: Path, seed: int = 0):
-    from slamreloc.map_write import save_map
+    from slamreloc.map.write import save_map
     from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
-    from slamreloc.scene_map import MapDatabase
+    from slamreloc.map.scene_map import MapDatabase
 
     ds = load_dataset(scene)
     frames = ds.frames("train")

@@ -28,7 +28,7 @@ def frames_by_name(dataset) -> dict:
 def read_rgb(path: Path | None, width: int | None = None) -> np.ndarray | None:
     """RGB uint8 image (resized to `width` when given), or None if it cannot be read (the
     core's reader: the same bounds and checks as every command's)."""
-    from slamreloc.images import read_image
+    from slamreloc.io.images import read_image
 
     if path is None:
         return None

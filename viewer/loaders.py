@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.scene_map import SceneMap
 from slamreloc.viewer.data import SceneData, ViewerInputs
 from slamreloc.viewer.images import open_dataset
 from slamreloc.viewer.map_view import load_map

@@ -13,9 +13,9 @@ from slamreloc.viewer.images import fit_width, frames_by_name, read_rgb
 
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
-from slamreloc.images import pixel_colours
-from slamreloc.map_format import DATABASE, LABELLED
-from slamreloc.scene_map import SceneMap, rows_by_frame
+from slamreloc.io.images import pixel_colours
+from slamreloc.map.format import DATABASE, LABELLED
+from slamreloc.map.scene_map import SceneMap, rows_by_frame
 
 
 def estimate_up(world_from_cam: np.ndarray) -> np.ndarray:

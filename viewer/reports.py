@@ -7,15 +7,15 @@ from pathlib import Path
 
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
-from slamreloc.jsonio import Json
-from slamreloc.jsonio import read_json as read_json_file
+from slamreloc.io.jsonio import Json
+from slamreloc.io.jsonio import read_json as read_json_file
 from slamreloc.viewer.data import (EvalReport, FrameView, PseudoLabelReport, QueryView,
                                    Trajectory)
 from slamreloc.viewer.images import frames_by_name
 
 
 def read_json(path: str | Path) -> dict:
-    """A report: a JSON object (bounded size and depth, finite numbers; `slamreloc.jsonio`)."""
+    """A report: a JSON object (bounded size and depth, finite numbers; `slamreloc.io.jsonio`)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: report not found")

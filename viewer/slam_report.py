@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.jsonio import Json
+from slamreloc.io.jsonio import Json
 from slamreloc.viewer.data import GraphEdge, SlamEvent, SlamReport, Trajectory
 from slamreloc.viewer.trajectories import read_trajectory
 

@@ -48,7 +48,7 @@ def options(
 ) -> None:
     """Camera relocalization with a lightweight scene-coordinate regressor."""
     if limit:
-        from slamreloc.limits import parse_limits, set_limits
+        from slamreloc.io.limits import parse_limits, set_limits
 
         set_limits(**parse_limits(limit))
     if topic:
@@ -79,7 +79,7 @@ def map_cmd(
 ) -> None:
     """Extract features, build scene-coordinate labels and train the regressor into OUT."""
     from slamreloc.datasets import load_dataset
-    from slamreloc.mapping import MapConfig, build_map
+    from slamreloc.map.build import MapConfig, build_map
 
     if epochs is not None and epochs < 1:
         raise InputError(f"--epochs must be at least 1, got {epochs}")
@@ -120,12 +120,12 @@ def evaluate(
     guided: Annotated[bool, typer.Option(help=GUIDED_HELP)] = True,
 ) -> None:
     """Localize every frame of a split against MAP and score it against ground truth."""
-    from slamreloc.pipeline import run_evaluation
+    from slamreloc.cli.pipeline import run_evaluation
 
     summary = run_evaluation(map_dir, dataset, report, split, method.value, trajectory, plot,
                              device.value, depth=depth, poses=poses,
                              references=list(reference or []), guided=guided)
-    from slamreloc.evaluate import print_summary
+    from slamreloc.localize.evaluate import print_summary
 
     print_summary([summary])
 
@@ -145,7 +145,7 @@ def localize(
     guided: Annotated[bool, typer.Option(help=GUIDED_HELP)] = True,
 ) -> None:
     """Print `name tx ty tz qx qy qz qw inliers` (camera-to-world) for each image."""
-    from slamreloc.pipeline import localize_images
+    from slamreloc.cli.pipeline import localize_images
 
     if camera is not None and intrinsics is not None:
         raise InputError("--camera and --intrinsics: give one of them")
@@ -196,9 +196,9 @@ def pseudo_label_cmd(
     DATASET's poses are never read except to score the report (as are --truth's and
     --poses')."""
     from slamreloc.datasets import load_dataset
-    from slamreloc.fileio import check_outputs, write_json
-    from slamreloc.map_format import check_is_map
-    from slamreloc.progress import console
+    from slamreloc.io.fileio import check_outputs, write_json
+    from slamreloc.map.format import check_is_map
+    from slamreloc.runtime.progress import console
     from slamreloc.pseudo_label import PseudoLabelConfig, update_map
 
     check_is_map(map_dir)  # what the inputs are, then where the outputs may go
@@ -273,8 +273,8 @@ def export(
         help="dataset for colours and image names (default: the one the map records)")] = None,
 ) -> None:
     """Export MAP's labelled points and training cameras to COLMAP, PLY and TUM."""
-    from slamreloc.export import export_map
-    from slamreloc.progress import console
+    from slamreloc.map.export import export_map
+    from slamreloc.runtime.progress import console
 
     s = export_map(map_dir, colmap, ply, tum, dataset)
     written = ", ".join(str(p) for p in (colmap, ply, tum) if p is not None)
@@ -352,7 +352,7 @@ def view(
 
 
 def _print_map(scene_map) -> None:
-    from slamreloc.progress import console
+    from slamreloc.runtime.progress import console
 
     info = scene_map.info
     console.print(f"[green]map written[/green] to {scene_map.root}: {info.regressor_arch} "

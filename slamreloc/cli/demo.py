@@ -7,12 +7,12 @@ from pathlib import Path
 
 from slamreloc.cli.slam_stage import print_slam_summary, run_slam_command
 from slamreloc.datasets import load_dataset
-from slamreloc.evaluate import print_summary
-from slamreloc.fileio import write_json
+from slamreloc.localize.evaluate import print_summary
+from slamreloc.io.fileio import write_json
 from slamreloc.geometry import NAMES_SUFFIX
-from slamreloc.mapping import MapConfig, build_map
-from slamreloc.pipeline import run_evaluation
-from slamreloc.progress import console, make_progress
+from slamreloc.map.build import MapConfig, build_map
+from slamreloc.cli.pipeline import run_evaluation
+from slamreloc.runtime.progress import console, make_progress
 from slamreloc.regressor.train import TrainConfig
 from slamreloc.synthetic import SceneConfig, render_scene
 

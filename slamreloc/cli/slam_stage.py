@@ -8,10 +8,10 @@ from pathlib import Path
 from rich.table import Table
 
 from slamreloc.errors import InputError
-from slamreloc.fileio import check_outputs, write_json
+from slamreloc.io.fileio import check_outputs, write_json
 from slamreloc.geometry import write_tum_trajectory
-from slamreloc.map_format import check_is_map
-from slamreloc.progress import console
+from slamreloc.map.format import check_is_map
+from slamreloc.runtime.progress import console
 from slamreloc.slam.poses import final_trajectory
 from slamreloc.slam.run import TOPIC_PREFIX, SlamRunConfig, run_slam
 

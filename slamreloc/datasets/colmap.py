@@ -32,7 +32,7 @@ from slamreloc.datasets.colmap_check import check_model
 from slamreloc.datasets.io import check_frame_files, read_text
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
-from slamreloc.jsonio import read_json
+from slamreloc.io.jsonio import read_json
 from slamreloc.types import Camera, Frame
 
 MODEL_DIRS = ("sparse/0", "sparse")

@@ -1,5 +1,5 @@
 """Reading the small text files of a dataset (poses, intrinsics), with one-line errors naming
-the file and line. Images and depth maps are read by `slamreloc.images` (re-exported here)."""
+the file and line. Images and depth maps are read by `slamreloc.io.images` (re-exported here)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.fileio import read_bytes
+from slamreloc.io.fileio import read_bytes
 from slamreloc.geometry import Rigid3
-from slamreloc.images import check_frame_files, image_header, image_size, read_depth, read_image
+from slamreloc.io.images import check_frame_files, image_header, image_size, read_depth, read_image
 from slamreloc.types import camera_problem
 
 __all__ = ["check_frame_files", "image_header", "image_size", "read_depth", "read_image",

@@ -40,8 +40,8 @@ import numpy as np
 from slamreloc.datasets.base import Dataset
 from slamreloc.errors import InputError
 from slamreloc.geometry import MAX_COORDINATE, Rigid3, matrix_to_quat, nearest_stamps
-from slamreloc.images import check_encoded_image, check_image_size
-from slamreloc.progress import console
+from slamreloc.io.images import check_encoded_image, check_image_size
+from slamreloc.runtime.progress import console
 from slamreloc.types import Camera, Frame
 
 IMAGE = "sensor_msgs/msg/Image"

@@ -21,8 +21,8 @@ from slamreloc.datasets.io import (
     read_text,
 )
 from slamreloc.errors import InputError
-from slamreloc.fileio import read_bytes
-from slamreloc.jsonio import parse_json
+from slamreloc.io.fileio import read_bytes
+from slamreloc.io.jsonio import parse_json
 from slamreloc.types import Camera, Frame
 
 DEFAULT_K = (525.0, 525.0, 320.0, 240.0)

@@ -9,7 +9,7 @@ from typing import ClassVar
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.limits import limits
+from slamreloc.io.limits import limits
 from slamreloc.types import Camera, Features
 
 

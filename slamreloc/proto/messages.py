@@ -1,7 +1,7 @@
 """Messages of `slamreloc.v1` <-> slamreloc's types, with every check on untrusted input.
 
 Everything a request carries is checked here before any work: images through
-`slamreloc.images` (header bounds before decoding, the extractor's memory bound), cameras
+`slamreloc.io.images` (header bounds before decoding, the extractor's memory bound), cameras
 through `Camera` (the same checks as `--intrinsics` / `--camera`), poses through `Rigid3`
 (finite, unit quaternion, translation bound), depth by size and encoding. A defect raises
 `ServiceError` with its `ErrorKind`; the server turns that into a gRPC status (unary calls) or a
@@ -16,7 +16,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.geometry import MAX_COORDINATE, Rigid3
-from slamreloc.images import check_image_size, decode_image, decode_rgb, encoded_header
+from slamreloc.io.images import check_image_size, decode_image, decode_rgb, encoded_header
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.types import Camera
 
@@ -102,7 +102,7 @@ def image_from_msg(msg: pb.Image, fits=None, what: str = "image") -> np.ndarray:
 
 
 def _bound_kind(err: InputError, kind: int) -> int:
-    """TOO_LARGE for an input over a bound of `slamreloc.limits` (pixels, bytes, memory, JPEG
+    """TOO_LARGE for an input over a bound of `slamreloc.io.limits` (pixels, bytes, memory, JPEG
     scans: "... over the N limit"; Pillow's own pixel bound for BMP, PNM, ...), else `kind`."""
     text = str(err)
     over = ("beyond" in text or "exceeds" in text or "DecompressionBomb" in text

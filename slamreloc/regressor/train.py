@@ -11,9 +11,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from slamreloc.precision import autocast, bf16_support, resolve_precision
+from slamreloc.runtime.precision import autocast, bf16_support, resolve_precision
 from slamreloc.errors import Interrupted
-from slamreloc.progress import console, track
+from slamreloc.runtime.progress import console, track
 from slamreloc.regressor.checkpoint import fingerprint, load_checkpoint, save_checkpoint
 from slamreloc.regressor.model import SceneCoordinateRegressor
 
@@ -36,7 +36,7 @@ class TrainConfig:
     # weights at the end of each epoch in the last `average_tail` fraction of training (0: the
     # last epoch's weights). With lr_halvings=5, 0.2 averages the lowest-lr stage.
     average_tail: float = 0.0
-    precision: str = "auto"  # auto | fp32 | bf16 (slamreloc.precision: bf16 where native)
+    precision: str = "auto"  # auto | fp32 | bf16 (slamreloc.runtime.precision: bf16 where native)
     seed: int = 0
     checkpoint_every_s: float = 30.0  # training state saved this often (when a path is given)
 

@@ -18,7 +18,7 @@ from slamreloc.proto.messages import (
     transform_msg,
 )
 from slamreloc.service.maps import ServedMap
-from slamreloc.surface import IcpConfig, depth_cloud, refine_pose
+from slamreloc.map.surface import IcpConfig, depth_cloud, refine_pose
 
 PRIOR_MAX_M, PRIOR_MAX_DEG = 0.5, 20.0  # defaults of LocalizeRequest.prior_max_*
 MIN_KEYPOINTS = 4  # PnP needs four correspondences

@@ -3,7 +3,7 @@
 A `ServedMap` is immutable: a reload builds a new one beside the old and replaces the registry's
 entry in one assignment, so a request that holds the old one finishes on it and the next request
 gets the new one. Map writers (`slamreloc map`, `pseudo-label`) replace a map folder by an atomic
-rename (`slamreloc.map_write`); the registry sees that as a new folder inode or a new metadata
+rename (`slamreloc.map.write`); the registry sees that as a new folder inode or a new metadata
 file, and `watch` reloads it without a restart.
 """
 
@@ -21,11 +21,11 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.localizer import RegressorLocalizer
-from slamreloc.map_format import DATABASE, META
+from slamreloc.localize.localizer import RegressorLocalizer
+from slamreloc.map.format import DATABASE, META
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import ServiceError
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.scene_map import SceneMap
 
 
 def folder_stamp(path: Path) -> tuple[int, int, int]:

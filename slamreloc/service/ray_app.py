@@ -223,7 +223,7 @@ class Router:
 def check_maps(maps: dict[str, Path]) -> dict[str, Path]:
     """Absolute map folders by name; InputError for a name Serve cannot carry or a path that is
     not a folder. (The map itself is read by its replicas: a defect fails the deployment, and
-    `deploy` reports the replica's error. `slamreloc.map_format` is not imported here: it
+    `deploy` reports the replica's error. `slamreloc.map.format` is not imported here: it
     imports torch, which the router and Serve's controller do without.)"""
     if not maps:
         raise InputError("no maps to serve")

@@ -15,7 +15,7 @@ import math
 import time
 import uuid
 
-from slamreloc.localizer import RegressorLocalizer
+from slamreloc.localize.localizer import RegressorLocalizer
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
     ServiceError,

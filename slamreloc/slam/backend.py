@@ -16,7 +16,7 @@ from enum import Enum
 import numpy as np
 
 from slamreloc.geometry import Rigid3, rotation_angle_deg
-from slamreloc.memory import release_free_memory
+from slamreloc.runtime.memory import release_free_memory
 from slamreloc.slam.events import Event, EventKind, FrameData, Plugin
 from slamreloc.slam.graph import GraphConfig, PoseGraph
 from slamreloc.slam.health import Health, HealthConfig, check_health

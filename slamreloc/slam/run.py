@@ -8,8 +8,8 @@ from pathlib import Path
 
 from slamreloc.datasets import load_dataset
 from slamreloc.errors import InputError
-from slamreloc.map_format import check_is_map
-from slamreloc.progress import track
+from slamreloc.map.format import check_is_map
+from slamreloc.runtime.progress import track
 from slamreloc.slam.backend import BackendConfig, SlamBackend
 from slamreloc.slam.events import load_plugin
 from slamreloc.slam.feed import feed_all, read_frames

@@ -22,7 +22,7 @@ import numpy as np
 from slamreloc.datasets import Dataset, read_depth
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, rotation_angle_deg
-from slamreloc.progress import track
+from slamreloc.runtime.progress import track
 from slamreloc.rgbd import DepthSampling, backproject, depth_camera
 from slamreloc.types import Camera, Frame
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.images import check_image_size
+from slamreloc.io.images import check_image_size
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv")
 
@@ -20,7 +20,7 @@ def is_video(path: Path) -> bool:
 def video_frames(path: Path, fps: float) -> Iterator[tuple[float, np.ndarray]]:
     """(timestamp in seconds, RGB uint8 image) of every frame nearest a multiple of 1/fps.
     One-line InputError for a file that cannot be opened (raised here, before any frame) or
-    decoded, or whose frames break the image bounds (`slamreloc.limits`)."""
+    decoded, or whose frames break the image bounds (`slamreloc.io.limits`)."""
     import cv2
 
     path = Path(path)

@@ -35,9 +35,9 @@ import numpy as np
 from slamreloc import __version__
 from slamreloc.camera_models import distortion_problem
 from slamreloc.errors import InputError
-from slamreloc.fileio import read_bytes
+from slamreloc.io.fileio import read_bytes
 from slamreloc.geometry import MAX_COORDINATE
-from slamreloc.jsonio import parse_json
+from slamreloc.io.jsonio import parse_json
 from slamreloc.regressor.model import RegressorConfig
 from slamreloc.types import camera_problem
 

@@ -17,7 +17,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.map_format import is_map
+from slamreloc.map.format import is_map
 
 _HELD: set[str] = set()  # maps whose write lock this process holds
 

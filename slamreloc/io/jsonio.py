@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.fileio import read_bytes
-from slamreloc.limits import limits
+from slamreloc.io.fileio import read_bytes
+from slamreloc.io.limits import limits
 
 
 def _refuse_constant(name: str):

@@ -10,20 +10,20 @@ import numpy as np
 
 from slamreloc.datasets import Dataset
 from slamreloc.errors import InputError
-from slamreloc.extract import extract_frames
+from slamreloc.features.extract import extract_frames
 from slamreloc.features import make_extractor
-from slamreloc.fileio import check_outputs
-from slamreloc.labels import LabelConfig, LabelSet, build_labels
-from slamreloc.map_format import SURFACE
-from slamreloc.map_lock import map_write_lock
-from slamreloc.map_write import check_map_target, save_map
-from slamreloc.progress import console
+from slamreloc.io.fileio import check_outputs
+from slamreloc.map.labels import LabelConfig, LabelSet, build_labels
+from slamreloc.map.format import SURFACE
+from slamreloc.map.lock import map_write_lock
+from slamreloc.map.write import check_map_target, save_map
+from slamreloc.runtime.progress import console
 from slamreloc.regressor.checkpoint import checkpoint_path
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
 from slamreloc.rgbd import registered_depths
-from slamreloc.scene_map import MapDatabase, SceneMap
-from slamreloc.surface import SurfaceConfig, dataset_surface
+from slamreloc.map.scene_map import MapDatabase, SceneMap
+from slamreloc.map.surface import SurfaceConfig, dataset_surface
 from slamreloc.types import Features, Frame
 
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slamreloc.fileio import atomic_file
+from slamreloc.io.fileio import atomic_file
 from slamreloc.types import Frame
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.map_format import (
+from slamreloc.map.format import (
     DATABASE,
     DB_KEYS,
     META,
@@ -34,11 +34,11 @@ from slamreloc.map_format import (
     read_npz,
     weights_name,
 )
-from slamreloc.map_lock import clean_leftovers
-from slamreloc.map_weights import read_regressor
+from slamreloc.map.lock import clean_leftovers
+from slamreloc.map.weights import read_regressor
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig
-from slamreloc.surface import Surface
+from slamreloc.map.surface import Surface
 from slamreloc.types import Camera
 
 

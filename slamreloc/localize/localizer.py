@@ -16,12 +16,12 @@ import torch
 
 from slamreloc.features import make_extractor
 from slamreloc.features.matcher import LOCALIZER_DB_CHUNK, match_descriptors
-from slamreloc.guided_matching import GuidedConfig, GuidedMatcher
-from slamreloc.pnp import PnPConfig, PoseEstimate, estimate_pose, refine_from
-from slamreloc.precision import autocast, resolve_precision
+from slamreloc.localize.guided import GuidedConfig, GuidedMatcher
+from slamreloc.localize.pnp import PnPConfig, PoseEstimate, estimate_pose, refine_from
+from slamreloc.runtime.precision import autocast, resolve_precision
 from slamreloc.registry import METHODS
 from slamreloc.regressor.train import resolve_device
-from slamreloc.scene_map import SceneMap
+from slamreloc.map.scene_map import SceneMap
 from slamreloc.types import Camera, Features
 
 # Regressed world points scatter by a few centimetres, a few pixels once projected: the final
@@ -89,7 +89,7 @@ class RegressorLocalizer(Localizer):
                  precision: str = "auto", keep_fraction: float = 0.5,
                  refine_on_all: bool = False, guided: GuidedConfig | None = GuidedConfig()):
         """precision: auto | fp32 | bf16 (auto: bf16 on AMX CPUs and CUDA, where it is the
-        faster; `slamreloc.precision`).
+        faster; `slamreloc.runtime.precision`).
         keep_fraction: PnP-RANSAC uses this share of the predictions, the most confident ones,
         but at least 50 (a regressor without a confidence output always uses all).
         refine_on_all: the final refinement then runs again from RANSAC's pose on every

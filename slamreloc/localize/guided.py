@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from slamreloc.geometry import Rigid3, project
-from slamreloc.scene_map import MapDatabase, rows_by_frame
+from slamreloc.map.scene_map import MapDatabase, rows_by_frame
 from slamreloc.types import Camera, Features
 
 

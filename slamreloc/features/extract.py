@@ -7,7 +7,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 from slamreloc.datasets import read_image
 from slamreloc.features import Extractor
-from slamreloc.progress import track
+from slamreloc.runtime.progress import track
 from slamreloc.types import Features, Frame
 
 

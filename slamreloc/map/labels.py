@@ -19,8 +19,8 @@ from scipy.sparse.csgraph import connected_components
 
 from slamreloc.features.matcher import match_descriptors
 from slamreloc.geometry import Rigid3
-from slamreloc.pnp import reprojection_px
-from slamreloc.progress import track
+from slamreloc.localize.pnp import reprojection_px
+from slamreloc.runtime.progress import track
 from slamreloc.types import Features, Frame
 
 # a labelled point lies at least this far in front of every camera that labels it (metres)

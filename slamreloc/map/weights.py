@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from slamreloc.errors import InputError
-from slamreloc.map_format import (LEGACY_WEIGHTS, WEIGHTS, check_digest, one_line, read_npz,
+from slamreloc.map.format import (LEGACY_WEIGHTS, WEIGHTS, check_digest, one_line, read_npz,
                                   weights_name)
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 

@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.fileio import atomic_file
+from slamreloc.io.fileio import atomic_file
 from slamreloc.geometry import Rigid3, matrix_to_quat, write_tum_trajectory
-from slamreloc.images import pixel_colours, read_image
-from slamreloc.progress import track
-from slamreloc.scene_map import SceneMap, rows_by_frame
+from slamreloc.io.images import pixel_colours, read_image
+from slamreloc.runtime.progress import track
+from slamreloc.map.scene_map import SceneMap, rows_by_frame
 
 GREY = 128
 
@@ -172,8 +172,8 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
                tum: Path | None = None, dataset_dir: Path | None = None,
                progress: bool = True) -> dict:
     """Write the requested exports of the map at `map_dir`; returns a summary."""
-    from slamreloc.fileio import check_outputs
-    from slamreloc.map_format import check_is_map
+    from slamreloc.io.fileio import check_outputs
+    from slamreloc.map.format import check_is_map
 
     if colmap is None and ply is None and tum is None:
         raise InputError("export: nothing to write (give --colmap DIR, --ply FILE or --tum FILE)")

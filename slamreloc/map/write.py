@@ -18,12 +18,12 @@ import numpy as np
 
 from slamreloc import __version__
 from slamreloc.errors import InputError
-from slamreloc.map_format import (DATABASE, FORMAT_VERSION, MAP_FORMAT, META, WEIGHTS, is_map,
+from slamreloc.map.format import (DATABASE, FORMAT_VERSION, MAP_FORMAT, META, WEIGHTS, is_map,
                                   sha256_file)
-from slamreloc.map_lock import fsync_dir, map_write_lock
-from slamreloc.map_weights import weight_arrays
+from slamreloc.map.lock import fsync_dir, map_write_lock
+from slamreloc.map.weights import weight_arrays
 from slamreloc.regressor.model import SceneCoordinateRegressor
-from slamreloc.scene_map import MapDatabase, SceneMap
+from slamreloc.map.scene_map import MapDatabase, SceneMap
 
 
 def check_map_target(out: Path) -> None:

@@ -1,4 +1,4 @@
-"""Decoding images and depth maps from untrusted bytes, within the bounds of `slamreloc.limits`.
+"""Decoding images and depth maps from untrusted bytes, within the bounds of `slamreloc.io.limits`.
 
 Nothing reaches a decoder before its header has been read and checked: the encoded size, the
 width x height against `max_image_pixels` (a 48 KB PNG can claim 20000 x 20000 pixels and ask
@@ -21,8 +21,8 @@ import cv2
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.fileio import read_bytes
-from slamreloc.limits import limits
+from slamreloc.io.fileio import read_bytes
+from slamreloc.io.limits import limits
 
 INVALID_DEPTH = (0, 65535)  # raw uint16 values that mean "no measurement"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

@@ -8,7 +8,7 @@ from pathlib import Path
 from slamreloc.datasets import Dataset, load_dataset, read_image, read_reference
 from slamreloc.datasets.poses import FrameKey, match_poses
 from slamreloc.errors import InputError
-from slamreloc.evaluate import (
+from slamreloc.localize.evaluate import (
     QueryResult,
     evaluate_frames,
     reference_alignment,
@@ -16,12 +16,12 @@ from slamreloc.evaluate import (
     summarize,
     write_tum,
 )
-from slamreloc.fileio import check_outputs, write_json
+from slamreloc.io.fileio import check_outputs, write_json
 from slamreloc.geometry import Rigid3, Sim3, tum_line
-from slamreloc.localizer import Localizer, make_localizer
-from slamreloc.map_format import check_is_map
-from slamreloc.scene_map import SceneMap
-from slamreloc.surface import frame_cloud, refine_pose
+from slamreloc.localize.localizer import Localizer, make_localizer
+from slamreloc.map.format import check_is_map
+from slamreloc.map.scene_map import SceneMap
+from slamreloc.map.surface import frame_cloud, refine_pose
 from slamreloc.types import Camera, Frame, camera_problem
 
 
@@ -182,7 +182,7 @@ def run_evaluation(map_dir: Path, dataset_dir: Path, report: Path, split: str = 
     if trajectory:
         write_tum(trajectory, results)
     if plot:
-        from slamreloc.plots import plot_evaluation
+        from slamreloc.localize.plots import plot_evaluation
 
         plot_evaluation(plot, {method: results}, frames)
     return summary

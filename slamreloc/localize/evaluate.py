@@ -13,8 +13,8 @@ from rich.table import Table
 from slamreloc.datasets import read_image
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3, Sim3, align_poses, pose_error, write_tum_trajectory
-from slamreloc.localizer import Localizer
-from slamreloc.progress import console, track
+from slamreloc.localize.localizer import Localizer
+from slamreloc.runtime.progress import console, track
 from slamreloc.types import Frame
 
 THRESHOLDS = {"1cm1deg": (0.01, 1.0), "2cm2deg": (0.02, 2.0), "5cm5deg": (0.05, 5.0),

@@ -1,0 +1,1 @@
+"""The map: its folder format, crash-safe writing and locking, weights, labels, surface, building and export."""

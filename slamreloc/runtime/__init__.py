@@ -1,0 +1,1 @@
+"""How the process runs: compute precision, progress bars, memory given back."""
