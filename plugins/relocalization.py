@@ -41,14 +41,20 @@ class RelocalizationPlugin:
 
     def __init__(self, map_dir: str | Path | None = None, localizer=None,
                  config: RelocalizationConfig = RelocalizationConfig(), device: str = "cpu",
-                 depth_intrinsics: tuple[float, float, float, float] | None = None):
-        """depth_intrinsics: the depth camera's (fx, fy, cx, cy) at 640x480 where depth is not
-        registered to the image (`Dataset.depth_intrinsics`), else None."""
+                 depth_intrinsics: tuple[float, float, float, float] | None = None,
+                 scene_map=None):
+        """The map to relocalize in, one of: `map_dir` (a map folder, loaded here),
+        `scene_map` (a loaded `SceneMap`, e.g. one a server already holds) or `localizer`
+        (a ready localizer). depth_intrinsics: the depth camera's (fx, fy, cx, cy) at 640x480
+        where depth is not registered to the image (`Dataset.depth_intrinsics`), else None."""
         if localizer is None:
             from slamreloc.localize.localizer import RegressorLocalizer
-            from slamreloc.map.scene_map import SceneMap
 
-            localizer = RegressorLocalizer(SceneMap.load(map_dir), device=device,
+            if scene_map is None:
+                from slamreloc.map.scene_map import SceneMap
+
+                scene_map = SceneMap.load(map_dir)
+            localizer = RegressorLocalizer(scene_map, device=device,
                                            keep_fraction=config.keep_fraction)
         self.localizer, self.config = localizer, config
         self.depth_intrinsics = depth_intrinsics

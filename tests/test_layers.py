@@ -5,7 +5,10 @@ Layers, lowest first: the core (every `slamreloc.*` module outside the others), 
 `slamreloc.viewer`), the applications (the command line `slamreloc.cli` and the service
 `slamreloc.service`, which compose the wings). A module imports only from its own
 layer or lower ones, and a wing imports no other wing (the viewer reads what the updater writes
-through the core's readers). Every import counts, the function-local ones included. The modules
+through the core's readers). Every import counts, the function-local ones included, and so
+does a string that names a module (`"slamreloc.x.y"`, `"slamreloc.x.y:Name"`: what
+`import_module` or an entry point would load). Plugins are reached only through the entry-point
+group `slamreloc.plugins`: no module outside them imports or names one. The modules
 are found by walking the source folders that pyproject.toml's package-dir maps into the
 `slamreloc` namespace, so files that move are checked where they land.
 """
@@ -13,6 +16,7 @@ are found by walking the source folders that pyproject.toml's package-dir maps i
 from __future__ import annotations
 
 import ast
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +29,8 @@ CORE, SLAM, WING, CLI = 0, 1, 2, 3
 LAYER_NAMES = {CORE: "core", SLAM: "slam", WING: "wing", CLI: "application"}
 APPLICATIONS = ("slamreloc.cli", "slamreloc.service")
 WINGS = ("slamreloc.plugins", "slamreloc.pseudo_label", "slamreloc.viewer")
+PLUGINS = "slamreloc.plugins"  # reached only through the entry-point group of that name
+MODULE_STRING = re.compile(r"slamreloc(\.[A-Za-z_]\w*)+(:[A-Za-z_]\w*)?")
 
 
 @dataclass(frozen=True)
@@ -76,7 +82,10 @@ def imports_of(module: str, path: Path, modules: dict[str, Path],
     is_package = path.name == "__init__.py"
     out = []
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str) \
+                and MODULE_STRING.fullmatch(node.value) and node.value != PLUGINS:
+            names = [node.value.partition(":")[0]]  # import_module("slamreloc.x"), "m:Attr"
+        elif isinstance(node, ast.Import):
             names = [alias.name for alias in node.names]
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
@@ -118,6 +127,9 @@ def layer_violations(imports: list[Import]) -> list[str]:
                        f"({LAYER_NAMES[dst]})")
         elif src == dst == WING and wing(imp.source) != wing(imp.target):
             bad.append(f"{imp.where}: wing {imp.source} imports another wing's {imp.target}")
+        elif wing(imp.target) == PLUGINS and wing(imp.source) != PLUGINS:
+            bad.append(f"{imp.where}: {imp.source} names the plugin {imp.target} (plugins are "
+                       f"loaded through the entry-point group {PLUGINS})")
     return bad
 
 
@@ -232,6 +244,22 @@ def test_a_bad_import_is_reported_with_its_line(tmp_path):
         "slamreloc.viewer.c.py:2: slamreloc.viewer.c (wing) imports slamreloc.cli "
         "(application)"]
     (cycle,) = cycles(imports)
+
+    # a plugin named by module string (an upward import the graph would not see), or imported
+    # directly by the backend or the service
+    sources = {"slamreloc.slam.e": 'BUILTIN = {"r": "slamreloc.plugins.p:Plugin"}\n',
+               "slamreloc.service.s": "from slamreloc.plugins.p import Config\n",
+               "slamreloc.plugins.p": "", "slamreloc.service": "",
+               "slamreloc.slam": "", "slamreloc.plugins": ""}
+    modules = {name: tmp_path / f"{name}.py" for name in sources}
+    for name, text in sources.items():
+        modules[name].write_text(text)
+    imports = [imp for m, p in modules.items()
+               for imp in imports_of(m, p, modules, root=tmp_path)]
+    assert layer_violations(imports) == [
+        "slamreloc.slam.e.py:1: slamreloc.slam.e (slam) imports slamreloc.plugins.p (wing)",
+        "slamreloc.service.s.py:1: slamreloc.service.s names the plugin slamreloc.plugins.p "
+        "(plugins are loaded through the entry-point group slamreloc.plugins)"]
     assert [(i.source, i.target, i.where) for i in cycle] == [
         ("slamreloc.a", "slamreloc.slam.b", "slamreloc.a.py:4"),
         ("slamreloc.slam.b", "slamreloc.a", "slamreloc.slam.b.py:1")]

@@ -15,7 +15,6 @@ import math
 import time
 import uuid
 
-from slamreloc.localize.localizer import RegressorLocalizer
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
     ServiceError,
@@ -64,17 +63,10 @@ class Session:
                      else make_odometry(odometry, self.depth_intrinsics))
         self.odometry_name = odometry if front_end is None else front_end.name
         plugin = load_plugin("relocalization", depth_intrinsics=self.depth_intrinsics,
-                             localizer=self._localizer())
+                             scene_map=self.served.scene_map)
         self.plugin = plugin
         self.backend = SlamBackend(front_end, [plugin], BackendConfig())
         self._decisions_sent = 0
-
-    def _localizer(self) -> RegressorLocalizer:
-        """As `RelocalizationPlugin` makes its own from a map folder (same keep_fraction)."""
-        from slamreloc.plugins.relocalization import RelocalizationConfig
-
-        return RegressorLocalizer(self.served.scene_map,
-                                  keep_fraction=RelocalizationConfig().keep_fraction)
 
     @property
     def n_frames(self) -> int:

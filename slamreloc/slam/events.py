@@ -1,15 +1,17 @@
 """Backend events and the plugin registry (entry-point group `slamreloc.plugins`).
 
 A plugin is any object with `attach(backend)` and `on_event(event)`; the backend calls
-`on_event` for every event, in the order the events happen. Third-party packages register a
-factory (a class or a function returning a plugin) under the entry-point group.
+`on_event` for every event, in the order the events happen. Every plugin, the built-in
+relocalization plugin included, is found through the entry-point group: a package registers a
+factory (a class or a function returning a plugin) under it in its pyproject.toml, as
+slamreloc's own does. The backend never names a plugin's module.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import Enum
-from importlib import import_module, metadata
+from importlib import metadata
 from typing import Any, Protocol
 
 import numpy as np
@@ -18,7 +20,6 @@ from slamreloc.geometry import Rigid3
 from slamreloc.types import Camera
 
 ENTRY_POINT_GROUP = "slamreloc.plugins"
-BUILTIN_PLUGINS = {"relocalization": "slamreloc.plugins.relocalization:RelocalizationPlugin"}
 
 
 class EventKind(str, Enum):
@@ -56,23 +57,16 @@ class Plugin(Protocol):
     def on_event(self, event: Event, frame: FrameData) -> None: ...
 
 
-def _load(target: str):
-    module, _, attr = target.partition(":")
-    return getattr(import_module(module), attr)
-
-
 def available_plugins() -> dict[str, Any]:
-    """name -> factory: entry points of the group, then the built-in ones not listed there."""
-    found = {ep.name: ep for ep in metadata.entry_points(group=ENTRY_POINT_GROUP)}
-    out: dict[str, Any] = {name: ep.load for name, ep in found.items()}
-    for name, target in BUILTIN_PLUGINS.items():
-        out.setdefault(name, lambda target=target: _load(target))
-    return out
+    """name -> factory, for every entry point of the group `slamreloc.plugins`."""
+    return {ep.name: ep.load for ep in metadata.entry_points(group=ENTRY_POINT_GROUP)}
 
 
 def load_plugin(name: str, **kwargs) -> Plugin:
     """Instantiate the plugin registered as `name` with `kwargs`."""
     plugins = available_plugins()
     if name not in plugins:
-        raise ValueError(f"unknown plugin '{name}' (known: {', '.join(sorted(plugins))})")
+        known = ", ".join(sorted(plugins)) or "none: is slamreloc installed (pip install -e .)?"
+        raise ValueError(f"unknown plugin '{name}' (entry-point group {ENTRY_POINT_GROUP}; "
+                         f"known: {known})")
     return plugins[name]()(**kwargs)
