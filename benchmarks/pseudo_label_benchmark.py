@@ -35,7 +35,8 @@ import torch
 from slamreloc.datasets import load_dataset
 from slamreloc.localize.guided import GuidedConfig
 from slamreloc.map.build import MapConfig, build_map
-from slamreloc.cli.pipeline import evaluate_method
+from slamreloc.datasets import load_dataset
+from slamreloc.localize.evaluate import EvaluationConfig, evaluate_map
 from slamreloc.pseudo_label import PseudoLabelConfig
 from slamreloc.pseudo_label.update import pseudo_label
 from slamreloc.pseudo_label.write import write_updated_map
@@ -155,8 +156,8 @@ def main() -> None:
                     ("updated, retrained", maps["retrain"]), (full, reference)):
         runs += [(name, m, "regressor", True), (f"{name}, --no-guided", m, "regressor", False)]
     for name, m, method, guided in runs:
-        s, _, _ = evaluate_method(m, split / "queries", "test", method, poses=args.poses,
-                                  guided=guided)
+        s = evaluate_map(m, load_dataset(split / "queries", args.poses), "test",
+                         EvaluationConfig(method=method, guided=guided)).report
         per_query[name] = s.pop("per_query")
         evals[name] = s
     areas = area_recalls(per_query)

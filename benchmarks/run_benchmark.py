@@ -33,7 +33,14 @@ import torch
 from slamreloc.datasets import load_dataset
 from slamreloc.io.fileio import write_json
 from slamreloc.map.build import MapConfig, build_map
-from slamreloc.cli.pipeline import evaluate_method
+from slamreloc.cli.jobs import depth_refiner, reference_labels
+from slamreloc.datasets import load_dataset
+from slamreloc.localize.evaluate import (
+    EvaluationConfig,
+    evaluate_map,
+    prepare_reference,
+    query_frames,
+)
 from slamreloc.localize.plots import plot_evaluation
 from slamreloc.runtime.precision import bf16_support
 from slamreloc.map.scene_map import SceneMap
@@ -127,9 +134,14 @@ def main() -> None:
         for method, depth in METHODS:
             if depth and scene_map.surface is None:
                 continue
-            rep, res, frames = evaluate_method(scene_map, args.dataset, "test", method,
-                                               poses=poses, depth=depth,
-                                               references=[p for p, _ in other])
+            paths = [p for p, _ in other]
+            dataset = load_dataset(args.dataset, poses)
+            queries = query_frames(dataset, "test")
+            refs = [prepare_reference(Path(p), label, scene_map, dataset, queries)
+                    for p, label in zip(paths, reference_labels(paths))]
+            ev = evaluate_map(scene_map, dataset, "test", EvaluationConfig(method=method),
+                              depth_refiner(scene_map, dataset) if depth else None, refs)
+            rep, res, frames = ev.report, ev.results, ev.frames
             name = method + ("-depth" if depth else "")
             # the report's reference labels are file names: name them by what they are
             rep["references"] = {n: r for n, r in zip([n for _, n in other],

@@ -30,7 +30,8 @@ from slamreloc.localize.evaluate import align_to_reference, rescore, summarize
 from slamreloc.io.fileio import write_json
 from slamreloc.geometry import read_tum_trajectory
 from slamreloc.map.build import MapConfig, build_map
-from slamreloc.cli.pipeline import evaluate_method
+from slamreloc.datasets import load_dataset
+from slamreloc.localize.evaluate import evaluate_map
 from slamreloc.map.scene_map import SceneMap
 from slamreloc.sfm import IMAGE_SUFFIXES, SfmConfig, run_sfm
 
@@ -104,7 +105,7 @@ def main() -> None:
         references["SfM"] = dict(read_tum_trajectory(pgt))
     rows = []
     for label, scene_map in (("known poses", known_map), ("sfm (no poses)", sfm_map)):
-        _, results, _ = evaluate_method(scene_map, args.dataset, args.test, "regressor")
+        results = evaluate_map(scene_map, load_dataset(args.dataset), args.test).results
         train = training_poses(scene_map)
         for ref_name, reference in references.items():
             ref_from_map, record = align_to_reference(train, reference)

@@ -13,7 +13,7 @@ import numpy as np
 
 from slamreloc.map.labels import MIN_DEPTH_M, build_labels, depth_points
 from slamreloc.map.format import NEW, PSEUDO
-from slamreloc.localize.pnp import reprojection_px
+from slamreloc.geometry import reprojection_px
 from slamreloc.pseudo_label.config import PseudoLabelConfig
 
 
@@ -56,7 +56,7 @@ def apply_labels(frames, feats, states, depths, config: PseudoLabelConfig,
             s.points[add] = tri[add]
             s.source[add] = NEW
             s.error_px[add] = reprojection_px(s.world_from_cam.inverse(), feats[i].keypoints[add],
-                                              tri[add], cam, min_depth_m=MIN_DEPTH_M)
+                                              tri[add], cam.params(), min_depth_m=MIN_DEPTH_M)
             n_new += int(add.sum())
         if depths is not None and frames[i].depth_path is not None:
             # the frame's depth verifies every label

@@ -19,7 +19,8 @@ from slamreloc.features.matcher import match_descriptors
 from slamreloc.geometry import Rigid3, rotation_angle_deg
 from slamreloc.map.labels import MIN_DEPTH_M
 from slamreloc.map.format import PSEUDO
-from slamreloc.localize.pnp import PnPConfig, estimate_pose, reprojection_px
+from slamreloc.geometry import reprojection_px
+from slamreloc.localize.pnp import PnPConfig, estimate_pose
 from slamreloc.types import Camera, Features
 
 
@@ -176,7 +177,7 @@ def inherit_labels(world_from_cam: Rigid3, f: Features, camera: Camera, q_idx: n
                    pts: np.ndarray, rows: np.ndarray, config: RegistrationConfig) -> FrameState:
     """The frame at this pose, labelled with the matched points that reproject within
     `label_max_error_px`."""
-    err = reprojection_px(world_from_cam.inverse(), f.keypoints[q_idx], pts, camera,
+    err = reprojection_px(world_from_cam.inverse(), f.keypoints[q_idx], pts, camera.params(),
                           min_depth_m=MIN_DEPTH_M)
     good = err <= config.label_max_error_px
     state = FrameState.empty(len(f))

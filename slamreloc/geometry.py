@@ -363,3 +363,15 @@ def project(points_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float) 
     """Pinhole projection of (N, 3) camera-frame points to (N, 2) pixels (OpenCV convention)."""
     z = points_cam[:, 2:3]
     return points_cam[:, :2] / z * np.array([fx, fy]) + np.array([cx, cy])
+
+
+def reprojection_px(cam_from_world: Rigid3, points2d: np.ndarray, points3d: np.ndarray,
+                    intrinsics: tuple[float, float, float, float],
+                    min_depth_m: float = 1e-6) -> np.ndarray:
+    """(N,) pixel distance between each keypoint (undistorted pixels) and its world point
+    (metres) projected by the pose with pinhole `intrinsics` (fx, fy, cx, cy: a camera's
+    `params()`); inf for a NaN point or one at most `min_depth_m` in front of the camera."""
+    x = cam_from_world.transform(np.asarray(points3d, np.float64))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        err = np.linalg.norm(project(x, *intrinsics) - points2d, axis=1)
+    return np.where(x[:, 2] > min_depth_m, err, np.inf)

@@ -11,7 +11,7 @@ from slamreloc.datasets import load_dataset, read_depth, read_image
 from slamreloc.geometry import tum_line
 from slamreloc.map.labels import depth_points
 from slamreloc.localize.localizer import make_localizer
-from slamreloc.cli.pipeline import run_evaluation
+from slamreloc.cli import jobs
 from slamreloc.localize.pnp import estimate_pose, refine_from
 from slamreloc.map.scene_map import SceneMap
 
@@ -67,7 +67,7 @@ def test_confidence_ranks_query_predictions(small_map, scene_dir):
 # has not learned the scene localizes none
 @pytest.mark.parametrize("method, min_recall", [("regressor", 0.75), ("matching", 0.9)])
 def test_localizes_synthetic_queries(small_map, scene_dir, tmp_path, method, min_recall):
-    report = run_evaluation(small_map.root, scene_dir, tmp_path / "r.json", "test", method,
+    report = jobs.evaluate(small_map.root, scene_dir, tmp_path / "r.json", "test", method,
                             trajectory=tmp_path / "poses.txt", progress=False)
     assert CONTRACT_KEYS <= set(report)
     # this scene's labels reproject within 0.2 px: the regressor's guided step runs
@@ -201,16 +201,25 @@ def test_non_positive_intrinsics_are_rejected(small_map, scene_dir):
     assert res.returncode == 2 and "--intrinsics: focal lengths must be positive" in res.stderr
 
 
-def test_demo_leaves_scene_map_and_report(scene_dir, tmp_path):
-    """The demo's steps on the small scene (the full-size demo is the README's `make demo`)."""
+def test_demo_leaves_scene_map_and_report(scene_dir, tmp_path, monkeypatch):
+    """The demo's steps on the small scene (the full-size demo is the README's `make demo`),
+    and what it prints on a non-TTY of 80 columns (COLUMNS=80 | tee): a header per stage,
+    result tables nothing is cropped from, then the next commands to try, which run."""
+    import io
+    import re
+    import shlex
     import shutil
 
-    from slamreloc.cli.demo import run_demo
+    from rich.console import Console
+
+    from slamreloc.cli import demo
     from tests.conftest import SMALL_SCENE, small_map_config
 
     shutil.copytree(scene_dir, tmp_path / "scene")  # reuse the session's rendering
-    out = run_demo(tmp_path, viewer=False, map_config=small_map_config(epochs=10),
-                   scene_config=SMALL_SCENE)
+    screen = Console(file=io.StringIO(), width=80)  # not a terminal: rich's 80-column fallback
+    monkeypatch.setattr(demo, "console", screen)
+    out = demo.run_demo(tmp_path, viewer=False, map_config=small_map_config(epochs=10),
+                        scene_config=SMALL_SCENE)
     assert (tmp_path / "scene" / "scene.json").is_file()
     assert SceneMap.is_map(tmp_path / "map")
     report = json.loads((tmp_path / "report.json").read_text())
@@ -224,6 +233,31 @@ def test_demo_leaves_scene_map_and_report(scene_dir, tmp_path):
     slam = json.loads((tmp_path / "report_slam.json").read_text())  # the SLAM stage ran
     assert {"ate_rmse_m", "n_kidnaps", "n_recovered", "backend_fps"} <= set(slam)
     assert slam == out["slam"] and (tmp_path / "trajectory_slam.txt").is_file()
+
+    text = screen.file.getvalue()
+    shown, steps = text.split("next:\n")
+    assert all(len(line) <= 80 for line in shown.splitlines()), shown
+    assert "\N{HORIZONTAL ELLIPSIS}" not in shown  # rich crops cells with an ellipsis
+    for stage in ("1/5 render", "2/5 map", "3/5 relocalize", "4/5 SLAM", "5/5 map update"):
+        assert stage in shown, stage
+    labels = ["regressor", "matching baseline", "regressor, updated map",
+              "kidnap seq., regressor", "kidnap seq., updated map"]
+    assert [s["method"] for s in out["summaries"]] == [
+        "regressor", "matching", "regressor after update", "regressor before update, kidnap seq.",
+        "regressor after update, kidnap seq."]
+    for label, s in zip(labels, out["summaries"]):  # one whole row per run
+        assert re.search(rf"^ {re.escape(label)} +{s['n_localized']}/{s['n_queries']} .* %",
+                         shown, re.M), (label, shown)
+    assert re.search(rf"^ kidnaps recovered +{slam['n_recovered']}/{slam['n_kidnaps']}", shown,
+                     re.M), shown
+    commands = [line.split("#")[0].strip() for line in steps.splitlines() if line.strip()]
+    assert 2 <= len(commands) <= 4, steps
+    assert commands[0].startswith(f"slamreloc view {tmp_path / 'map'} --report "
+                                  f"{tmp_path / 'report_slam.json'}")
+    assert "slamreloc --help" in commands
+    localize = next(c for c in commands if c.startswith("slamreloc localize"))
+    res = cli(*shlex.split(localize)[1:])  # the paths it names are the demo's own
+    assert res.returncode == 0 and "frame-000000.color.png" in res.stdout, res.stderr
 
 
 def test_existing_map_is_replaced_whole(small_map, scene_dir, tmp_path):

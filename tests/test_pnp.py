@@ -6,7 +6,8 @@ from hypothesis import strategies as st
 
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, look_at, pose_error
 from slamreloc.localize.localizer import REGRESSOR_PNP
-from slamreloc.localize.pnp import PnPConfig, estimate_pose, refine_from, reprojection_px
+from slamreloc.geometry import reprojection_px
+from slamreloc.localize.pnp import PnPConfig, estimate_pose, refine_from
 from slamreloc.types import Camera
 
 CAMERA = Camera(640, 480, 525.0, 525.0, 320.0, 240.0)
@@ -85,7 +86,7 @@ def test_refine_from_returns_to_the_pose_from_a_nearby_start(seed):
     assert refined is not None
     dt, dr = pose_error(refined.inverse(), world_from_cam)
     assert dt < 1e-5 and dr < 1e-3
-    assert np.all(reprojection_px(start, pixels[out], points[out], CAMERA) > 12.0)
+    assert np.all(reprojection_px(start, pixels[out], points[out], CAMERA.params()) > 12.0)
 
 
 def test_refine_from_needs_enough_correspondences_in_its_window():

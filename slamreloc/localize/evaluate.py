@@ -1,4 +1,9 @@
-"""Localize every frame of a split and score it against ground truth (the REPORT.json contract)."""
+"""Localize every frame of a split and score it against ground truth (the REPORT.json contract).
+
+`evaluate_map` takes a loaded map and dataset and returns the report; the references other than
+the dataset's poses are prepared (matched and aligned on the map's training cameras) by
+`prepare_reference`. Reading and checking files, and writing the report, are the command's
+(`slamreloc.cli.jobs`)."""
 
 from __future__ import annotations
 
@@ -10,10 +15,12 @@ from pathlib import Path
 import numpy as np
 from rich.table import Table
 
-from slamreloc.datasets import read_image
+from slamreloc.datasets import Dataset, read_image, read_reference
+from slamreloc.datasets.poses import FrameKey, match_poses
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3, Sim3, align_poses, pose_error, write_tum_trajectory
-from slamreloc.localize.localizer import Localizer
+from slamreloc.localize.localizer import Localizer, make_localizer
+from slamreloc.map.scene_map import SceneMap
 from slamreloc.runtime.progress import console, track
 from slamreloc.types import Frame
 
@@ -36,7 +43,7 @@ def evaluate_frames(localizer: Localizer, frames: list[Frame], progress: bool = 
                     refine: Callable[[Frame, Rigid3], Rigid3] | None = None
                     ) -> list[QueryResult]:
     """refine: optional `(frame, world_from_cam) -> world_from_cam` applied to each localized
-    pose (depth ICP against the map's surface: `pipeline.depth_refiner`), timed as `icp`."""
+    pose (depth ICP against the map's surface), timed as `icp`."""
     if not frames:
         raise InputError("no query frames to evaluate")
     unposed = next((f for f in frames if f.world_from_cam is None), None)
@@ -60,6 +67,125 @@ def evaluate_frames(localizer: Localizer, frames: list[Frame], progress: bool = 
         results.append(QueryResult(frame.name, est, loc.estimate.num_inliers, dt, dr,
                                    loc.timings_ms, frame.timestamp))
     return results
+
+
+@dataclass(frozen=True)
+class EvaluationConfig:
+    """How the queries are localized: `method` regressor | matching on `device`; `guided`
+    False leaves the regressor's guided refinement out (`RegressorLocalizer`; the matching
+    baseline has none); `progress`: show a progress bar."""
+
+    method: str = "regressor"
+    device: str = "cpu"
+    guided: bool = True
+    progress: bool = True
+
+    def localizer(self, scene_map: SceneMap) -> Localizer:
+        kwargs = {"guided": None} if not self.guided and self.method == "regressor" else {}
+        return make_localizer(scene_map, self.method, device=self.device, **kwargs)
+
+
+@dataclass
+class Evaluation:
+    """`evaluate_map`'s result: the report (the REPORT.json contract), the per-query results
+    (map frame) and the frames they belong to, in order."""
+
+    report: dict
+    results: list[QueryResult]
+    frames: list[Frame]
+
+
+def query_frames(dataset: Dataset, split: str) -> list[Frame]:
+    """The frames of `split`; InputError naming the dataset where it has none."""
+    frames = dataset.frames(split)
+    if not frames:
+        raise InputError(f"{dataset.root}: split '{split}' has no frames to evaluate")
+    return frames
+
+
+def evaluate_map(scene_map: SceneMap, dataset: Dataset, split: str = "test",
+                 config: EvaluationConfig = EvaluationConfig(),
+                 refine: Callable[[Frame, Rigid3], Rigid3] | None = None,
+                 references: list[ScoringReference] | tuple[ScoringReference, ...] = (),
+                 localizer: Localizer | None = None) -> Evaluation:
+    """Localize `split` of `dataset` against `scene_map` (a `localizer` made from `config`
+    unless one is given) and score it against the dataset's poses (or the ones
+    `load_dataset(..., poses)` put in their place) and against each prepared reference.
+    refine: `evaluate_frames`'s; the report's `refine` says "depth" when one is given."""
+    frames = query_frames(dataset, split)
+    localizer = localizer or config.localizer(scene_map)
+    results = evaluate_frames(localizer, frames, config.progress, refine)
+    summary = summarize(results, config.method)
+    summary["refine"] = "depth" if refine is not None else None
+    # the regressor's last refinement on the map's database points (localize.guided)
+    summary["guided_refinement"] = localizer.guided is not None
+    summary["map"] = {"parameters": scene_map.regressor.num_parameters(),
+                      "size_bytes": scene_map.size_bytes(),
+                      "database_bytes": scene_map.database_bytes(),
+                      "n_database_descriptors": scene_map.info.n_labelled}
+    summary["device"] = localizer.device.type
+    # the numbers above are scored against `reference`: the dataset's poses or a pose file
+    summary["reference"] = dataset.poses_source
+    summary["dataset"] = {"root": str(Path(dataset.root).resolve()), "split": split,
+                          "poses": dataset.poses_source}
+    summary["references"] = {r.label: r.score(results) for r in references}
+    summary["per_query"] = [
+        {"name": r.name, "translation_error_m": r.translation_error_m if r.world_from_cam else None,
+         "rotation_error_deg": r.rotation_error_deg if r.world_from_cam else None,
+         "num_inliers": r.num_inliers} for r in results]
+    return Evaluation(summary, results, frames)
+
+
+@dataclass
+class ScoringReference:
+    """A reference pose file, prepared before any query is localized: its poses of the queries
+    (world_from_cam in its own frame, by query name) and how estimates move from the map's
+    frame into that frame (fitted on the map's training cameras only)."""
+
+    label: str  # the report's key and the table's row
+    source: Path  # resolved
+    query_world_from_cam: dict[str, Rigid3]
+    ref_from_map: Sim3 | None  # None: the reference is in the map's frame already
+    alignment: dict  # `reference_alignment`'s record
+
+    def score(self, results: list[QueryResult]) -> dict:
+        """The report's `references[label]` entry."""
+        return {"file": str(self.source), "alignment": self.alignment,
+                **score_against(results, self.query_world_from_cam, self.ref_from_map)}
+
+
+def prepare_reference(path: Path, label: str, scene_map: SceneMap, dataset: Dataset,
+                      queries: list[Frame]) -> ScoringReference:
+    """Read a reference (`datasets.read_reference`), match it to the map's training frames
+    and the queries (`match_poses`: training frames the dataset holds by name, image path or
+    timestamp, the others by name), and align it on the training frames that are not queries
+    of this evaluation. InputError naming the file where it matches no frame, no query, or
+    fewer than 3 training frames."""
+    reference = read_reference(path)
+    root = Path(dataset.root)
+    frames = {f.name: f for f in dataset.frames("all")}
+    query_names = {f.name for f in queries}
+    db = scene_map.database
+    training = [(n, m) for n, m in zip(db.frame_names, db.world_from_cam.reshape(-1, 4, 4))
+                if n not in query_names]
+    keys = [FrameKey.of(frames[n], root) if n in frames else FrameKey(n) for n, _ in training]
+    keys += [FrameKey.of(f, root) for f in queries]
+    matched = match_poses(reference, keys)
+    if all(p is None for p in matched):
+        raise InputError(f"{reference.source}: names none of the map's training frames nor "
+                         f"the queries ({reference.count()}, the first {reference.first()}; "
+                         f"the frames are named like {keys[0].name!r})")
+    ref_training = {n: p for (n, _), p in zip(training, matched) if p is not None}
+    ref_queries = {f.name: p for f, p in zip(queries, matched[len(training):]) if p is not None}
+    if not ref_queries:
+        raise InputError(f"{reference.source}: has a pose for none of the {len(queries)} "
+                         f"queries (it has {len(ref_training)} of the map's training frames): "
+                         "nothing to score")
+    map_from_cam = {n: Rigid3.from_matrix(m, tol=1e-2, source=f"{scene_map.root}: frame {n}")
+                    for n, m in training}
+    ref_from_map, alignment = reference_alignment(map_from_cam, ref_training,
+                                                  str(reference.source))
+    return ScoringReference(label, reference.source, ref_queries, ref_from_map, alignment)
 
 
 def within(translation_m, rotation_deg) -> dict[str, np.ndarray]:

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
-from slamreloc.geometry import Rigid3, project
+from slamreloc.geometry import Rigid3, reprojection_px
 from slamreloc.types import Camera
 
 
@@ -84,17 +84,6 @@ def estimate_pose(points2d: np.ndarray, points3d: np.ndarray, camera: Camera,
                         np.asarray(res["inlier_mask"]))
 
 
-def reprojection_px(cam_from_world: Rigid3, points2d: np.ndarray, points3d: np.ndarray,
-                    camera: Camera, min_depth_m: float = 1e-6) -> np.ndarray:
-    """(N,) pixel distance between each keypoint and its world point (metres) projected by the
-    pose; inf for a NaN point or one at most `min_depth_m` in front of the camera. Keypoints
-    are undistorted pixels: `camera`'s pinhole intrinsics project."""
-    x = cam_from_world.transform(np.asarray(points3d, np.float64))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        err = np.linalg.norm(project(x, *camera.params()) - points2d, axis=1)
-    return np.where(x[:, 2] > min_depth_m, err, np.inf)
-
-
 def refine_from(cam_from_world: Rigid3, points2d: np.ndarray, points3d: np.ndarray,
                 camera: Camera, config: PnPConfig = PnPConfig(),
                 max_error_px: float | None = None) -> Rigid3 | None:
@@ -106,7 +95,7 @@ def refine_from(cam_from_world: Rigid3, points2d: np.ndarray, points3d: np.ndarr
     points2d = np.ascontiguousarray(points2d, np.float64)
     points3d = np.ascontiguousarray(points3d, np.float64)
     limit = config.max_error_px if max_error_px is None else max_error_px
-    inliers = reprojection_px(cam_from_world, points2d, points3d, camera) < limit
+    inliers = reprojection_px(cam_from_world, points2d, points3d, camera.params()) < limit
     if inliers.sum() < config.min_inliers:
         return None
     start = pycolmap.Rigid3d(pycolmap.Rotation3d(cam_from_world.rotation),

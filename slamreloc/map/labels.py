@@ -18,8 +18,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from slamreloc.features.matcher import match_descriptors
-from slamreloc.geometry import Rigid3
-from slamreloc.localize.pnp import reprojection_px
+from slamreloc.geometry import Rigid3, reprojection_px
 from slamreloc.runtime.progress import track
 from slamreloc.types import Features, Frame
 
@@ -156,7 +155,7 @@ def triangulate_tracks(frames, feats, track_of, config, progress=True):
     for k, frame in enumerate(frames):
         sl = slice(offsets[k], offsets[k + 1])
         errors[sl] = reprojection_px(frame.world_from_cam.inverse(), kp_xy[sl], points[sl],
-                                     frame.camera, min_depth_m=MIN_DEPTH_M)
+                                     frame.camera.params(), min_depth_m=MIN_DEPTH_M)
     bad = ~(errors <= config.max_reproj_px)
     points[bad] = np.nan
     return points, np.where(bad, np.nan, errors)

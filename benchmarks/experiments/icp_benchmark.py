@@ -1,6 +1,6 @@
 """Depth ICP against a map's surface: how far it pulls wrong poses back, and at what cost.
 
-    python benchmarks/icp_benchmark.py ../shared/data/7scenes_redkitchen --map M [--split test]
+    python benchmarks/experiments/icp_benchmark.py ../shared/data/7scenes_redkitchen --map M [--split test]
         [--points 600 2500]
 
 Per query frame of the split: (1) the regressor's PnP pose and the same after ICP, against the

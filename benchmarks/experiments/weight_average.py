@@ -1,6 +1,6 @@
 """Weight averaging against the spread of training: each seed trained once, scored twice.
 
-    python -m benchmarks.weight_average MAP DATASET [--poses FILE] [--seeds 0 1 2 3] \
+    python -m benchmarks.experiments.weight_average MAP DATASET [--poses FILE] [--seeds 0 1 2 3] \
         [--average-tail 0.2] --out average.md
 
 For each seed a fresh regressor (the map's architecture) trains on MAP's labelled database

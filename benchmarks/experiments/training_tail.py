@@ -1,6 +1,6 @@
 """A training tail without augmentation: does fitting the labels tighter make poses finer?
 
-    python -m benchmarks.training_tail MAP [MAP ...] DATASET [--poses FILE] --out tail.md
+    python -m benchmarks.experiments.training_tail MAP [MAP ...] DATASET [--poses FILE] --out tail.md
 
 The regressor trains with input noise and input dropout (`TrainConfig.noise`,
 `input_dropout`): robustness to the descriptor changes of new views, at the price of a looser

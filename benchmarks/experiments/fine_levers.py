@@ -1,6 +1,6 @@
 """Levers for fine accuracy (1 cm / 1 deg), side by side on one map and one set of queries.
 
-    python -m benchmarks.fine_levers MAP DATASET [--poses FILE] [--split test] --out levers.md
+    python -m benchmarks.experiments.fine_levers MAP DATASET [--poses FILE] [--split test] --out levers.md
 
 Every variant starts from the same extracted features (extracted once) and is scored against
 the poses the map was trained on (the dataset's, or `--poses`, as `evaluate` does). Variants:
@@ -46,7 +46,8 @@ from slamreloc.localize.evaluate import THRESHOLDS, recalls
 from slamreloc.features import make_extractor
 from slamreloc.geometry import pose_error
 from slamreloc.localize.localizer import make_localizer
-from slamreloc.localize.pnp import PnPConfig, estimate_pose, refine_from, reprojection_px
+from slamreloc.geometry import reprojection_px
+from slamreloc.localize.pnp import PnPConfig, estimate_pose, refine_from
 from slamreloc.map.scene_map import SceneMap
 
 
@@ -145,7 +146,7 @@ def main() -> None:
             add(f"keep {keep}", estimate_pose(k2, p2, camera, reg.pnp).world_from_cam, truth)
         reg.keep_fraction = 0.5
         if coarse.success:
-            residual = reprojection_px(coarse.cam_from_world, kp, pts, camera)
+            residual = reprojection_px(coarse.cam_from_world, kp, pts, camera.params())
             med = float(np.median(residual[coarse.inlier_mask]))
             for k in (1.0, 2.0):
                 est = refine_from(coarse.cam_from_world, kp, pts, camera,

@@ -1,0 +1,205 @@
+"""What each command does, once: check its inputs, then where its outputs may go, load the map
+and the dataset, run the library on the loaded objects, write its report and files.
+
+The library below (`slamreloc.localize`, `slamreloc.slam`, `slamreloc.map`, ...) takes loaded
+objects and configs and never names a command-line flag; the messages that do are here.
+`slamreloc.cli.commands` declares the flags and calls these; the demo composes them.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+from rich.table import Table
+
+from slamreloc.datasets import Dataset, load_dataset, read_image
+from slamreloc.errors import InputError
+from slamreloc.geometry import Rigid3, tum_line, write_tum_trajectory
+from slamreloc.io.fileio import check_outputs, write_json
+from slamreloc.localize.evaluate import (
+    EvaluationConfig,
+    evaluate_map,
+    prepare_reference,
+    query_frames,
+    write_tum,
+)
+from slamreloc.map.format import check_is_map
+from slamreloc.map.scene_map import SceneMap
+from slamreloc.map.surface import IcpConfig, read_frame_depth, refine_with_depth
+from slamreloc.runtime.progress import console
+from slamreloc.types import Camera, Frame, camera_problem
+
+
+def evaluate(map_dir: Path, dataset_dir: Path, report: Path, split: str = "test",
+             method: str = "regressor", trajectory: Path | None = None,
+             plot: Path | None = None, device: str = "cpu", progress: bool = True,
+             depth: bool = False, poses: Path | None = None,
+             references: list[Path] | tuple[Path, ...] = (), guided: bool = True) -> dict:
+    """`slamreloc evaluate`: localize a split, write REPORT.json (and the estimated poses as a
+    TUM `trajectory`, a `plot`); returns the report. `poses`: the dataset's poses from this
+    file (`datasets.poses`); `references`: also scored against these, aligned on the map's
+    training cameras; `guided`: `EvaluationConfig`. Everything is read and checked before the
+    work."""
+    check_is_map(map_dir)  # what the inputs are, then where the outputs may go
+    check_outputs({"--report": report, "--trajectory": trajectory, "--plot": plot},
+                  {"the map": map_dir, "the dataset": dataset_dir, "--poses": poses,
+                   **{f"--reference {p}": p for p in references}})
+    scene_map = SceneMap.load(map_dir)
+    labels = reference_labels(list(references))
+    dataset = load_dataset(dataset_dir, poses)
+    frames = query_frames(dataset, split)
+    unposed = next((f for f in frames if f.world_from_cam is None), None)
+    if unposed is not None and dataset.poses_source != "dataset":
+        raise InputError(f"{dataset.poses_source}: no pose for query frame {unposed.name} "
+                         "(--poses gives the queries' ground truth)")
+    scoring = [prepare_reference(Path(p), label, scene_map, dataset, frames)
+               for p, label in zip(references, labels)]
+    refine = depth_refiner(scene_map, dataset) if depth else None
+    config = EvaluationConfig(method=method, device=device, guided=guided, progress=progress)
+    result = evaluate_map(scene_map, dataset, split, config, refine, scoring)
+    write_json(report, result.report)
+    if trajectory:
+        write_tum(trajectory, result.results)
+    if plot:
+        from slamreloc.localize.plots import plot_evaluation
+
+        plot_evaluation(plot, {method: result.results}, result.frames)
+    return result.report
+
+
+def depth_refiner(scene_map: SceneMap, dataset: Dataset, config: IcpConfig = IcpConfig()):
+    """`(frame, world_from_cam) -> world_from_cam` (map frame from the camera, metres): the
+    frame's depth fitted onto the map's surface (`refine_with_depth`), the PnP pose where the
+    fit is not accepted."""
+    surface = scene_map.surface
+    if surface is None:
+        raise InputError(f"{scene_map.root}: map has no surface (it was built without depth); "
+                         "--depth needs one")
+
+    def refine(frame: Frame, world_from_cam: Rigid3) -> Rigid3:
+        return refine_with_depth(surface, read_frame_depth(frame, dataset), frame.camera,
+                                 frame.depth_camera, world_from_cam, config).chosen()
+
+    return refine
+
+
+def reference_labels(paths: list[Path]) -> list[str]:
+    """Short distinct labels of the --reference paths: the file name, with as many parent
+    folders as tell two apart (and a COLMAP model's `sparse/0` its project folder's name).
+    InputError for a path given twice."""
+    parts = [Path(p).resolve().parts for p in paths]
+    depth = [1] * len(paths)
+    for i, p in enumerate(parts):  # `.../redkitchen/sparse/0` -> `redkitchen/sparse/0`
+        while depth[i] < len(p) and (p[-depth[i]].isdigit() or p[-depth[i]] == "sparse"):
+            depth[i] += 1
+    while True:
+        labels = ["/".join(p[-d:]) for p, d in zip(parts, depth)]
+        clash = [i for i, label in enumerate(labels) if labels.count(label) > 1]
+        if not clash:
+            return labels
+        if all(depth[i] >= len(parts[i]) for i in clash):
+            raise InputError(f"{paths[clash[0]]}: --reference given twice")
+        for i in clash:
+            depth[i] = min(depth[i] + 1, len(parts[i]))
+
+
+def localize(map_dir: Path, images: list[Path],
+             intrinsics: Camera | tuple[float, float, float, float] | None = None,
+             method: str = "regressor", guided: bool = True) -> Iterator[tuple[str, str]]:
+    """`slamreloc localize`: yield (line, status) per image (or per frame of a ROS bag among
+    `images`): a TUM line plus inlier count ("ok"), `# name: not localized` ("failed"), or
+    `error: ...` for an image that cannot be read or is out of bounds ("error").
+    `intrinsics`: a Camera (any lens model, scaled to each image), pinhole (fx, fy, cx, cy)
+    in pixels, else the bag's camera or the map's, scaled to each image."""
+    if intrinsics is not None and not isinstance(intrinsics, Camera):
+        problem = camera_problem(1, 1, *intrinsics)
+        if problem:
+            raise InputError(f"--intrinsics: {problem}")
+    scene_map = SceneMap.load(map_dir)
+    localizer = EvaluationConfig(method=method, guided=guided).localizer(scene_map)
+    for name, path, own_camera in _query_images(images):
+        try:
+            # the bounds, the extractor's included, are checked before anything is decoded
+            image = read_image(path, fits=localizer.extractor.check_size)
+        except InputError as err:
+            yield f"error: {err}", "error"
+            continue
+        h, w = image.shape[:2]
+        if isinstance(intrinsics, Camera):
+            camera = intrinsics.scaled_to(w, h)
+        elif intrinsics:
+            camera = Camera(w, h, *intrinsics)
+        else:
+            camera = (own_camera or scene_map.camera).scaled_to(w, h)
+        est = localizer.localize(image, camera).estimate
+        if est.success:
+            yield f"{tum_line(name, est.world_from_cam)} {est.num_inliers}", "ok"
+        else:
+            yield f"# {name}: not localized ({est.num_inliers} inliers)", "failed"
+
+
+def _query_images(paths: list[Path]):
+    """(name, image file, its camera or None) of each image file, and of each frame of a ROS
+    bag among them (named by frame, with the bag's camera)."""
+    from slamreloc.datasets.rosbag import is_rosbag, load_rosbag
+
+    for path in paths:
+        if is_rosbag(Path(path)):
+            for frame in load_rosbag(Path(path)).frames("all"):
+                yield frame.name, frame.image_path, frame.camera
+        else:
+            yield Path(path).name, path, None
+
+
+def slam(dataset: Path, map_dir: Path, report: Path, split: str = "test",
+         kidnap_every: int = 0, kidnap_skip: int = 20, odometry: str = "auto",
+         trajectory: Path | None = None, progress: bool = True,
+         plugin_options: dict | None = None, plugins: list | None = None,
+         poses: Path | None = None) -> dict:
+    """`slamreloc slam`: run the backend, write the report and trajectory, print a table.
+    plugin_options: keyword arguments of the relocalization plugin (benchmarks, tests);
+    plugins: the backend's plugins instead of that one (benchmarks: a test-harness plugin);
+    poses: the ground truth from this pose file instead of the dataset's."""
+    from slamreloc.slam.poses import final_trajectory
+    from slamreloc.slam.run import TOPIC_PREFIX, SlamRunConfig, run_slam
+
+    if kidnap_every < 0 or kidnap_skip < 0:
+        raise InputError("--kidnap-every and --kidnap-skip must be >= 0")
+    check_is_map(map_dir)  # what the inputs are, then where the outputs may go
+    odometry_file = (odometry if odometry not in ("auto", "kiss-icp", "open3d")
+                     and not odometry.startswith(TOPIC_PREFIX) else None)
+    check_outputs({"--report": report, "--trajectory": trajectory},
+                  {"the dataset": dataset, "the map": map_dir, "--odometry": odometry_file,
+                   "--poses": poses})
+    config = SlamRunConfig(split=split, odometry=odometry, kidnap_every=kidnap_every,
+                           kidnap_skip=kidnap_skip, progress=progress,
+                           plugin_options=plugin_options or {}, poses=poses)
+    result, backend, frames = run_slam(dataset, map_dir, config, plugins)
+    if trajectory is not None:
+        world_from_cam = final_trajectory(backend)
+        keep = [i for i, p in enumerate(world_from_cam) if p is not None]
+        write_tum_trajectory(
+            trajectory, [frames[i].timestamp for i in keep], [world_from_cam[i] for i in keep],
+            [f"slamreloc slam {dataset} (split {split}), map frame, camera-to-world",
+             "timestamp tx ty tz qx qy qz qw"], names=[frames[i].name for i in keep])
+        result["trajectory"] = os.path.relpath(trajectory, Path(report).parent)
+    write_json(report, result)
+    print_slam_summary(result)
+    return result
+
+
+def print_slam_summary(r: dict) -> None:
+    table = Table(title="SLAM backend")
+    for col in ("frames", "ATE", "ATE odometry only", "kidnaps recovered", "frames to recover",
+                "loop closures (rejected)", "backend fps"):
+        table.add_column(col)
+    cm = (lambda v: "-" if v is None else f"{100 * v:.1f} cm")  # noqa: E731
+    table.add_row(str(r["n_frames"]), cm(r["ate_rmse_m"]), cm(r["ate_rmse_odometry_only_m"]),
+                  f"{r['n_recovered']}/{r['n_kidnaps']}",
+                  "-" if r["median_frames_to_recover"] is None
+                  else f"{r['median_frames_to_recover']:.0f}",
+                  f"{r['n_loop_closures']} ({r['n_loop_closures_rejected']})",
+                  "-" if r["backend_fps"] is None else f"{r['backend_fps']:.1f}")
+    console.print(table)
