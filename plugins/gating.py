@@ -26,8 +26,8 @@ class GateConfig:
     track_deg: float = 7.0
     window: int = 6  # a candidate older than this many frames can no longer be confirmed
     # relocalizations that must agree to anchor a lost track. Two consecutive frames in a poorly
-    # mapped area can agree on the same wrong pose (RedKitchen seq-02 frames 58-61: 35-41 cm
-    # off, a false anchor with 2); three did not in any run (BENCHMARKS.md, issue 8)
+    # mapped area can agree on the same wrong pose (a false anchor with 2 on RedKitchen); three
+    # did not in any run (BENCHMARKS.md, "SLAM backend")
     votes: int = 3
     # ... and to re-anchor a track that odometry still calls healthy: a second hypothesis
     # against a track with no sign of trouble needs more evidence than one for a lost track

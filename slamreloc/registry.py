@@ -21,8 +21,8 @@ PRESETS: dict[str, dict] = {
     "paper": {"hidden": (512, 1024, 1024, 512)},  # ~2.3 M parameters with 256-d input
     "tiny": {"hidden": (512, 512, 512, 128)},  # ~0.7 M
     # slamreloc's default: a wide first (prototype) layer, a narrow tail and a
-    # region-classification head (~1.4 M with 128-d SIFT); see BENCHMARKS.md. The tail was
-    # (512, 512, 128) until 0.2: as accurate, but 1.8x the compute per descriptor
+    # region-classification head (~1.4 M with 128-d SIFT); docs/method.md. The tail was
+    # (512, 512, 128) until 0.2: as accurate, at more compute per descriptor
     "wide": {"hidden": (2048, 256, 256, 128), "head": "clusters", "n_clusters": 1024},
 }
 # map updates from unlabelled sequences (pseudo_label: finetune from the map's weights, or

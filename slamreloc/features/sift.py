@@ -18,8 +18,8 @@ class SiftConfig(ExtractorConfig):
     n_octave_layers: int = 3
     root: bool = True  # RootSIFT: L1-normalise, square root (Hellinger kernel)
     # OpenCV always doubles the image for its first octave; with upsample=False (the default)
-    # the image is halved first, so the pyramid starts at full resolution: ~3x faster, fewer
-    # but more repeatable keypoints (see BENCHMARKS.md). Keypoints are returned in
+    # the image is halved first, so the pyramid starts at full resolution: faster, fewer but
+    # more repeatable keypoints (docs/history.md). Keypoints are returned in
     # full-resolution pixels either way.
     upsample: bool = False
 

@@ -33,9 +33,8 @@ class GuidedConfig:
     # The step refines onto the labels, so it only helps where they are more precise than the
     # regression: it runs on maps whose training tracks reproject within this median (pixels)
     # with the map's poses (`MapMeta.label_reproj_error_px`; a map that did not record it
-    # counts as within). RedKitchen: 0.67 px with the SfM poses, where the step gains 2.5-8.5
-    # points at 1 cm / 1 deg; 1.25 px with the depth-SLAM poses, where it costs 1-4 points at
-    # 5 cm / 5 deg on three trainings of four (BENCHMARKS.md, "Fine accuracy: guided refinement").
+    # counts as within). RedKitchen's two references fall on either side of it
+    # (BENCHMARKS.md, "Localization on RedKitchen, against both references").
     max_label_error_px: float = 1.0
 
     def applies_to(self, label_reproj_error_px: float | None) -> bool:

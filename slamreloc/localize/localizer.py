@@ -26,8 +26,8 @@ from slamreloc.types import Camera, Features
 
 # Regressed world points scatter by a few centimetres, a few pixels once projected: the final
 # refinement's Cauchy loss gets that scale (4 px) instead of pycolmap's 1 px, which is made for
-# matched points and down-weights most regressed inliers. On RedKitchen (SfM reference) it
-# takes 1cm1deg from 82.0 % to 84.5 % at no cost (BENCHMARKS.md, "Fine accuracy").
+# matched points and down-weights most regressed inliers (measured: docs/history.md, "Fine
+# accuracy").
 REGRESSOR_PNP = PnPConfig(refine_loss_px=4.0)
 
 
@@ -93,17 +93,15 @@ class RegressorLocalizer(Localizer):
         keep_fraction: PnP-RANSAC uses this share of the predictions, the most confident ones,
         but at least 50 (a regressor without a confidence output always uses all).
         refine_on_all: the final refinement then runs again from RANSAC's pose on every
-        prediction within the RANSAC threshold of it, confident or not. On RedKitchen (SfM
-        reference, seven maps) +1 point at 1 cm / 1 deg on average, none at 2 cm / 2 deg,
-        for ~2.5 ms more per query: off by default (BENCHMARKS.md, "Fine accuracy").
+        prediction within the RANSAC threshold of it, confident or not; off by default, as
+        it gained too little for its time (docs/history.md, "Fine accuracy").
         guided: from the regressor's pose, match the query keypoints to the map's database
         near it (`guided_matching`) and run the final refinement on the database's world
         points, which are as precise as the labels. It runs on maps whose labels agree with
         their images (`GuidedConfig.max_label_error_px`). None, a map whose labels do not, or
         one shipped without its database (with a warning): the pose stays RANSAC's on the
-        regressed points, and the database is never read. On RedKitchen (SfM reference, nine
-        trainings) 1 cm / 1 deg goes from 76.5-83.5 % to 83.5-86.5 % for ~3.4 ms per query
-        (BENCHMARKS.md, "Fine accuracy: guided refinement")."""
+        regressed points, and the database is never read. What it gains and costs:
+        BENCHMARKS.md, "Localization on RedKitchen, against both references"."""
         super().__init__(scene_map, pnp, device)
         self.model = scene_map.regressor.to(self.device).eval()
         self.precision = resolve_precision(precision, self.device.type, use="query")
@@ -123,8 +121,8 @@ class RegressorLocalizer(Localizer):
         with torch.inference_mode(), autocast(self.device.type, self.precision):
             x = torch.as_tensor(descriptors, dtype=torch.float32, device=self.device)
             # bf16: pad the batch to a multiple of 256 rows; oneDNN compiles a kernel per batch
-            # shape, ~20 ms per query when every image has its own keypoint count. fp32 has
-            # no such cost and padding only adds rows (BENCHMARKS.md, precision)
+            # shape, a large cost per query when every image has its own keypoint count. fp32
+            # has no such cost and padding only adds rows (docs/history.md, "Precision by hardware")
             n = len(x)
             if self.precision == "bf16":
                 x = torch.cat([x, x.new_zeros((-n) % 256, x.shape[1])])

@@ -38,9 +38,8 @@ class LabelConfig:
     min_tri_angle_deg: float = 2.0
     depth_agreement_m: float = 0.05  # track vs depth, plus 2 % of depth
     use_depth: bool = True  # only where the dataset's depth is registered to RGB
-    # bundle-adjust each track's point, poses fixed (`refine_track_points`): off, as on
-    # RedKitchen it lowers the regressor's median error but not its recall at 1-2 cm, and
-    # matching on such labels loses (BENCHMARKS.md, "Fine accuracy: labels")
+    # bundle-adjust each track's point, poses fixed (`refine_track_points`): off, as it did
+    # not raise the recall at 1-2 cm (docs/history.md, "Fine accuracy: labels")
     refine_points: bool = False
 
 

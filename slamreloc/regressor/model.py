@@ -24,7 +24,7 @@ class RegressorConfig:
     # First-layer weights start as (standardised, unit-norm) training descriptors and its bias
     # as -threshold, so each first-layer unit starts as a detector of descriptors whose cosine
     # to its prototype exceeds the threshold: a nearest-neighbour-like start that trains far
-    # faster than a random one (see BENCHMARKS.md).
+    # faster than a random one (docs/history.md).
     prototype_init: bool = True
     prototype_threshold: float = 0.45
     # Output head. "regression": 3 outputs (x, y, z). "clusters": the training points are

@@ -4,8 +4,8 @@ glibc raises its mmap threshold each time a large block is freed, so after a few
 large short-lived buffers of every relocalization (image pyramids, descriptor and activation
 tensors) come from the heap, and the pose graph's small long-lived nodes allocated between them
 keep the heap from shrinking: in the long-run benchmark (BENCHMARKS.md, "Long runs") the SLAM
-process grew by 70 KB per frame while what it holds grew by 5 KB. `malloc_trim(0)` returns
-every free page of the heap; it costs well under a millisecond.
+process grew many times faster than what it holds. `malloc_trim(0)` returns every free page of
+the heap, for well under a millisecond.
 """
 
 from __future__ import annotations

@@ -7,8 +7,7 @@ else bf16 is emulated, ~30x slower than fp32 on an AVX2 CPU, so "auto" means fp3
 
 "auto" for training: bf16 wherever it is native. "auto" for queries: bf16 on AMX CPUs and CUDA
 only. A query's regressor pass is one small batch; on AVX512-BF16 kernels without AMX its bf16
-pass was no faster than fp32 on a Zen 4 EPYC and 5 ms slower on a Xeon with AMX switched off,
-and the whole query 4-5 ms slower both times (BENCHMARKS.md, "Query precision by hardware").
+pass was slower than fp32 (BENCHMARKS.md, "Mapping time and query time").
 """
 
 from __future__ import annotations
