@@ -26,6 +26,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -42,10 +43,9 @@ from slamreloc.map.write import save_map
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import transform_msg
 from slamreloc.map.scene_map import SceneMap
-from slamreloc.slam.feed import read_frames
+from slamreloc.slam.feed import depth_camera_of, read_frames
 from slamreloc.slam.report import kidnap_stats
 from slamreloc.slam.run import kidnap_schedule
-from slamreloc.types import Camera
 
 
 class Server:
@@ -189,8 +189,7 @@ def session(dataset_dir: Path, map_dir: Path, split: str, workdir: Path) -> dict
     t0 = time.perf_counter()
     try:
         with Client(server.address) as client:
-            depth_camera = (None if dataset.depth_intrinsics is None
-                            else Camera(640, 480, *dataset.depth_intrinsics))
+            depth_camera = depth_camera_of(frames)
             with client.session(odometry="auto", depth_camera=depth_camera) as s:
                 for inp in read_frames(dataset, frames):
                     results.append(s.send(inp.image, camera=inp.camera, depth=inp.depth,
@@ -235,8 +234,8 @@ def reload_under_load(map_dir: Path, jpegs: list[bytes], workdir: Path) -> dict:
             seen = [client.list_maps()[0].version]
             for i in range(3):
                 time.sleep(2)
-                meta = {**scene_map.meta, "timings_s": {**scene_map.meta["timings_s"],
-                                                        "reload_benchmark": float(i)}}
+                meta = replace(scene_map.info, timings_s={**scene_map.info.timings_s,
+                                                          "reload_benchmark": float(i)})
                 extra = ({SURFACE: scene_map.surface.to_arrays()}
                          if scene_map.surface is not None else None)
                 save_map(served, meta, scene_map.regressor, scene_map.database, extra=extra)

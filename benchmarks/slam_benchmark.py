@@ -19,7 +19,7 @@ import torch
 from slamreloc.datasets import load_dataset, read_image
 from slamreloc.slam.backend import SlamBackend
 from slamreloc.slam.events import EventKind
-from slamreloc.slam.feed import feed_all, read_frames
+from slamreloc.slam.feed import depth_camera_of, feed_all, read_frames
 from slamreloc.slam.metrics import ate_rmse
 from slamreloc.slam.run import make_odometry
 
@@ -40,10 +40,11 @@ class AnchorAtStart:
             self.backend.anchor(frame.index, self.world_from_cam)
 
 
-def run_odometry(name, frames, inputs, depth_k):
+def run_odometry(name, frames, inputs, depth_camera):
     """inputs: the frames' FrameInputs (depth only), read beforehand: the backend is timed
     without the reading."""
-    backend = SlamBackend(make_odometry(name, depth_k), [AnchorAtStart(frames[0].world_from_cam)])
+    backend = SlamBackend(make_odometry(name, depth_camera),
+                          [AnchorAtStart(frames[0].world_from_cam)])
     t0, c0 = time.perf_counter(), time.thread_time()
     feed_all(backend, inputs)
     wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
@@ -61,7 +62,7 @@ def relocalization_cost(map_dir, dataset, frames, n=30):
     """Median ms per call: (SIFT + regressor + PnP wall, its CPU time, depth ICP wall or None
     when the map has no surface)."""
     from slamreloc.localize.localizer import RegressorLocalizer
-    from slamreloc.cli.pipeline import depth_refiner
+    from slamreloc.cli.jobs import depth_refiner
     from slamreloc.map.scene_map import SceneMap
 
     scene_map = SceneMap.load(map_dir)
@@ -92,7 +93,7 @@ def main():
     ds = load_dataset(args.dataset)
     frames = ds.frames(args.split)
     inputs = list(read_frames(ds, frames, image=False, depth=True))
-    depth_k = ds.depth_intrinsics
+    depth_camera = depth_camera_of(frames)
     print(f"{args.dataset} split {args.split}: {len(frames)} frames "
           f"{inputs[0].depth.shape[1]}x{inputs[0].depth.shape[0]}; {platform.machine()}, "
           f"{platform.processor() or ''} torch threads 1")
@@ -100,7 +101,7 @@ def main():
           "backend fps (CPU time of this thread) | false tracking losses |")
     print("|---|---|---|---|---|---|---|")
     for name in args.odometry:
-        r = run_odometry(name, frames, inputs, depth_k)
+        r = run_odometry(name, frames, inputs, depth_camera)
         print(f"| {name} | {100 * r['drift_ate_m']:.1f} cm | {r['odometry_ms']:.1f} | "
               f"{r['graph_ms']:.2f} | {r['backend_fps']:.1f} | {r['backend_cpu_fps']:.1f} | "
               f"{r['lost']} |")

@@ -14,8 +14,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from slamreloc.cli.slam_stage import run_slam_command
-from slamreloc.datasets import load_dataset
+from slamreloc.cli import jobs
 from slamreloc.plugins.gating import GateConfig
 from slamreloc.plugins.relocalization import RelocalizationConfig
 from tests.fault_injection import FaultInjectingRelocalization
@@ -42,7 +41,6 @@ def main() -> None:
     args = ap.parse_args()
     config = RelocalizationConfig(gate=GateConfig(votes=args.votes),
                                   loop_closure_every=args.loop_closure_every)
-    depth_k = load_dataset(args.dataset).depth_intrinsics
     lines = ["| run | ATE map frame | ATE SE(3)-aligned | ATE odometry only | kidnaps recovered "
              "| frames to recover (median; each) | recovered pose error (median) | loop closures "
              "(rejected) | injected (rejected) | false anchors | backend fps |",
@@ -50,12 +48,10 @@ def main() -> None:
     for k, (name, (every, inject)) in enumerate(RUNS.items()):
         stem = args.out.with_name(f"{args.out.stem}_run{k}")
         faulty = [FaultInjectingRelocalization(args.map, config=config,
-                                               depth_intrinsics=depth_k,
                                                wrong_fraction=inject)] if inject else None
-        r = run_slam_command(args.dataset, args.map, stem.with_suffix(".json"),
-                             kidnap_every=every, trajectory=stem.with_suffix(".txt"),
-                             progress=False, plugin_options={"config": config},
-                             plugins=faulty)
+        r = jobs.slam(args.dataset, args.map, stem.with_suffix(".json"), kidnap_every=every,
+                      trajectory=stem.with_suffix(".txt"), progress=False,
+                      plugin_options={"config": config}, plugins=faulty)
         s = r["relocalization"]
         rec = "-" if not r["n_kidnaps"] else f"{r['n_recovered']}/{r['n_kidnaps']}"
         frames_rec = ("-" if not r["n_kidnaps"] else

@@ -10,8 +10,9 @@
     (re-anchor: `reanchor_votes`, 4, in all), if not within the window they are rejected.
 Inputs to every decision: the PnP inlier count and the regressor's confidence (gating.py).
 Where the frame has depth and the map a surface (slamreloc.map.surface), each PnP pose is refined by
-point-to-plane ICP against the map's surface before it is judged (RedKitchen: recovered poses
-6.3 -> ~1-2 cm); a fit that does not converge onto the surface leaves the PnP pose as it was.
+point-to-plane ICP against the map's surface before it is judged (`refine_with_depth`, the
+depth camera from `FrameData.depth_camera`; RedKitchen: recovered poses 6.3 -> ~1-2 cm); a fit
+that does not converge onto the surface leaves the PnP pose as it was.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from slamreloc.plugins.relocstats import RelocStats
 from slamreloc.geometry import Rigid3
 from slamreloc.slam.backend import TrackState
 from slamreloc.slam.events import Event, EventKind, FrameData
-from slamreloc.map.surface import IcpConfig, depth_cloud, refine_pose
+from slamreloc.map.surface import IcpConfig, refine_with_depth
 
 
 @dataclass(frozen=True)
@@ -33,7 +34,8 @@ class RelocalizationConfig:
     gate: GateConfig = field(default_factory=GateConfig)
     loop_closure_every: int = 3  # keyframes from an accepted relocalization to the next try
     keep_fraction: float = 0.5  # PnP on this share of the most confident predictions (localizer)
-    icp: IcpConfig | None = field(default_factory=IcpConfig)  # None: no depth refinement
+    # the depth refinement of PnP poses (`refine_with_depth`); None: no depth refinement
+    icp: IcpConfig | None = field(default_factory=IcpConfig)
 
 
 class RelocalizationPlugin:
@@ -41,12 +43,10 @@ class RelocalizationPlugin:
 
     def __init__(self, map_dir: str | Path | None = None, localizer=None,
                  config: RelocalizationConfig = RelocalizationConfig(), device: str = "cpu",
-                 depth_intrinsics: tuple[float, float, float, float] | None = None,
                  scene_map=None):
         """The map to relocalize in, one of: `map_dir` (a map folder, loaded here),
         `scene_map` (a loaded `SceneMap`, e.g. one a server already holds) or `localizer`
-        (a ready localizer). depth_intrinsics: the depth camera's (fx, fy, cx, cy) at 640x480
-        where depth is not registered to the image (`Dataset.depth_intrinsics`), else None."""
+        (a ready localizer). Each frame's depth comes with its camera (`FrameData`)."""
         if localizer is None:
             from slamreloc.localize.localizer import RegressorLocalizer
 
@@ -57,7 +57,6 @@ class RelocalizationPlugin:
             localizer = RegressorLocalizer(scene_map, device=device,
                                            keep_fraction=config.keep_fraction)
         self.localizer, self.config = localizer, config
-        self.depth_intrinsics = depth_intrinsics
         self.surface = localizer.map.surface if config.icp is not None else None
         self.stats = RelocStats()
         self.pending: list[Candidate] = []  # tracking: candidates that do not fit the track
@@ -159,10 +158,11 @@ class RelocalizationPlugin:
         return Candidate(frame.index, world_from_cam, est.num_inliers, confidence)
 
     def _refine(self, frame: FrameData, world_from_cam: Rigid3) -> Rigid3:
-        """ICP of the frame's depth onto the map's surface; the guess where it does not fit."""
+        """The frame's depth fitted onto the map's surface from the PnP pose (world_from_cam,
+        map frame, metres); the PnP pose where the fit is not accepted."""
         with self.backend.timer("icp"):
-            points = depth_cloud(frame.depth, frame.camera, self.depth_intrinsics)
-            fit = refine_pose(self.surface, points, world_from_cam, self.config.icp)
+            fit = refine_with_depth(self.surface, frame.depth, frame.camera, frame.depth_camera,
+                                    world_from_cam, self.config.icp)
         self.stats.n_refined += fit.accepted
         return fit.chosen()
 

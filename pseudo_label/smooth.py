@@ -27,7 +27,7 @@ from slamreloc.pseudo_label.register import (Database, FrameState, RegistrationC
 from slamreloc.map.scene_map import MapDatabase
 from slamreloc.slam.backend import SlamBackend, TrackState
 from slamreloc.slam.events import Event, EventKind, FrameData
-from slamreloc.slam.feed import feed_all, read_frames
+from slamreloc.slam.feed import depth_camera_of, feed_all, read_frames
 from slamreloc.slam.poses import final_trajectory
 from slamreloc.slam.run import make_odometry
 from slamreloc.types import Features, Frame
@@ -75,10 +75,10 @@ def smooth_poses(dataset: Dataset, frames: list[Frame], priors: list[Prior | Non
     depth odometry; None when the frames have no depth."""
     if any(f.depth_path is None for f in frames):
         return None
-    depth_k = dataset.depth_intrinsics
-    backend = SlamBackend(make_odometry("auto", depth_k), [RegistrationPriors(priors)])
+    depth_camera = depth_camera_of(frames)  # None: depth registered to the images
+    backend = SlamBackend(make_odometry("auto", depth_camera), [RegistrationPriors(priors)])
     # images only for open3d's hybrid odometry (registered depth): no plugin here reads them
-    inputs = read_frames(dataset, frames, image=dataset.depth_registered, depth=True)
+    inputs = read_frames(dataset, frames, image=depth_camera is None, depth=True)
     feed_all(backend, track(inputs, "smoothing with odometry", total=len(frames),
                             enabled=progress))
     backend.finish()

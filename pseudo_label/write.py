@@ -14,6 +14,7 @@ from slamreloc.pseudo_label.finetune import finetune_regressor
 
 from slamreloc.io.fileio import check_outputs
 from slamreloc.map.format import LABELLED, PROVENANCE, SURFACE
+from slamreloc.map.meta import MapMeta, SurfaceMeta, UpdateMeta
 from slamreloc.map.write import check_map_target, save_map
 from slamreloc.regressor.model import SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
@@ -44,7 +45,7 @@ def base_provenance(old: SceneMap) -> tuple[np.ndarray, np.ndarray]:
     return provenance.source, provenance.quality
 
 
-def _save(out: Path, meta: dict, model, db: MapDatabase, provenance: dict,
+def _save(out: Path, meta: MapMeta, model, db: MapDatabase, provenance: dict,
           surface: Surface | None) -> Path:
     """The map's own atomic, locked write, with provenance.npz (and the surface) inside it."""
     extra = {PROVENANCE: provenance}
@@ -64,7 +65,7 @@ def write_updated_map(labels: PseudoLabels, out: Path,
     check_map_target(out)
     old, db, rep = labels.old, labels.db, dict(labels.report)
     rep["timings_s"] = dict(rep["timings_s"])
-    map_epochs = old.info.train.epochs
+    map_epochs = old.info.train_config.epochs
     t0 = time.perf_counter()
     if config.update == "finetune":
         # a fresh copy of the old weights: the old map's files and object stay as they were
@@ -78,7 +79,7 @@ def write_updated_map(labels: PseudoLabels, out: Path,
         # the map's own training settings, except its precision: that was resolved for the
         # machine that trained it (bf16 recorded on an AMX machine would be emulated, ~30x
         # slower, on an AVX2-only one); this machine chooses its own
-        tc = replace(old.info.train, precision=TrainConfig.precision,
+        tc = replace(old.info.train_config, precision=TrainConfig.precision,
                      epochs=config.epochs or map_epochs)
         train_stats = {"mode": "retrain", **train_regressor(
             model, db.descriptors, db.points, tc, config.device, progress,
@@ -87,25 +88,25 @@ def write_updated_map(labels: PseudoLabels, out: Path,
     rep["timings_s"]["total_s"] = rep["timings_s"]["pseudo_label_s"] + rep["timings_s"]["update_s"]
     rep["update"] = train_stats
     rep["new_map"] = str(out.resolve())
-    meta = {k: v for k, v in old.meta.items() if k not in ("format", "version", "frame_names")}
-    meta["labels"] = {**old.meta.get("labels", {}), "n_labelled": int(len(db.points)),
+    info = old.info
+    history = (info.pseudo_label.history if info.pseudo_label else None) or ()
+    update = UpdateMeta(
+        source_map=str(labels.map_dir.resolve()), dataset=rep["dataset"],
+        n_frames=rep["n_frames"], n_frames_registered=rep["n_frames_registered"],
+        n_inherited_labels=rep["n_inherited_labels"],
+        n_triangulated_labels=rep["n_triangulated_labels"],
+        n_new_points=rep["n_new_points"], update=config.update,
+        provenance=f"{PROVENANCE}: source per database row (0 labelled, 1 inherited "
+                   "pseudo-label, 2 triangulated from registered frames), quality weight",
+        history=(*history, str(labels.map_dir.resolve())))
+    meta = replace(
+        info, labels={**info.labels, "n_labelled": int(len(db.points)),
                       "n_labelled_map": int(len(old.database.points)),
                       "n_pseudo": rep["n_inherited_labels"],
-                      "n_triangulated": rep["n_triangulated_labels"]}
-    meta["train"] = {**old.meta.get("train", {}), "update": train_stats}
-    meta["pseudo_label"] = {
-        "source_map": str(labels.map_dir.resolve()), "dataset": rep["dataset"],
-        "n_frames": rep["n_frames"], "n_frames_registered": rep["n_frames_registered"],
-        "n_inherited_labels": rep["n_inherited_labels"],
-        "n_triangulated_labels": rep["n_triangulated_labels"],
-        "n_new_points": rep["n_new_points"], "update": config.update,
-        "provenance": f"{PROVENANCE}: source per database row (0 labelled, 1 inherited "
-                      "pseudo-label, 2 triangulated from registered frames), quality weight",
-        "history": old.meta.get("pseudo_label", {}).get("history", [])
-        + [str(labels.map_dir.resolve())],
-    }
-    if labels.surface is not None:
-        meta["surface"] = {**old.meta.get("surface", {}), "n_points": len(labels.surface.points)}
+                      "n_triangulated": rep["n_triangulated_labels"]},
+        train={**(info.train or {}), "update": train_stats}, pseudo_label=update,
+        surface=info.surface if labels.surface is None else replace(
+            info.surface or SurfaceMeta(), n_points=len(labels.surface.points)))
     _save(out, meta, model, db, {"source": labels.source, "quality": labels.weights},
           labels.surface)
     return SceneMap.load(out), rep

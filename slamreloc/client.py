@@ -89,15 +89,16 @@ def image_msg(image) -> pb.Image:
 
 
 def depth_msg(depth: np.ndarray, camera: Camera | None = None) -> pb.Depth:
-    """float32 metres (H, W), 0 where unknown; `camera`: the depth camera when the depth is not
-    registered to the image (pinhole)."""
+    """float32 metres (H, W), 0 where unknown; `camera`: the camera that took the depth when it
+    is not registered to the image (`Frame.depth_camera`; sent as its pinhole camera, any
+    size: the server scales it to the depth map)."""
     d = np.ascontiguousarray(depth, "<f4")
     if d.ndim != 2:
         raise ValueError(f"depth is (H, W), got shape {d.shape}")
     msg = pb.Depth(encoding=pb.Depth.FLOAT32_METRES, width=d.shape[1], height=d.shape[0],
                    data=d.tobytes())
     if camera is not None:
-        msg.intrinsics.CopyFrom(camera_msg(camera.pinhole).pinhole)
+        msg.depth_camera.CopyFrom(camera_msg(camera.pinhole).pinhole)
     return msg
 
 
@@ -136,7 +137,9 @@ class Client:
                  depth: np.ndarray | None = None, depth_camera: Camera | None = None,
                  world_from_cam_prior: Rigid3 | None = None) -> LocalizeResult:
         """One image against the map named `map` ("" on a server with one map). camera: the
-        map's, scaled to the image, when None."""
+        map's, scaled to the image, when None. depth: float32 metres (H, W), refines the pose
+        on the map's surface; in the pixels of `depth_camera` (the camera that took it, where
+        it is not registered to the image), else of the image (registered)."""
         req = pb.LocalizeRequest(map=map, image=image_msg(image))
         if camera is not None:
             req.camera.CopyFrom(_camera(camera))
@@ -158,11 +161,12 @@ class Client:
     def session(self, map: str = "", odometry: str = "client",
                 depth_camera: Camera | None = None,
                 depth_units_per_metre: float = 0.0) -> ClientSession:
-        """Open a session; see `ClientSession`."""
+        """Open a session; see `ClientSession`. depth_camera: the camera that took the frames'
+        depth where it is not registered to the images (`Frame.depth_camera`), else None."""
         opening = pb.SessionOpen(map=map, odometry=odometry,
                                  depth_units_per_metre=depth_units_per_metre)
         if depth_camera is not None:
-            opening.depth_intrinsics.CopyFrom(camera_msg(depth_camera.pinhole).pinhole)
+            opening.depth_camera.CopyFrom(camera_msg(depth_camera.pinhole).pinhole)
         return ClientSession(self, opening)
 
     def close(self) -> None:

@@ -160,7 +160,16 @@ def camera_problem(width, height, fx, fy, cx, cy) -> str | None:
 
 @dataclass
 class Frame:
-    """One image of a dataset. `world_from_cam` is None when the frame has no ground truth."""
+    """One image of a dataset. `world_from_cam` (metres, the map/dataset frame from the RGB
+    camera's OpenCV frame) is None when the frame has no ground truth.
+
+    Depth (`depth_path`, None without) is either registered to the image (same pixels as
+    `camera`: `depth_camera` and `rgb_from_depth` are None) or taken by a camera of its own:
+    then `depth_camera` is that camera, pinhole, in pixels of the depth map's own size
+    (7-Scenes: fx = fy = 585, cx = 320, cy = 240 at 640x480; a camera given at another size is
+    scaled to the depth map where it is used) and `rgb_from_depth` its pose in the RGB
+    camera's frame (metres; the rig calibration, 7-Scenes' Kinect v1: 2.6 cm along x,
+    0.6 deg)."""
 
     name: str  # unique inside its dataset, e.g. "seq-01/frame-000000"
     image_path: Path
@@ -168,7 +177,9 @@ class Frame:
     depth_path: Path | None = None
     world_from_cam: Rigid3 | None = None
     sequence: str = ""
-    timestamp: float = 0.0
+    timestamp: float = 0.0  # seconds
+    depth_camera: Camera | None = None  # None: depth registered to `camera`, or no depth
+    rgb_from_depth: Rigid3 | None = None  # None: registered (identity), or no depth
 
 
 @dataclass

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from slamreloc.datasets import load_dataset, read_depth, read_image, read_pose
+from slamreloc.datasets.sevenscenes import SEVENSCENES_RGB_FROM_DEPTH
 from slamreloc.errors import InputError
+from slamreloc.types import Camera
 from tests.conftest import REDKITCHEN, SMALL_SCENE, STAIRS, needs
 
 
@@ -21,6 +23,12 @@ def test_sevenscenes_splits_and_jpg_colour():
     frame = ds.frames("test")[0]
     assert frame.image_path.suffix == ".jpg" and read_image(frame.image_path).shape == (480, 640, 3)
     assert (frame.camera.fx, frame.camera.cx) == (525.0, 320.0)
+    # the depth is the Kinect's depth camera's, at the depth maps' 640x480, with its rig pose
+    assert frame.depth_camera == Camera(640, 480, 585.0, 585.0, 320.0, 240.0)
+    assert read_depth(frame.depth_path).shape == (480, 640)
+    np.testing.assert_allclose(frame.rgb_from_depth.matrix(), np.array(SEVENSCENES_RGB_FROM_DEPTH),
+                               atol=1e-9)
+    assert all(f.depth_camera == frame.depth_camera for f in ds.frames("all"))
 
 
 @needs(REDKITCHEN)
@@ -49,6 +57,8 @@ def test_synthetic_scene_is_detected(scene_dir):
         SMALL_SCENE.n_map, SMALL_SCENE.n_query, SMALL_SCENE.n_kidnap, SMALL_SCENE.n_unlabelled]
     assert ds.resolve_split("train") == ["seq-01"] and ds.resolve_split("test") == ["seq-02"]
     assert ds.frames("test")[0].camera.fx == SMALL_SCENE.fx  # from intrinsics.txt
+    assert all(f.depth_camera is None and f.rgb_from_depth is None  # registered depth
+               for f in ds.frames("all"))
 
 
 def _copy_scene(scene_dir, tmp_path, n=3):

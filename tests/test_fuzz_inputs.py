@@ -36,6 +36,7 @@ from slamreloc.errors import InputError
 from slamreloc.geometry import look_at, names_sidecar, read_tum_trajectory, tum_line
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.map.format import DATABASE, META, WEIGHTS, sha256_file
+from slamreloc.map.meta import CameraMeta, FeatureMeta, MapMeta, RegressorMeta
 from slamreloc.map.write import save_map
 from slamreloc.map.scene_map import MapDatabase, SceneMap
 from tests import fuzzing
@@ -452,12 +453,10 @@ def _tiny_map(out: Path) -> Path:
                      rng.random((n, 2)) * 40, rng.integers(0, 2, n), ["seq-01/frame-000000",
                                                                        "seq-01/frame-000001"],
                      poses)
-    meta = {"features": {"name": "sift", "max_keypoints": 512},
-            "regressor": {"arch": "tiny", "config": cfg.to_dict(),
-                          "parameters": model.num_parameters()},
-            "labels": {"n_labelled": n}, "train": {"epochs": 0},
-            "camera": {"width": 64, "height": 48, "fx": 60.0, "fy": 60.0, "cx": 32.0,
-                       "cy": 24.0}}
+    meta = MapMeta(features=FeatureMeta("sift", {"max_keypoints": 512}),
+                   regressor=RegressorMeta("tiny", cfg.to_dict(), model.num_parameters()),
+                   labels={"n_labelled": n}, train={"epochs": 0},
+                   camera=CameraMeta(64, 48, 60.0, 60.0, 32.0, 24.0))
     return save_map(out, meta, model, db)
 
 

@@ -14,6 +14,7 @@ import json
 import pickle
 import shutil
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,7 @@ from slamreloc.errors import InputError
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.map.format import (DATABASE, FORMAT_VERSION, LABELLED, LEGACY_WEIGHTS, META, NEW,
                                   PROVENANCE, PSEUDO, WEIGHTS, sha256_file)
+from slamreloc.map.meta import CameraMeta, FeatureMeta, MapMeta, RegressorMeta
 from slamreloc.map.write import migrate_map, save_map
 from slamreloc.map.scene_map import MapDatabase, SceneMap
 
@@ -56,17 +58,16 @@ def _fixture_parts():
                      rng.random((n, 2)) * 30, np.arange(n) % 2, ["seq-01/frame-000000",
                                                                   "seq-01/frame-000001"],
                      np.stack([np.eye(4), np.eye(4)]))
-    meta = {"features": {"name": "sift", "max_keypoints": 256},
-            "regressor": {"arch": "tiny", "config": cfg.to_dict(),
-                          "parameters": model.num_parameters()},
-            "labels": {"n_labelled": n}, "train": {"epochs": 0},
-            "camera": {"width": 64, "height": 48, "fx": 60.0, "fy": 60.0, "cx": 32.0, "cy": 24.0}}
+    meta = MapMeta(features=FeatureMeta("sift", {"max_keypoints": 256}),
+                   regressor=RegressorMeta("tiny", cfg.to_dict(), model.num_parameters()),
+                   labels={"n_labelled": n}, train={"epochs": 0},
+                   camera=CameraMeta(64, 48, 60.0, 60.0, 32.0, 24.0))
     return model, db, meta
 
 
 def make_map(out: Path, tag: str = "") -> Path:
     model, db, meta = _fixture_parts()
-    return save_map(out, {**meta, "tag": tag}, model, db)
+    return save_map(out, replace(meta, extra={"tag": tag}), model, db)
 
 
 def make_format1_map(out: Path) -> Path:
@@ -79,7 +80,8 @@ def make_format1_map(out: Path) -> Path:
     np.savez(out / DATABASE, descriptors=db.descriptors.astype(np.float16),
              points=db.points.astype(np.float32), keypoints=db.keypoints.astype(np.float32),
              frame_index=db.frame_index.astype(np.int32), world_from_cam=db.world_from_cam)
-    (out / META).write_text(json.dumps({"format": "slamreloc-map", "version": 1, **meta,
+    body = {k: v for k, v in meta.to_json().items() if k not in ("format", "format_version")}
+    (out / META).write_text(json.dumps({"format": "slamreloc-map", "version": 1, **body,
                                         "frame_names": db.frame_names}, indent=1))
     return out
 

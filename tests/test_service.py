@@ -10,6 +10,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -260,7 +261,7 @@ def test_map_replaced_under_load_fails_no_request(small_map, queries, tmp_path):
             versions.append(client.list_maps()[0].version)
             scene_map = SceneMap.load(served)
             for i in range(2):  # the map-update path: a new map written over the served one
-                meta = {**scene_map.meta, "timings_s": {"update": float(i)}}
+                meta = replace(scene_map.info, timings_s={"update": float(i)})
                 save_map(served, meta, scene_map.regressor, scene_map.database,
                          extra={SURFACE: scene_map.surface.to_arrays()})
                 deadline = time.time() + 20

@@ -610,7 +610,7 @@ def bad_depth(draw, wire: Wire) -> tuple[pb.Depth, frozenset]:
             and all(abs(v) <= 1e7 for v in (pin.cx, pin.cy))
             and pin.width <= 1 << 16 and pin.height <= 1 << 16))  # a valid camera elsewhere
         msg = pb.Depth(encoding=pb.Depth.UINT16, width=W, height=H, data=u16.tobytes())
-        msg.intrinsics.CopyFrom(pin)
+        msg.depth_camera.CopyFrom(pin)
         bad = frozenset({"BAD_CAMERA"})
     return msg, bad
 
@@ -885,7 +885,7 @@ def test_session_out_of_order_and_bad_opening(wire):
                 pb.PinholeCamera(width=0, height=480, fx=500, fy=500),
                 pb.PinholeCamera(width=1, height=1, fx=1e6, fy=1e6)):
         msg = _open(odometry="kiss-icp")
-        msg.open.depth_intrinsics.CopyFrom(pin)
+        msg.open.depth_camera.CopyFrom(pin)
         _stream_refused(wire, [msg.SerializeToString()], {"BAD_CAMERA"})
     assert wire.sessions_closed()
 
@@ -910,7 +910,7 @@ def _bad_frame(wire: Wire):
                     frozenset({"BAD_CAMERA"}))
         if kind == "depth":
             depth, kinds = draw(bad_depth(wire))
-            if depth.HasField("intrinsics"):  # a session's depth camera is given at opening
+            if depth.HasField("depth_camera"):  # a session's depth camera is given at opening
                 kinds = frozenset({"BAD_DEPTH"})
             return pb.SessionRequest(frame=wire.frame(depth=depth)), kinds
         if kind == "odometry":

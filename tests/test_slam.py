@@ -117,14 +117,10 @@ def test_wrong_relocalizations_are_rejected(clean_kidnap_run, kidnap_scene, smal
     hook): every wrong one rejected, no false anchor, and the ATE within 10 % of the clean
     run. The ATE is compared as the median over the seeds: which correct results the hook
     destroys moves a single run's ATE (about 3 mm here) by +-10 % on its own."""
-    from slamreloc.datasets import load_dataset
-
     clean, _ = clean_kidnap_run
-    depth_k = load_dataset(kidnap_scene).depth_intrinsics
     ates = []
-    for seed in (1, 2, 3):
-        faulty = FaultInjectingRelocalization(small_map.root, depth_intrinsics=depth_k,
-                                              wrong_fraction=0.2, seed=seed)
+    for seed in (1, 2, 3):  # each frame's depth comes with its camera (FrameData.depth_camera)
+        faulty = FaultInjectingRelocalization(small_map.root, wrong_fraction=0.2, seed=seed)
         r, _, _ = run_slam(kidnap_scene, small_map.root, SlamRunConfig(**KIDNAP, progress=False),
                            [faulty])
         stats = r["relocalization"]

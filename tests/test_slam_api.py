@@ -199,3 +199,40 @@ def test_prior_sigma_scale_weighs_a_relocalization(weak_scale, lo, hi):
     graph.optimize_batch()
     x = graph.pose(0).translation
     assert lo < x[0] < hi and abs(x[1]) < 1e-6 and abs(x[2]) < 1e-6
+
+
+def test_frames_carry_their_depth_camera_to_the_plugins():
+    """Depth not registered to the image comes with its own camera (`Frame.depth_camera`):
+    `read_frames` and `feed` hand it to the backend, which gives it to every plugin in
+    `FrameData.depth_camera` (None for registered depth)."""
+    from pathlib import Path
+
+    from slamreloc.errors import InputError
+    from slamreloc.slam.feed import FrameInput, depth_camera_of, feed_all
+    from slamreloc.types import Camera, Frame
+
+    class Recorder:
+        name = "recorder"
+
+        def attach(self, backend):
+            self.cameras = []
+
+        def on_event(self, event, frame):
+            if event.kind == EventKind.FRAME:
+                self.cameras.append(frame.depth_camera)
+
+    camera = Camera(64, 48, 60.0, 60.0, 32.0, 24.0)
+    depth_camera = Camera(640, 480, 585.0, 585.0, 320.0, 240.0)
+    recorder = Recorder()
+    backend = SlamBackend(plugins=[recorder])
+    pose = Rigid3.identity()
+    feed_all(backend, [FrameInput(camera, 0.0, None, None, pose, depth_camera),
+                       FrameInput(camera, 0.1, None, None, pose)])
+    backend.process(None, None, camera, pose, 0.2, depth_camera=depth_camera)
+    assert recorder.cameras == [depth_camera, None, depth_camera]
+    frames = [Frame(f"f{i}", Path("x.png"), camera, Path("d.png"), depth_camera=depth_camera)
+              for i in range(2)]
+    assert depth_camera_of(frames) == depth_camera
+    assert depth_camera_of([Frame("f", Path("x.png"), camera, Path("d.png"))]) is None
+    with pytest.raises(InputError, match="different depth cameras"):
+        depth_camera_of([*frames, Frame("f", Path("x.png"), camera, Path("d.png"))])

@@ -13,7 +13,8 @@ from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, pose_error, read_named_trajectory
 from slamreloc.map.format import SURFACE
 from slamreloc.map.scene_map import SceneMap
-from slamreloc.map.surface import IcpConfig, Surface, depth_cloud, frame_cloud, refine_pose
+from slamreloc.map.surface import (IcpConfig, Surface, depth_cloud, frame_cloud, refine_pose,
+                                   refine_with_depth)
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +22,7 @@ def query(scene_dir):
     ds = load_dataset(scene_dir)
     frames = ds.frames("query")
     return [(f.world_from_cam, depth_cloud(read_depth(f.depth_path, ds.depth_units_per_metre),
-                                            f.camera, ds.depth_intrinsics))
+                                            f.camera, f.depth_camera))
             for f in frames[::4]]
 
 
@@ -86,6 +87,27 @@ def test_icp_keeps_a_good_pose_of_the_synthetic_scene(small_map, query):
         assert fit.accepted and fit.fitness > 0.8
         dt, dr = pose_error(fit.world_from_cam, world_from_cam)
         assert dt < 0.01 and dr < 0.2, (dt, dr)
+
+
+def test_one_depth_refinement_for_a_depth_map_and_its_camera(small_map, scene_dir):
+    """`refine_with_depth` (evaluate --depth, the SLAM plugin, the service): ICP of the depth
+    map's points in its camera's frame; depth of its own camera, given at another pixel size,
+    is scaled to the depth map; a depth map without a valid pixel leaves the guess."""
+    ds = load_dataset(scene_dir)
+    f = ds.frames("query")[0]
+    depth = read_depth(f.depth_path, ds.depth_units_per_metre)
+    truth = f.world_from_cam
+    guess = Rigid3(truth.rotation, truth.translation + np.array([0.03, -0.02, 0.01]))
+    fit = refine_with_depth(small_map.surface, depth, f.camera, None, guess)
+    same = refine_pose(small_map.surface, depth_cloud(depth, f.camera, None), guess)
+    assert fit.accepted and pose_error(fit.chosen(), truth)[0] < 0.01
+    np.testing.assert_array_equal(fit.world_from_cam.matrix(), same.world_from_cam.matrix())
+    cam = f.camera  # the depth as if from a camera of its own, described at twice the size
+    own = refine_with_depth(small_map.surface, depth, cam, cam.scaled_to(2 * cam.width,
+                                                                         2 * cam.height), guess)
+    np.testing.assert_array_equal(own.world_from_cam.matrix(), fit.world_from_cam.matrix())
+    empty = refine_with_depth(small_map.surface, np.zeros_like(depth), f.camera, None, guess)
+    assert not empty.accepted and empty.chosen() is guess
 
 
 def test_a_view_that_is_not_on_the_surface_is_not_accepted(small_map, query):

@@ -38,6 +38,8 @@ class ViewerCase:
 
 
 def build_map_folder(scene: Path, out: Path, seed: int = 0):
+    from slamreloc.map.meta import (CameraMeta, DatasetMeta, FeatureMeta, MapMeta,
+                                    RegressorMeta)
     from slamreloc.map.write import save_map
     from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
     from slamreloc.map.scene_map import MapDatabase
@@ -66,11 +68,13 @@ def build_map_folder(scene: Path, out: Path, seed: int = 0):
                      np.concatenate(idx).astype(np.int32), [f.name for f in frames],
                      np.stack([f.world_from_cam.matrix() for f in frames]))
     model = SceneCoordinateRegressor(RegressorConfig.preset("tiny", 128))
-    meta = {"features": {"name": "sift"},
-            "regressor": {"arch": "tiny", "config": model.config.to_dict(),
-                          "parameters": model.num_parameters()},
-            "labels": {"n_labelled": len(db.points)}, "camera": frames[0].camera.to_dict(),
-            "dataset": {"root": str(Path(scene).resolve()), "kind": ds.kind, "split": "train"}}
+    meta = MapMeta(features=FeatureMeta("sift"),
+                   regressor=RegressorMeta("tiny", model.config.to_dict(),
+                                           model.num_parameters()),
+                   labels={"n_labelled": len(db.points)},
+                   camera=CameraMeta.from_camera(frames[0].camera),
+                   dataset=DatasetMeta(root=str(Path(scene).resolve()), kind=ds.kind,
+                                       split="train"))
     save_map(out, meta, model, db)
     return out, np.concatenate(cols), len(frames)
 

@@ -60,6 +60,7 @@ def options(
 @app.command("map")
 def map_cmd(
     dataset: Annotated[Path, typer.Argument(
+        metavar="DATASET",
         help="dataset (7-Scenes, TUM, synthetic, COLMAP, `slamreloc sfm` output, a ROS bag)")],
     out: Annotated[Path, typer.Option("--out", help="map folder to write")],
     split: Annotated[str, typer.Option(help="train | test | all | sequence names")] = "train",
@@ -97,7 +98,8 @@ def map_cmd(
 @app.command()
 def evaluate(
     map_dir: Annotated[Path, typer.Argument(metavar="MAP", help="map folder")],
-    dataset: Annotated[Path, typer.Argument(help="dataset folder with ground-truth poses")],
+    dataset: Annotated[Path, typer.Argument(
+        metavar="DATASET", help="dataset folder with ground-truth poses")],
     report: Annotated[Path, typer.Option("--report", help="REPORT.json to write")],
     split: Annotated[str, typer.Option(help="train | test | all | sequence names")] = "test",
     method: Annotated[Method, typer.Option(help="regressor, or the matching baseline")] =
@@ -107,7 +109,10 @@ def evaluate(
              "<stem>.names.txt)")] = None,
     plot: Annotated[Optional[Path], typer.Option(help="write error curves and top view (PNG)")] =
     None,
-    device: Annotated[Device, typer.Option(help="regressor device")] = Device.cpu,
+    device: Annotated[Device, typer.Option(
+        help="regressor device; cpu by default, where localize, slam and serve run it, so the "
+             "report's poses and timings are theirs (auto would take CUDA when present, "
+             "and bf16 there)")] = Device.cpu,
     depth: Annotated[bool, typer.Option(
         "--depth", help="refine each pose by ICP of the frame's depth against the map's "
         "surface (RGB-D relocalization)")] = False,
@@ -120,11 +125,11 @@ def evaluate(
     guided: Annotated[bool, typer.Option(help=GUIDED_HELP)] = True,
 ) -> None:
     """Localize every frame of a split against MAP and score it against ground truth."""
-    from slamreloc.cli.pipeline import run_evaluation
+    from slamreloc.cli import jobs
 
-    summary = run_evaluation(map_dir, dataset, report, split, method.value, trajectory, plot,
-                             device.value, depth=depth, poses=poses,
-                             references=list(reference or []), guided=guided)
+    summary = jobs.evaluate(map_dir, dataset, report, split, method.value, trajectory, plot,
+                            device.value, depth=depth, poses=poses,
+                            references=list(reference or []), guided=guided)
     from slamreloc.localize.evaluate import print_summary
 
     print_summary([summary])
@@ -134,7 +139,7 @@ def evaluate(
 def localize(
     map_dir: Annotated[Path, typer.Argument(metavar="MAP", help="map folder")],
     images: Annotated[list[Path], typer.Argument(
-        help="image files, or ROS bags (each frame, with the bag's camera)")],
+        metavar="IMAGE", help="image files, or ROS bags (each frame, with the bag's camera)")],
     intrinsics: Annotated[Optional[tuple[float, float, float, float]], typer.Option(
         help="FX FY CX CY in pixels, pinhole (default: the map's camera, scaled to the image)")]
     = None,
@@ -145,7 +150,7 @@ def localize(
     guided: Annotated[bool, typer.Option(help=GUIDED_HELP)] = True,
 ) -> None:
     """Print `name tx ty tz qx qy qz qw inliers` (camera-to-world) for each image."""
-    from slamreloc.cli.pipeline import localize_images
+    from slamreloc.cli import jobs
 
     if camera is not None and intrinsics is not None:
         raise InputError("--camera and --intrinsics: give one of them")
@@ -156,8 +161,7 @@ def localize(
     else:
         query_camera = intrinsics
     errors = 0
-    for line, status in localize_images(map_dir, images, query_camera, method.value,
-                                          guided):
+    for line, status in jobs.localize(map_dir, images, query_camera, method.value, guided):
         if status == "error":
             errors += 1
             typer.echo(line, err=True)
@@ -170,7 +174,8 @@ def localize(
 @app.command("pseudo-label")
 def pseudo_label_cmd(
     map_dir: Annotated[Path, typer.Argument(metavar="MAP", help="map folder to update")],
-    dataset: Annotated[Path, typer.Argument(help="dataset with the unlabelled sequence")],
+    dataset: Annotated[Path, typer.Argument(
+        metavar="DATASET", help="dataset with the unlabelled sequence")],
     out: Annotated[Path, typer.Option("--out", help="NEW_MAP folder to write (MAP is kept)")],
     report: Annotated[Path, typer.Option("--report", help="REPORT.json to write")],
     split: Annotated[Optional[str], typer.Option(
@@ -249,6 +254,14 @@ def sfm(
         help="metric scale: metres per SfM unit")] = None,
     min_registered: Annotated[float, typer.Option(
         help="fail when fewer than this share of the images register")] = 0.5,
+    select: Annotated[str, typer.Option(
+        metavar="auto|all|parallax",
+        help="which frames or photos SfM uses: parallax keeps one once its tracked points "
+             "reach --min-parallax to the last one kept (near-duplicates of a slow camera "
+             "make SfM fail); all keeps every one; auto: parallax for a video (among the "
+             "--fps samples), all for photos and datasets")] = "auto",
+    min_parallax: Annotated[float, typer.Option(
+        metavar="DEG", help="--select parallax: median triangulation angle, degrees")] = 0.75,
 ) -> None:
     """Poses for unposed images or a video: SfM with pycolmap, written as a COLMAP dataset
     that map, evaluate, slam and pseudo-label read."""
@@ -257,7 +270,8 @@ def sfm(
     config = SfmConfig(camera=camera, fix_intrinsics=fix_intrinsics, matching=matching.value,
                        mapper=mapper.value, overlap=overlap, max_features=max_features, fps=fps,
                        split=split, scale=scale, scale_from_depth=scale_from_depth,
-                       min_registered=min_registered)
+                       min_registered=min_registered, select=select,
+                       min_parallax=min_parallax)
     print_sfm_summary(run_sfm(source, out, config))
 
 
@@ -292,7 +306,16 @@ def demo(
     False,
     port: Annotated[int, typer.Option(help="viewer port")] = 8080,
 ) -> None:
-    """The main job on the embedded synthetic scene: render, map, train, relocalize, report."""
+    """The main job on the embedded synthetic scene (about 10 min on 2 CPU cores).
+
+    Stages, each with progress bars, all written to --workdir:
+    1. render the synthetic room: map, query, kidnap and unlabelled sequences
+    2. map: SIFT features, labels from depth, surface, regressor training
+    3. relocalize the query sequence: the regressor and the matching baseline
+    4. SLAM backend on the kidnap sequence, the camera kidnapped twice
+    5. map update from the unlabelled sequence (pseudo-labels), scored again
+    6. result tables and the next commands to try
+    7. the web viewer of it all until Ctrl-C (not with --no-viewer)"""
     from slamreloc.cli.demo import run_demo
 
     run_demo(workdir, viewer=not no_viewer, port=port)
@@ -301,7 +324,7 @@ def demo(
 @app.command()
 def slam(
     dataset: Annotated[Path, typer.Argument(
-        help="RGB-D dataset (7-Scenes, TUM, synthetic, a ROS bag)")],
+        metavar="DATASET", help="RGB-D dataset (7-Scenes, TUM, synthetic, a ROS bag)")],
     map_dir: Annotated[Path, typer.Option("--map", help="map folder to relocalize against")],
     report: Annotated[Path, typer.Option("--report", help="REPORT.json to write")],
     split: Annotated[str, typer.Option(help="split, role or sequence names to track")] = "test",
@@ -319,10 +342,10 @@ def slam(
 ) -> None:
     """Track a split with odometry, relocalize after tracking loss and at keyframes, optimise
     the pose graph in the map frame; report ATE, recoveries and loop closures."""
-    from slamreloc.cli.slam_stage import run_slam_command
+    from slamreloc.cli import jobs
 
-    run_slam_command(dataset, map_dir, report, split, kidnap_every, kidnap_skip, odometry,
-                     trajectory, poses=poses)
+    jobs.slam(dataset, map_dir, report, split, kidnap_every, kidnap_skip, odometry, trajectory,
+              poses=poses)
 
 
 @app.command()
@@ -357,11 +380,11 @@ def _print_map(scene_map) -> None:
     info = scene_map.info
     console.print(f"[green]map written[/green] to {scene_map.root}: {info.regressor_arch} "
                   f"regressor ({info.n_parameters / 1e6:.2f} M parameters, trained in "
-                  f"{info.train.precision}, {scene_map.size_bytes() / 1e6:.1f} MB), trained on "
-                  f"{info.n_labelled} labelled keypoints")
-    poses = scene_map.meta.get("dataset", {}).get("poses", "dataset")
+                  f"{info.train_config.precision}, {scene_map.size_bytes() / 1e6:.1f} MB), "
+                  f"trained on {info.n_labelled} labelled keypoints")
+    poses = info.poses_source
     if poses != "dataset":
         console.print(f"[green]poses[/green]: from {poses} (--poses), not the dataset's")
-    if not scene_map.meta.get("dataset", {}).get("metric", True):
+    if not info.metric:
         console.print("[yellow]units[/yellow]: the dataset's SfM units, not metres (it was "
                       "made by `slamreloc sfm` without --scale or --scale-from-depth)")

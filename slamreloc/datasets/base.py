@@ -5,25 +5,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from slamreloc.errors import InputError
-from slamreloc.geometry import Rigid3
 from slamreloc.types import Frame
-
-SEVENSCENES_DEPTH_K = (585.0, 585.0, 320.0, 240.0)  # 7-Scenes depth camera at 640x480
-# Kinect v1 rig: depth camera -> RGB camera (0.6 deg, 2.6 cm along x), the calibration the
-# 7-Scenes "calibrated depth" of DSAC* and ACE is made with (LIRIS activities dataset)
-SEVENSCENES_RGB_FROM_DEPTH = (
-    (0.99996518012567637, 0.0026765126468950343, -0.0079041012313000904, -0.025558943178152542),
-    (-0.0027409311281316700, 0.99996302803027592, -0.0081504520778013286, 0.00010109636268061706),
-    (0.0078819942130445332, 0.0081718328771890631, 0.99993554558014031, 0.0020318321729487039),
-    (0.0, 0.0, 0.0, 1.0))
 
 
 @dataclass
 class Dataset:
-    """Posed (or unposed) RGB-D frames. `depth_registered`: depth pixels align with RGB pixels."""
+    """Posed (or unposed) RGB-D frames. `depth_registered`: depth pixels align with RGB pixels;
+    where they do not, each frame's `depth_camera` and `rgb_from_depth` place its depth."""
 
     root: Path
     kind: str  # "7scenes" | "tum" | "synthetic"
@@ -44,19 +33,6 @@ class Dataset:
         """Where the frames' poses were read: the pose file, else the dataset folder (for
         messages about a missing pose)."""
         return self.root if self.poses_source == "dataset" else Path(self.poses_source)
-
-    @property
-    def depth_intrinsics(self) -> tuple[float, float, float, float] | None:
-        """The depth camera's (fx, fy, cx, cy) at 640x480 where depth is not registered to the
-        images (7-Scenes), else None: the RGB camera's own intrinsics apply."""
-        return None if self.depth_registered else SEVENSCENES_DEPTH_K
-
-    @property
-    def rgb_from_depth(self) -> Rigid3:
-        """The depth camera's pose in the RGB camera's frame (identity where registered)."""
-        if self.depth_registered:
-            return Rigid3.identity()
-        return Rigid3.from_matrix(np.array(SEVENSCENES_RGB_FROM_DEPTH), source="7-Scenes rig")
 
     def frames(self, split: str = "all") -> list[Frame]:
         """Frames of a split: "train", "test", "all", a role, or comma-separated sequences."""

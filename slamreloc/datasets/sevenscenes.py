@@ -12,6 +12,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import numpy as np
+
 from slamreloc.datasets.base import Dataset
 from slamreloc.datasets.io import (
     check_frame_files,
@@ -21,11 +23,22 @@ from slamreloc.datasets.io import (
     read_text,
 )
 from slamreloc.errors import InputError
+from slamreloc.geometry import Rigid3
 from slamreloc.io.fileio import read_bytes
 from slamreloc.io.jsonio import parse_json
 from slamreloc.types import Camera, Frame
 
 DEFAULT_K = (525.0, 525.0, 320.0, 240.0)
+# 7-Scenes' depth is not registered to the RGB images: it comes from the Kinect v1's depth
+# camera, fx = fy = 585 px, principal point (320, 240), in the 640x480 depth maps
+SEVENSCENES_DEPTH_CAMERA = Camera(640, 480, 585.0, 585.0, 320.0, 240.0)
+# Kinect v1 rig: depth camera -> RGB camera (0.6 deg, 2.6 cm along x), the calibration the
+# 7-Scenes "calibrated depth" of DSAC* and ACE is made with (LIRIS activities dataset)
+SEVENSCENES_RGB_FROM_DEPTH = (
+    (0.99996518012567637, 0.0026765126468950343, -0.0079041012313000904, -0.025558943178152542),
+    (-0.0027409311281316700, 0.99996302803027592, -0.0081504520778013286, 0.00010109636268061706),
+    (0.0078819942130445332, 0.0081718328771890631, 0.99993554558014031, 0.0020318321729487039),
+    (0.0, 0.0, 0.0, 1.0))
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 _SEQ = re.compile(r"^seq-?(\d+)$")
 
@@ -104,19 +117,30 @@ def _is_image(path: Path) -> bool:
 
 
 def _sequence(seq_dir: Path, camera: Camera, registered: bool) -> list[Frame]:
+    """The sequence's frames; depth not `registered` is the Kinect's depth camera's."""
     frames = []
+    rgb_from_depth = None if registered else sevenscenes_rgb_from_depth()
     for color in sorted(p for p in seq_dir.glob("frame-*.color.*") if _is_image(p)):
         stem = color.name.split(".")[0]
         depth = seq_dir / f"{stem}.depth.png"
         pose_path = seq_dir / f"{stem}.pose.txt"
+        has_depth = depth.is_file()
         check_frame_files(color, (camera.width, camera.height),
-                          depth if depth.is_file() else None, check_depth=registered)
+                          depth if has_depth else None, check_depth=registered)
+        unregistered = has_depth and not registered
         frames.append(Frame(
             name=f"{seq_dir.name}/{stem}", image_path=color, camera=camera,
-            depth_path=depth if depth.is_file() else None,
+            depth_path=depth if has_depth else None,
             world_from_cam=read_pose(pose_path) if pose_path.is_file() else None,
-            sequence=seq_dir.name, timestamp=float(len(frames)) / 30.0))
+            sequence=seq_dir.name, timestamp=float(len(frames)) / 30.0,
+            depth_camera=SEVENSCENES_DEPTH_CAMERA if unregistered else None,
+            rgb_from_depth=rgb_from_depth if unregistered else None))
     return frames
+
+
+def sevenscenes_rgb_from_depth() -> Rigid3:
+    """The Kinect v1 rig's depth camera in its RGB camera's frame (metres)."""
+    return Rigid3.from_matrix(np.array(SEVENSCENES_RGB_FROM_DEPTH), source="7-Scenes rig")
 
 
 def _read_split(path: Path) -> list[str]:

@@ -1,1 +1,2 @@
-"""The map: its folder format, crash-safe writing and locking, weights, labels, surface, building and export."""
+"""The map: its folder format and metadata schema, crash-safe writing and locking, weights, labels,
+surface, building and export."""

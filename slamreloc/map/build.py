@@ -16,6 +16,8 @@ from slamreloc.io.fileio import check_outputs
 from slamreloc.map.labels import LabelConfig, LabelSet, build_labels
 from slamreloc.map.format import SURFACE
 from slamreloc.map.lock import map_write_lock
+from slamreloc.map.meta import (CameraMeta, DatasetMeta, FeatureMeta, MapMeta, RegressorMeta,
+                                SurfaceMeta)
 from slamreloc.map.write import check_map_target, save_map
 from slamreloc.runtime.progress import console
 from slamreloc.regressor.checkpoint import checkpoint_path
@@ -112,22 +114,18 @@ def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progr
     train_stats = train_regressor(model, db.descriptors, db.points, config.train, config.device,
                                   progress, checkpoint=ckpt, resume=resume)
     timings["train_s"] = time.perf_counter() - t0
-    meta = {
-        "features": {"name": config.features, **extractor.config_dict()},
-        "regressor": {"arch": config.arch, "config": model.config.to_dict(),
-                      "parameters": model.num_parameters()},
-        "train": {**config.train.to_dict(), **train_stats},
-        "labels": labels.stats,
-        "camera": frames[0].camera.to_dict(),
-        # "poses": "dataset" (its own), or the pose file given with --poses
-        "dataset": {"root": str(dataset.root.resolve()), "kind": dataset.kind, "split": split,
-                    "metric": dataset.metric, "poses": dataset.poses_source},
-        "timings_s": timings,
-    }
-    extra = {}
-    if surface is not None:
-        meta["surface"] = {"n_points": len(surface.points), "voxel_m": config.surface.voxel_m}
-        extra[SURFACE] = surface.to_arrays()
+    meta = MapMeta(
+        features=FeatureMeta(config.features, extractor.config_dict()),
+        regressor=RegressorMeta(config.arch, model.config.to_dict(), model.num_parameters()),
+        train={**config.train.to_dict(), **train_stats},
+        labels=labels.stats,
+        camera=CameraMeta.from_camera(frames[0].camera),
+        dataset=DatasetMeta(root=str(dataset.root.resolve()), kind=dataset.kind, split=split,
+                            metric=dataset.metric, poses=dataset.poses_source),
+        timings_s=timings,
+        surface=None if surface is None else SurfaceMeta(n_points=len(surface.points),
+                                                         voxel_m=config.surface.voxel_m))
+    extra = {} if surface is None else {SURFACE: surface.to_arrays()}
     scene_map = SceneMap.load(save_map(out, meta, model, db, extra=extra))
     ckpt.unlink(missing_ok=True)  # the map now holds what the checkpoint was for
     return scene_map

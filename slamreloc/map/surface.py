@@ -3,13 +3,17 @@ with normals (map frame, metres), and point-to-plane ICP of a new depth frame ag
 
 The regressor places a camera to a few centimetres; where the frame has depth, ICP against the
 surface the map was built from pulls that estimate onto the map's geometry (sub-centimetre to a
-few millimetres where the view sees enough structure). On 7-Scenes the ground-truth poses are
-the depth camera's (KinectFusion), so the refined pose is in exactly their frame.
+few millimetres where the view sees enough structure). The surface fuses each training frame's
+depth cloud in its depth camera's frame, placed with the frame's world_from_cam; on 7-Scenes
+the ground-truth poses are the depth camera's (KinectFusion), so the refined pose is in exactly
+their frame.
+
+`refine_with_depth` is the one depth refinement of a pose: `slamreloc evaluate --depth`, the
+relocalization plugin (SLAM) and the service's Localize all call it with an `IcpConfig`.
 
     surface = build_surface(depth_frames)            # [(world_from_cam, points_cam), ...]
-    fit = refine_pose(surface, points_cam, world_from_cam_guess)
-    fit.world_from_cam, fit.fitness, fit.rmse_m
-"""
+    fit = refine_with_depth(surface, depth, camera, depth_camera, world_from_cam_guess)
+    fit.chosen(), fit.accepted, fit.fitness, fit.rmse_m"""
 
 from __future__ import annotations
 
@@ -23,12 +27,14 @@ from slamreloc.datasets import Dataset, read_depth
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, rotation_angle_deg
 from slamreloc.runtime.progress import track
-from slamreloc.rgbd import DepthSampling, backproject, depth_camera
+from slamreloc.rgbd import DepthSampling, backproject, camera_of_depth
 from slamreloc.types import Camera, Frame
 
 
 @dataclass(frozen=True)
 class SurfaceConfig:
+    """How training depth is fused into the surface (lengths in metres)."""
+
     voxel_m: float = 0.025  # one point per voxel of the fused cloud
     normal_radius_m: float = 0.075
     frame_stride: int = 2  # every n-th training frame's depth enters the surface
@@ -36,9 +42,10 @@ class SurfaceConfig:
 
 @dataclass(frozen=True)
 class IcpConfig:
-    """Coarse-to-fine correspondence distances (m); a fit is accepted when at least
+    """The depth refinement of a pose (`refine_with_depth`, `refine_pose`): coarse-to-fine
+    correspondence distances (metres, map frame); a fit is accepted when at least
     `min_fitness` of the frame's points lie within the last distance of the surface and the
-    correction stays within (max_shift_m, max_turn_deg) of the guess."""
+    correction stays within (max_shift_m metres, max_turn_deg degrees) of the guess."""
 
     distances_m: tuple[float, ...] = (0.10, 0.05, 0.025)
     iterations: int = 15  # at most, Gauss-Newton steps per distance
@@ -95,23 +102,28 @@ def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return points[np.sort(first)]
 
 
-def depth_cloud(depth: np.ndarray, camera: Camera,
-                 depth_intrinsics: tuple[float, float, float, float] | None,
-                 sampling: DepthSampling = DepthSampling()) -> np.ndarray:
-    """(N, 3) points of a depth map (metres) in its camera's frame; `depth_intrinsics` as in
-    `Dataset.depth_intrinsics` (None: registered to the RGB `camera`, whose lens distortion
-    is undone first)."""
-    if depth_intrinsics is None:
+def depth_cloud(depth: np.ndarray, camera: Camera, depth_camera: Camera | None,
+                sampling: DepthSampling = DepthSampling()) -> np.ndarray:
+    """(N, 3) float64 points (metres) of a depth map (metres along z, 0 = none) in the frame of
+    the camera that took it (OpenCV axes). `depth_camera`: that camera where the depth is not
+    registered to the image (`Frame.depth_camera`, any pixel size: scaled to the depth map);
+    None: registered to the RGB `camera`, whose lens distortion is undone first."""
+    if depth_camera is None:
         depth = camera.undistort_image(depth)
-    return backproject(depth, depth_camera(camera, depth.shape, depth_intrinsics), sampling)
+    return backproject(depth, camera_of_depth(camera, depth.shape, depth_camera), sampling)
+
+
+def read_frame_depth(frame: Frame, dataset: Dataset) -> np.ndarray:
+    """A dataset frame's depth map as stored: float32 metres in its depth camera's pixels
+    (`frame.depth_camera`, or the image's where registered); InputError without one."""
+    if frame.depth_path is None:
+        raise InputError(f"{frame.image_path}: no depth image")
+    return read_depth(frame.depth_path, dataset.depth_units_per_metre)
 
 
 def frame_cloud(frame: Frame, dataset: Dataset) -> np.ndarray:
-    """The points of a dataset frame's depth image in its camera's frame (metres)."""
-    if frame.depth_path is None:
-        raise InputError(f"{frame.image_path}: no depth image")
-    return depth_cloud(read_depth(frame.depth_path, dataset.depth_units_per_metre),
-                       frame.camera, dataset.depth_intrinsics)
+    """The points of a dataset frame's depth image in its depth camera's frame (metres)."""
+    return depth_cloud(read_frame_depth(frame, dataset), frame.camera, frame.depth_camera)
 
 
 def dataset_surface(dataset: Dataset, frames: list[Frame],
@@ -161,9 +173,11 @@ def extend_surface(surface: Surface, depth_frames: list[tuple[Rigid3, np.ndarray
 
 @dataclass
 class IcpFit:
-    world_from_cam: Rigid3
+    """A depth refinement: poses are world_from_cam (map frame from the camera, metres)."""
+
+    world_from_cam: Rigid3  # where ICP converged
     fitness: float  # share of the frame's (thinned) points within the last distance
-    rmse_m: float  # point-to-plane residual of those points
+    rmse_m: float  # point-to-plane residual of those points (metres; inf without any)
     accepted: bool
     guess: Rigid3  # the pose ICP started from
 
@@ -200,7 +214,8 @@ def _step(surface: Surface, pts_world: np.ndarray, max_m: float, centre: np.ndar
 
 def refine_pose(surface: Surface, points_cam: np.ndarray, world_from_cam: Rigid3,
                 config: IcpConfig = IcpConfig()) -> IcpFit:
-    """Point-to-plane ICP of a depth frame's points (camera frame) from a pose guess."""
+    """Point-to-plane ICP of a depth frame's points (metres, in the frame of the camera that
+    took them) onto `surface` from a pose guess (world_from_cam, map frame, metres)."""
     src = voxel_thin(points_cam, config.source_voxel_m)
     if len(src) > config.max_source_points:
         src = src[np.linspace(0, len(src) - 1, config.max_source_points).astype(int)]
@@ -224,3 +239,23 @@ def refine_pose(surface: Surface, points_cam: np.ndarray, world_from_cam: Rigid3
                 and turn <= config.max_turn_deg)
     return IcpFit(fit, fitness, float(np.sqrt(np.mean(r ** 2))) if len(r) else np.inf, accepted,
                   world_from_cam)
+
+
+def refine_with_depth(surface: Surface, depth: np.ndarray, camera: Camera,
+                      depth_camera: Camera | None, world_from_cam: Rigid3,
+                      config: IcpConfig = IcpConfig()) -> IcpFit:
+    """The depth refinement of a pose: point-to-plane ICP of a depth map onto the map's surface
+    from the guess `world_from_cam` (map frame from the camera, metres; e.g. PnP's). `depth`:
+    float32 metres along z (0 = none) in the pixels of the camera that took it, `depth_camera`
+    (`Frame.depth_camera`, any pixel size: scaled to the depth map), or of the image's `camera`
+    where `depth_camera` is None (registered depth, whose lens distortion is undone first).
+
+    The surface is fused from training depth in the depth camera's own frame, placed with each
+    frame's world_from_cam (7-Scenes: the depth camera's pose, KinectFusion), so the depth is
+    fitted in its own camera's frame and the rig extrinsics (`Frame.rgb_from_depth`) do not
+    enter. A depth map without a valid pixel gives a fit that is not accepted: `chosen()` is
+    then the guess, as for any fit not accepted (`IcpConfig`)."""
+    points = depth_cloud(depth, camera, depth_camera)
+    if len(points) == 0:
+        return IcpFit(world_from_cam, 0.0, np.inf, False, world_from_cam)
+    return refine_pose(surface, points, world_from_cam, config)

@@ -11,23 +11,23 @@ import numpy as np
 import torch
 
 from slamreloc.errors import InputError
-from slamreloc.map.format import (LEGACY_WEIGHTS, WEIGHTS, check_digest, one_line, read_npz,
-                                  weights_name)
+from slamreloc.map.format import LEGACY_WEIGHTS, WEIGHTS, check_digest, one_line, read_npz
+from slamreloc.map.meta import MapMeta
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 
 BF16_SUFFIX = "::bfloat16"  # npz key suffix: a bfloat16 tensor stored as its int16 bits
 
 
-def read_regressor(root: Path, meta: dict) -> SceneCoordinateRegressor:
+def read_regressor(root: Path, meta: MapMeta) -> SceneCoordinateRegressor:
     """The map's regressor, its weights checked against the checksum (format 2) and the
-    config in `meta` (checked metadata, from `read_meta`)."""
-    cfg = RegressorConfig.from_dict(meta["regressor"]["config"])
-    if meta["format_version"] == 1:
+    config in `meta` (the map's checked metadata)."""
+    cfg = meta.regressor.to_config()
+    if meta.format_version == 1:
         state = _read_legacy_weights(root / LEGACY_WEIGHTS)
     else:
-        check_digest(root, WEIGHTS, meta)
+        check_digest(root, WEIGHTS, meta.files)
         state = _read_weights(root / WEIGHTS)
-    return _build_regressor(cfg, state, root / weights_name(meta))
+    return _build_regressor(cfg, state, root / meta.weights_file)
 
 
 def _read_weights(path: Path) -> dict[str, torch.Tensor]:

@@ -1,8 +1,8 @@
-"""Crash-safe writing of a map folder (the format is map_format.py's).
+"""Crash-safe writing of a map folder (the format is format.py's, the metadata's meta.py's).
 
 The new map is written into `.NAME.tmp-PID` beside MAP and swapped in with one atomic
 `renameat2(RENAME_EXCHANGE)` (two renames where the file system lacks it; a crash between them
-is rolled back at the next start), all under the map's write lock (map_lock.py).
+is rolled back at the next start), all under the map's write lock (lock.py).
 """
 
 from __future__ import annotations
@@ -16,11 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from slamreloc import __version__
 from slamreloc.errors import InputError
-from slamreloc.map.format import (DATABASE, FORMAT_VERSION, MAP_FORMAT, META, WEIGHTS, is_map,
-                                  sha256_file)
+from slamreloc.map.format import DATABASE, FORMAT_VERSION, META, WEIGHTS, is_map, sha256_file
 from slamreloc.map.lock import fsync_dir, map_write_lock
+from slamreloc.map.meta import MapMeta
 from slamreloc.map.weights import weight_arrays
 from slamreloc.regressor.model import SceneCoordinateRegressor
 from slamreloc.map.scene_map import MapDatabase, SceneMap
@@ -84,10 +83,12 @@ def _swap_in(tmp: Path, out: Path) -> None:
     fsync_dir(out.parent)
 
 
-def save_map(out: str | Path, meta: dict, model: SceneCoordinateRegressor, db: MapDatabase,
+def save_map(out: str | Path, meta: MapMeta, model: SceneCoordinateRegressor, db: MapDatabase,
              extra: dict[str, dict[str, np.ndarray]] | None = None) -> Path:
     """Write a map atomically: into a temporary sibling folder, then swap it in for `out`.
-    `extra`: more array files (name -> arrays, no pickle) written into the map with it.
+    `meta` is written stamped (`MapMeta.stamped`) with today's format, this version, the
+    files' checksums and `db`'s frame names. `extra`: more array files (name -> arrays, no
+    pickle) written into the map with it.
 
     Refuses to replace an existing non-empty folder that is not a slamreloc map, and fails at
     once if another process is writing `out`."""
@@ -110,14 +111,9 @@ def save_map(out: str | Path, meta: dict, model: SceneCoordinateRegressor, db: M
             for name, arrays in (extra or {}).items():
                 files[name] = _write_npz(tmp / name, arrays)
             _crash_point("files-written")
-            body = {k: v for k, v in meta.items() if k not in (
-                "format", "version", "format_version", "slamreloc_version", "files",
-                "frame_names")}
-            full = {"format": MAP_FORMAT, "format_version": FORMAT_VERSION,
-                    "slamreloc_version": __version__, **body, "files": files,
-                    "frame_names": list(db.frame_names)}
+            doc = meta.stamped(files, db.frame_names).to_json()
             with open(tmp / META, "w") as f:
-                f.write(json.dumps(full, indent=1))
+                f.write(json.dumps(doc, indent=1))
                 f.flush()
                 os.fsync(f.fileno())
             fsync_dir(tmp)
@@ -134,4 +130,4 @@ def migrate_map(path: str | Path) -> Path:
     old = SceneMap.load(path)
     if old.format_version == FORMAT_VERSION:
         return old.root
-    return save_map(old.root, old.meta, old.regressor, old.database)
+    return save_map(old.root, old.info, old.regressor, old.database)

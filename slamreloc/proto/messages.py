@@ -22,7 +22,7 @@ from slamreloc.types import Camera
 
 ERROR_METADATA_KEY = "slamreloc-error"  # trailing metadata: the ErrorKind's name
 QUATERNION_NORM_TOL = 1e-3  # as for COLMAP's images.txt
-DEPTH_REFERENCE_SIZE = (640, 480)  # `Dataset.depth_intrinsics` are given at this size
+DEPTH_REFERENCE_SIZE = (640, 480)  # a request's depth camera is held at this size (pixels)
 
 
 class ServiceError(Exception):
@@ -141,12 +141,15 @@ def camera_msg(camera: Camera) -> pb.Camera:
 
 
 # ---- depth ---------------------------------------------------------------------------------
-def depth_intrinsics_from_msg(msg: pb.PinholeCamera,
-                              what: str) -> tuple[float, float, float, float]:
-    """(fx, fy, cx, cy) at 640x480, as `Dataset.depth_intrinsics`."""
+def depth_camera_from_msg(msg: pb.PinholeCamera, what: str) -> Camera:
+    """The camera that took depth not registered to the image (`Depth.depth_camera`,
+    `SessionOpen.depth_camera`; pinhole, pixels), checked and held at DEPTH_REFERENCE_SIZE
+    (640x480): every use scales it to its depth map's size (`slamreloc.rgbd.camera_of_depth`),
+    a camera that does not hold at that size is refused here, when it is given, and the
+    arithmetic, hence the poses, are those of earlier versions of the service."""
     try:
         cam = Camera(msg.width, msg.height, msg.fx, msg.fy, msg.cx, msg.cy)
-        return tuple(cam.scaled_to(*DEPTH_REFERENCE_SIZE).params())
+        return cam.scaled_to(*DEPTH_REFERENCE_SIZE)
     except (InputError, ValueError, ZeroDivisionError) as err:
         raise ServiceError(pb.BAD_CAMERA, f"{what}: {err}") from None
 
@@ -187,8 +190,7 @@ def depth_from_msg(msg: pb.Depth, registered_size: tuple[int, int] | None,
         if registered_size is not None and (depth.shape[1], depth.shape[0]) != registered_size:
             w, h = registered_size
             raise InputError(f"registered depth is {depth.shape[1]}x{depth.shape[0]}, the image "
-                             f"is {w}x{h} (give the depth camera's intrinsics if it is not "
-                             "registered)")
+                             f"is {w}x{h} (give the depth camera if it is not registered)")
         return depth
     except InputError as err:
         raise ServiceError(_bound_kind(err, pb.BAD_DEPTH), f"{what}: {err}") from None

@@ -115,7 +115,7 @@ class Camera(_message.Message):
     def __init__(self, pinhole: _Optional[_Union[PinholeCamera, _Mapping]] = ..., colmap: _Optional[str] = ...) -> None: ...
 
 class Depth(_message.Message):
-    __slots__ = ("encoding", "width", "height", "data", "units_per_metre", "intrinsics")
+    __slots__ = ("encoding", "width", "height", "data", "units_per_metre", "depth_camera")
     class Encoding(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
         __slots__ = ()
         FLOAT32_METRES: _ClassVar[Depth.Encoding]
@@ -129,14 +129,14 @@ class Depth(_message.Message):
     HEIGHT_FIELD_NUMBER: _ClassVar[int]
     DATA_FIELD_NUMBER: _ClassVar[int]
     UNITS_PER_METRE_FIELD_NUMBER: _ClassVar[int]
-    INTRINSICS_FIELD_NUMBER: _ClassVar[int]
+    DEPTH_CAMERA_FIELD_NUMBER: _ClassVar[int]
     encoding: Depth.Encoding
     width: int
     height: int
     data: bytes
     units_per_metre: float
-    intrinsics: PinholeCamera
-    def __init__(self, encoding: _Optional[_Union[Depth.Encoding, str]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., data: _Optional[bytes] = ..., units_per_metre: _Optional[float] = ..., intrinsics: _Optional[_Union[PinholeCamera, _Mapping]] = ...) -> None: ...
+    depth_camera: PinholeCamera
+    def __init__(self, encoding: _Optional[_Union[Depth.Encoding, str]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., data: _Optional[bytes] = ..., units_per_metre: _Optional[float] = ..., depth_camera: _Optional[_Union[PinholeCamera, _Mapping]] = ...) -> None: ...
 
 class LocalizeRequest(_message.Message):
     __slots__ = ("map", "image", "camera", "depth", "world_from_cam_prior", "prior_max_m", "prior_max_deg")
@@ -199,16 +199,16 @@ class LocalizeResponse(_message.Message):
     def __init__(self, localized: _Optional[bool] = ..., reason: _Optional[_Union[NotLocalized, str]] = ..., detail: _Optional[str] = ..., world_from_cam: _Optional[_Union[Transform, _Mapping]] = ..., num_inliers: _Optional[int] = ..., num_correspondences: _Optional[int] = ..., confidence: _Optional[float] = ..., refined: _Optional[bool] = ..., num_keypoints: _Optional[int] = ..., timings: _Optional[_Union[Timings, _Mapping]] = ..., map_version: _Optional[str] = ...) -> None: ...
 
 class SessionOpen(_message.Message):
-    __slots__ = ("map", "odometry", "depth_intrinsics", "depth_units_per_metre")
+    __slots__ = ("map", "odometry", "depth_camera", "depth_units_per_metre")
     MAP_FIELD_NUMBER: _ClassVar[int]
     ODOMETRY_FIELD_NUMBER: _ClassVar[int]
-    DEPTH_INTRINSICS_FIELD_NUMBER: _ClassVar[int]
+    DEPTH_CAMERA_FIELD_NUMBER: _ClassVar[int]
     DEPTH_UNITS_PER_METRE_FIELD_NUMBER: _ClassVar[int]
     map: str
     odometry: str
-    depth_intrinsics: PinholeCamera
+    depth_camera: PinholeCamera
     depth_units_per_metre: float
-    def __init__(self, map: _Optional[str] = ..., odometry: _Optional[str] = ..., depth_intrinsics: _Optional[_Union[PinholeCamera, _Mapping]] = ..., depth_units_per_metre: _Optional[float] = ...) -> None: ...
+    def __init__(self, map: _Optional[str] = ..., odometry: _Optional[str] = ..., depth_camera: _Optional[_Union[PinholeCamera, _Mapping]] = ..., depth_units_per_metre: _Optional[float] = ...) -> None: ...
 
 class SessionFrame(_message.Message):
     __slots__ = ("image", "camera", "depth", "odometry_world_from_cam", "timestamp")

@@ -11,16 +11,17 @@ from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
     ServiceError,
     camera_from_msg,
+    depth_camera_from_msg,
     depth_from_msg,
-    depth_intrinsics_from_msg,
     image_from_msg,
     rigid_from_msg,
     transform_msg,
 )
 from slamreloc.service.maps import ServedMap
-from slamreloc.map.surface import IcpConfig, depth_cloud, refine_pose
+from slamreloc.map.surface import IcpConfig, refine_with_depth
 
 PRIOR_MAX_M, PRIOR_MAX_DEG = 0.5, 20.0  # defaults of LocalizeRequest.prior_max_*
+ICP = IcpConfig()  # the depth refinement, as `slamreloc evaluate --depth`
 MIN_KEYPOINTS = 4  # PnP needs four correspondences
 
 
@@ -38,20 +39,21 @@ def localize(served: ServedMap, request: pb.LocalizeRequest) -> pb.LocalizeRespo
         limits = (request.prior_max_m or PRIOR_MAX_M, request.prior_max_deg or PRIOR_MAX_DEG)
         if prior is not None and not all(0 < v < float("inf") for v in limits):
             raise ServiceError(pb.BAD_POSE, "prior_max_m and prior_max_deg must be positive")
-        depth = depth_k = None
+        depth = depth_camera = None  # depth_camera None: depth registered to the image
         if request.HasField("depth"):
-            if request.depth.HasField("intrinsics"):
-                depth_k = depth_intrinsics_from_msg(request.depth.intrinsics, "depth.intrinsics")
-            depth = depth_from_msg(request.depth, None if depth_k else (w, h))
+            if request.depth.HasField("depth_camera"):
+                depth_camera = depth_camera_from_msg(request.depth.depth_camera,
+                                                     "depth.depth_camera")
+            depth = depth_from_msg(request.depth, (w, h) if depth_camera is None else None)
         t1 = time.perf_counter()
         result = loc.localize(image, camera)
     est = result.estimate
     world_from_cam, refined = est.world_from_cam, False
     t2 = time.perf_counter()
-    cloud = (depth_cloud(depth, camera, depth_k) if world_from_cam is not None
-             and depth is not None and scene_map.surface is not None else ())
-    if len(cloud):  # a depth map without a valid pixel leaves the pose as PnP found it
-        fit = refine_pose(scene_map.surface, cloud, world_from_cam, IcpConfig())
+    if world_from_cam is not None and depth is not None and scene_map.surface is not None:
+        # a depth map without a valid pixel leaves the pose as PnP found it
+        fit = refine_with_depth(scene_map.surface, depth, camera, depth_camera, world_from_cam,
+                                ICP)
         world_from_cam, refined = fit.chosen(), bool(fit.accepted)
     t3 = time.perf_counter()
     out = pb.LocalizeResponse(

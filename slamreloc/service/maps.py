@@ -84,8 +84,7 @@ class ServedMap:
         return pb.MapInfo(
             name=self.name, path=str(self.path), version=self.version,
             feature=m.info.feature_name, camera=m.camera.colmap_string(),
-            metric=bool(m.meta.get("dataset", {}).get("metric", True)),
-            num_points=int(m.meta.get("labels", {}).get("n_labelled", 0) or 0),
+            metric=m.info.metric, num_points=m.info.n_labelled,
             size_bytes=m.size_bytes() + (db.stat().st_size if db.is_file() else 0),
             loaded_at=self.loaded_at, has_surface=m.surface is not None)
 

@@ -19,8 +19,8 @@ from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
     ServiceError,
     camera_from_msg,
+    depth_camera_from_msg,
     depth_from_msg,
-    depth_intrinsics_from_msg,
     image_from_msg,
     rigid_from_msg,
     transform_msg,
@@ -49,9 +49,9 @@ class Session:
         if odometry not in (CLIENT_ODOMETRY, *SERVER_ODOMETRY):
             raise ServiceError(pb.BAD_REQUEST, f"odometry {odometry!r}: one of "
                                f"{', '.join((CLIENT_ODOMETRY, *SERVER_ODOMETRY))}")
-        self.depth_intrinsics = (depth_intrinsics_from_msg(request.depth_intrinsics,
-                                                           "depth_intrinsics")
-                                 if request.HasField("depth_intrinsics") else None)
+        # the camera of the frames' depth where it is not registered to the images, else None
+        self.depth_camera = (depth_camera_from_msg(request.depth_camera, "depth_camera")
+                             if request.HasField("depth_camera") else None)
         units = request.depth_units_per_metre
         if units and not (math.isfinite(units) and 1e-3 <= units <= 1e6):
             raise ServiceError(pb.BAD_DEPTH, "depth_units_per_metre must be in [0.001, 1e6] "
@@ -60,10 +60,9 @@ class Session:
         self.served, self.id = served, uuid.uuid4().hex[:12]
         self.client_odometry = odometry == CLIENT_ODOMETRY
         front_end = (None if self.client_odometry
-                     else make_odometry(odometry, self.depth_intrinsics))
+                     else make_odometry(odometry, self.depth_camera))
         self.odometry_name = odometry if front_end is None else front_end.name
-        plugin = load_plugin("relocalization", depth_intrinsics=self.depth_intrinsics,
-                             scene_map=self.served.scene_map)
+        plugin = load_plugin("relocalization", scene_map=self.served.scene_map)
         self.plugin = plugin
         self.backend = SlamBackend(front_end, [plugin], BackendConfig())
         self._decisions_sent = 0
@@ -86,10 +85,10 @@ class Session:
                                  self.served.scene_map.camera, "frame.camera")
         depth = None
         if msg.HasField("depth"):
-            if msg.depth.HasField("intrinsics"):
+            if msg.depth.HasField("depth_camera"):
                 raise ServiceError(pb.BAD_DEPTH, "frame.depth: the depth camera is given once, "
-                                   "in SessionOpen.depth_intrinsics")
-            depth = depth_from_msg(msg.depth, (w, h) if self.depth_intrinsics is None else None,
+                                   "in SessionOpen.depth_camera")
+            depth = depth_from_msg(msg.depth, (w, h) if self.depth_camera is None else None,
                                    self.depth_units, "frame.depth")
         elif not self.client_odometry:
             raise ServiceError(pb.BAD_DEPTH, f"frame.depth: {self.odometry_name} odometry "
@@ -104,7 +103,8 @@ class Session:
             raise ServiceError(pb.BAD_REQUEST, f"frame.timestamp: {msg.timestamp!r} is not a "
                                "time in seconds")
         t0 = time.perf_counter()
-        step = self.backend.process(image, depth, camera, odom, msg.timestamp)
+        step = self.backend.process(image, depth, camera, odom, msg.timestamp,
+                                    self.depth_camera)
         out = pb.FrameResult(index=step.index, state=STATES[step.state],
                              backend_ms=1000 * (time.perf_counter() - t0))
         if step.world_from_cam is not None:

@@ -22,6 +22,7 @@ from slamreloc.slam.graph import GraphConfig, PoseGraph
 from slamreloc.slam.health import Health, HealthConfig, check_health
 from slamreloc.slam.odometry import Odometry, OdometryStep
 from slamreloc.slam.timing import Timer
+from slamreloc.types import Camera
 
 LOGGED_EVENTS = frozenset({EventKind.TRACKING_LOST, EventKind.TRACKING_RECOVERED,
                            EventKind.MAP_UPDATED})
@@ -88,12 +89,15 @@ class SlamBackend:
 
     # ---- per frame -------------------------------------------------------------------------
     def process(self, image, depth, camera, odometry_world_from_cam: Rigid3 | None = None,
-                timestamp: float | None = None) -> StepResult:
+                timestamp: float | None = None, depth_camera: Camera | None = None
+                ) -> StepResult:
         """One frame: RGB uint8 (or None), depth in metres (or None), its Camera, and your own
-        odometry pose (any fixed odometry frame) if the backend has no front end."""
+        odometry pose (any fixed odometry frame) if the backend has no front end; timestamp in
+        seconds. `depth_camera`: the camera that took the depth (in the depth map's pixel size)
+        where it is not registered to the image, else None (as `FrameData`)."""
         index = len(self.frames)
         data = FrameData(index, float(index if timestamp is None else timestamp), image, depth,
-                         camera)
+                         camera, depth_camera)
         self._events, self._data = [], data
         with self.timer("odometry"):
             step = self._odometry(data, odometry_world_from_cam)

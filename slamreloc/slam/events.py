@@ -32,13 +32,18 @@ class EventKind(str, Enum):
 
 @dataclass
 class FrameData:
-    """What the backend was given for one frame: RGB uint8, depth in metres (or None)."""
+    """What the backend was given for one frame: RGB uint8 (H, W, 3) or None, its `camera`
+    (pixels), the timestamp (seconds), and depth (float32 metres along z, 0 = none; or None)
+    in the pixels of `depth_camera`: the camera that took it (`Frame.depth_camera`; scaled to
+    the depth map where its size differs) where it is not registered to the image; None:
+    registered (the image's `camera`, scaled to the depth map)."""
 
     index: int
     timestamp: float
     image: np.ndarray | None
     depth: np.ndarray | None
     camera: Camera
+    depth_camera: Camera | None = None
 
 
 @dataclass

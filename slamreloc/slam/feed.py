@@ -1,9 +1,9 @@
 """Feeding a dataset's frames to `SlamBackend`: read what the backend needs of each frame (the
 RGB image, the depth map) and step the backend, one frame at a time.
 
-Depth is handed over as stored, in metres in the depth camera's pixels: the odometry front ends
-place it with the dataset's depth intrinsics (`Dataset.depth_intrinsics`, None when depth is
-registered to the image), so nothing is warped here.
+Depth is handed over as stored, in metres in the depth camera's pixels, with that camera
+(`Frame.depth_camera`, None when depth is registered to the image): the odometry front ends and
+the relocalization plugin place it with that camera, so nothing is warped here.
 """
 
 from __future__ import annotations
@@ -24,14 +24,16 @@ from slamreloc.types import Camera, Frame
 @dataclass(frozen=True)
 class FrameInput:
     """One frame as `SlamBackend.process` takes it: RGB uint8 (or None), depth in metres in the
-    depth camera's pixels (or None), the RGB camera, the timestamp (seconds) and, for a backend
-    without an odometry front end, the frame's pose in your odometry frame."""
+    depth camera's pixels (or None), the RGB camera, the timestamp (seconds), for a backend
+    without an odometry front end the frame's pose in your odometry frame, and the depth's
+    own camera where it is not registered to the image (`Frame.depth_camera`)."""
 
     camera: Camera
     timestamp: float
     image: np.ndarray | None = None
     depth: np.ndarray | None = None
     odometry_world_from_cam: Rigid3 | None = None
+    depth_camera: Camera | None = None
 
 
 @dataclass(frozen=True)
@@ -52,7 +54,19 @@ def read_frames(dataset: Dataset, frames: Iterable[Frame], image: bool = True,
         yield FrameInput(
             frame.camera, frame.timestamp,
             read_image(frame.image_path) if image else None,
-            read_depth(frame.depth_path, dataset.depth_units_per_metre) if depth else None)
+            read_depth(frame.depth_path, dataset.depth_units_per_metre) if depth else None,
+            depth_camera=frame.depth_camera)
+
+
+def depth_camera_of(frames: Iterable[Frame]) -> Camera | None:
+    """The one depth camera of the frames with depth (`Frame.depth_camera`; None: registered
+    to the image), for an odometry front end configured once for a run; InputError where
+    frames of the run have different ones."""
+    cameras = {f.depth_camera for f in frames if f.depth_path is not None}
+    if len(cameras) > 1:
+        raise InputError(f"{len(cameras)} different depth cameras among the frames: one "
+                         "odometry run takes one")
+    return next(iter(cameras), None)
 
 
 def feed(backend: SlamBackend, inputs: Iterable[FrameInput]) -> Iterator[FedFrame]:
@@ -60,7 +74,7 @@ def feed(backend: SlamBackend, inputs: Iterable[FrameInput]) -> Iterator[FedFram
     for inp in inputs:
         t0 = time.perf_counter()
         result = backend.process(inp.image, inp.depth, inp.camera, inp.odometry_world_from_cam,
-                                 inp.timestamp)
+                                 inp.timestamp, inp.depth_camera)
         yield FedFrame(result, time.perf_counter() - t0)
 
 

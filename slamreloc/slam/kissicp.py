@@ -7,21 +7,23 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slamreloc.geometry import Rigid3
-from slamreloc.rgbd import DepthSampling, backproject, depth_camera
+from slamreloc.rgbd import DepthSampling, backproject, camera_of_depth
 from slamreloc.slam.odometry import Odometry, OdometryStep, occupied_fraction
 from slamreloc.types import Camera
 
 
 @dataclass(frozen=True)
 class KissIcpConfig:
-    """voxel_m: kiss-icp's map voxel (metres); the depth camera's intrinsics (None: registered
-    depth, use the RGB camera); fitness cells are `fitness_cell_m` wide."""
+    """voxel_m: kiss-icp's map voxel (metres); `depth_camera`: the camera that took the depth
+    where it is not registered to the image (`Frame.depth_camera`, any pixel size: scaled to
+    the depth map), None: registered depth, use the RGB camera; fitness cells are
+    `fitness_cell_m` (metres) wide."""
 
     sampling: DepthSampling = field(default_factory=DepthSampling)
     voxel_m: float = 0.05
     max_points_per_voxel: int = 5
     max_iterations: int = 100
-    depth_intrinsics: tuple[float, float, float, float] | None = None
+    depth_camera: Camera | None = None
     fitness_cell_m: float = 0.05
 
 
@@ -51,7 +53,7 @@ class KissIcpOdometry(Odometry):
         self._icp = KissICP(cfg)
 
     def step(self, depth, camera: Camera, image=None, timestamp=0.0, index=0) -> OdometryStep:
-        cam = depth_camera(camera, depth.shape, self.config.depth_intrinsics)
+        cam = camera_of_depth(camera, depth.shape, self.config.depth_camera)
         points = backproject(depth, cam, self.config.sampling)
         first = self._icp.local_map.empty()
         model = None if first else self._icp.local_map.point_cloud()

@@ -1,5 +1,5 @@
 """open3d's multi-scale RGB-D odometry (tensor API), frame to frame. With depth registered to
-the image (`depth_intrinsics` None) it uses the hybrid photometric + geometric loss; otherwise
+the image (`depth_camera` None) it uses the hybrid photometric + geometric loss; otherwise
 (7-Scenes: depth from another camera) point-to-plane on depth only."""
 
 from __future__ import annotations
@@ -9,16 +9,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamreloc.geometry import Rigid3
-from slamreloc.rgbd import depth_camera
+from slamreloc.rgbd import camera_of_depth
 from slamreloc.slam.odometry import Odometry, OdometryStep
 from slamreloc.types import Camera
 
 
 @dataclass(frozen=True)
 class Open3dConfig:
-    depth_max_m: float = 4.0
+    """`depth_camera`: the camera that took the depth where it is not registered to the image
+    (`Frame.depth_camera`, any pixel size: scaled to the depth map), None: registered."""
+
+    depth_max_m: float = 4.0  # metres
     iterations: tuple[int, int, int] = (10, 5, 3)  # fine to coarse
-    depth_intrinsics: tuple[float, float, float, float] | None = None
+    depth_camera: Camera | None = None
 
 
 class Open3dOdometry(Odometry):
@@ -35,9 +38,9 @@ class Open3dOdometry(Odometry):
         import open3d as o3d
         from open3d.t.pipelines import odometry as o3o
 
-        cam = depth_camera(camera, depth.shape, self.config.depth_intrinsics)
+        cam = camera_of_depth(camera, depth.shape, self.config.depth_camera)
         d = o3d.core.Tensor(np.ascontiguousarray(depth, dtype=np.float32))
-        hybrid = self.config.depth_intrinsics is None and image is not None
+        hybrid = self.config.depth_camera is None and image is not None
         rgb = (image.astype(np.float32) / 255.0 if hybrid
                else np.zeros((*depth.shape, 3), np.float32))
         color = o3d.core.Tensor(np.ascontiguousarray(rgb))

@@ -12,10 +12,11 @@ from slamreloc.map.format import check_is_map
 from slamreloc.runtime.progress import track
 from slamreloc.slam.backend import BackendConfig, SlamBackend
 from slamreloc.slam.events import load_plugin
-from slamreloc.slam.feed import feed_all, read_frames
+from slamreloc.slam.feed import depth_camera_of, feed_all, read_frames
 from slamreloc.slam.kissicp import KissIcpConfig, KissIcpOdometry
 from slamreloc.slam.odometry import Odometry
 from slamreloc.slam.report import build_report
+from slamreloc.types import Camera
 
 
 @dataclass
@@ -50,18 +51,19 @@ def kidnap_schedule(n_frames: int, every: int, skip: int) -> tuple[list[int], li
 TOPIC_PREFIX = "topic:"  # --odometry topic:/NAME: a pose topic of the ROS bag dataset
 
 
-def make_odometry(name: str, depth_intrinsics, dataset_dir: Path | None = None) -> Odometry:
-    """depth_intrinsics: the depth camera's (fx, fy, cx, cy) at 640x480 when depth is not
-    registered to the image, else None; dataset_dir: the dataset tracked (a ROS bag, for
-    `topic:/NAME`)."""
+def make_odometry(name: str, depth_camera: Camera | None,
+                  dataset_dir: Path | None = None) -> Odometry:
+    """depth_camera: the camera that took the depth when it is not registered to the image
+    (`Frame.depth_camera`, any pixel size: scaled to each depth map), else None; dataset_dir:
+    the dataset tracked (a ROS bag, for `topic:/NAME`)."""
     if name == "auto":
-        name = "kiss-icp" if depth_intrinsics is not None else "open3d"
+        name = "kiss-icp" if depth_camera is not None else "open3d"
     if name == "kiss-icp":
-        return KissIcpOdometry(KissIcpConfig(depth_intrinsics=depth_intrinsics))
+        return KissIcpOdometry(KissIcpConfig(depth_camera=depth_camera))
     if name == "open3d":
         from slamreloc.slam.open3d_odometry import Open3dConfig, Open3dOdometry
 
-        return Open3dOdometry(Open3dConfig(depth_intrinsics=depth_intrinsics))
+        return Open3dOdometry(Open3dConfig(depth_camera=depth_camera))
     from slamreloc.slam.external import TrajectoryOdometry
 
     if name.startswith(TOPIC_PREFIX):
@@ -83,12 +85,10 @@ def run_slam(dataset_dir: Path, map_dir: Path, config: SlamRunConfig = SlamRunCo
     frames = dataset.frames(config.split)
     if not frames:
         raise InputError(f"{dataset_dir}: split '{config.split}' has no frames")
-    depth_k = dataset.depth_intrinsics
-    odometry = make_odometry(config.odometry, depth_k, dataset_dir)
+    odometry = make_odometry(config.odometry, depth_camera_of(frames), dataset_dir)
     external = odometry.name == "trajectory"
-    if plugins is None:
-        plugins = [load_plugin("relocalization", map_dir=map_dir, depth_intrinsics=depth_k,
-                               **config.plugin_options)]
+    if plugins is None:  # each frame's depth comes with its camera (FrameData.depth_camera)
+        plugins = [load_plugin("relocalization", map_dir=map_dir, **config.plugin_options)]
     for plugin in plugins:  # before the run: images its features would not fit in memory for
         localizer = getattr(plugin, "localizer", None)
         if localizer is not None:

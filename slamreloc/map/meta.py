@@ -1,0 +1,507 @@
+"""slamreloc_map.json, typed: `MapMeta` is the one schema of a map folder's metadata.
+
+Every writer builds a MapMeta (`build_map`, the pseudo-label update, `migrate_map`) and
+`save_map` writes `stamped(...).to_json()`; every reader gets one from `MapMeta.read`
+(`SceneMap.info`). `from_json` parses and validates: a defect raises InputError, one line
+naming the file and the problem.
+
+    {"format": "slamreloc-map", "format_version": 2, "slamreloc_version": "...",
+     "features": {"name": "sift", ...extractor options},                    FeatureMeta
+     "regressor": {"arch": "wide", "config": {...}, "parameters": 2300000},   RegressorMeta
+     "train": {...TrainConfig fields, ...training stats},                     stats
+     "labels": {"n_labelled": 51234, ...label stats},                         stats
+     "camera": {"width", "height", "fx", "fy", "cx", "cy"[, "model", "distortion"]},
+                                                                              CameraMeta
+     "dataset": {"root", "kind", "split", "metric", "poses"},                DatasetMeta
+     "timings_s": {...},                                                      stats
+     "pseudo_label": {...},  (a map update)                                   UpdateMeta
+     "surface": {"n_points", "voxel_m"},                                      SurfaceMeta
+     "files": {"regressor.npz": SHA-256 hex, ...}, "frame_names": [...]}
+
+Nothing read is lost on a rewrite: a record's keys the schema does not type, and values of the
+keys it reads leniently (everything but what `from_json` checks) that lack the field's type,
+are kept verbatim in the record's `extra`, and `to_json` writes the keys in the order they were
+read. `MapMeta.from_json(d, path).to_json() == d` for every metadata `from_json` accepts
+(`format_version` is added where a format-1 map records only `version`).
+"""
+
+from __future__ import annotations
+
+import math
+from copy import deepcopy
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Callable
+
+from slamreloc import __version__
+from slamreloc.camera_models import distortion_problem
+from slamreloc.errors import InputError
+from slamreloc.io.fileio import read_bytes
+from slamreloc.io.jsonio import parse_json
+from slamreloc.map.format import (DATABASE, FORMAT_VERSION, LEGACY_WEIGHTS, MAP_FORMAT, META,
+                                  WEIGHTS)
+from slamreloc.regressor.model import RegressorConfig
+from slamreloc.regressor.train import TrainConfig
+from slamreloc.types import Camera, camera_problem
+
+Json = Any  # a parsed JSON value: dict, list, str, int, float, bool or None
+MAX_META_BYTES = 64 << 20
+_HEADER = ("format", "format_version", "slamreloc_version")
+_TRAILER = ("files", "frame_names")
+_STAMPED = (*_HEADER, "version", *_TRAILER)  # what `stamped` sets (`version`: format 1's key)
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _is_str(v) -> bool:
+    return isinstance(v, str)
+
+
+def _is_bool(v) -> bool:
+    return isinstance(v, bool)
+
+
+def _is_object(v) -> bool:
+    return isinstance(v, dict)
+
+
+def _is_strings(v) -> bool:
+    return isinstance(v, list) and all(isinstance(s, str) for s in v)
+
+
+def _short(v) -> str:
+    text = repr(v)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _key(check: Callable[[Json], bool], parse: Callable[[Json], Any] | None = None,
+         default: Any = None):
+    """A typed key of a record: read from JSON when `check` accepts its value (then converted
+    by `parse`), else kept in `extra`; None (the default) when the key is absent."""
+    return field(default=default, metadata={"check": check, "parse": parse})
+
+
+def _to_json(v) -> Json:
+    if isinstance(v, _Record):
+        return v.to_json()
+    if isinstance(v, tuple):
+        return [_to_json(x) for x in v]
+    return deepcopy(v)
+
+
+@dataclass(frozen=True)
+class _Record:
+    """A JSON object of the metadata: typed fields (None: the key is absent), `extra` (the
+    keys the schema does not type, verbatim) and `order` (the key order as read; keys it lacks
+    follow, fields first in declaration order, then `extra`)."""
+
+    extra: dict[str, Json] = field(default_factory=dict, kw_only=True)
+    order: tuple[str, ...] = field(default=(), kw_only=True, compare=False, repr=False)
+
+    def _typed(self) -> dict[str, Json]:
+        """The typed fields' JSON values in declaration order, those not None."""
+        return {f.name: _to_json(getattr(self, f.name)) for f in fields(self)
+                if f.name not in ("extra", "order") and getattr(self, f.name) is not None}
+
+    def get(self, key: str, default: Json = None) -> Json:
+        """The value recorded under `key`, typed or not (`default` when absent), as dict.get."""
+        value = getattr(self, key, None) if key not in ("extra", "order") else None
+        return self.extra.get(key, default) if value is None else value
+
+    def to_json(self) -> dict[str, Json]:
+        """The JSON object (fresh: changing it changes nothing here)."""
+        typed = self._typed()
+        doc = {**typed, **{k: deepcopy(v) for k, v in self.extra.items() if k not in typed}}
+        first = [k for k in self.order if k in doc]
+        seen = set(first)
+        return {k: doc[k] for k in (*first, *(k for k in doc if k not in seen))}
+
+    @classmethod
+    def _parse(cls, obj: dict[str, Json], **typed):
+        """From a JSON object: each typed key whose value passes its check (`typed` overrides,
+        already checked), everything else into `extra`."""
+        keys = {f.name: f.metadata for f in fields(cls) if "check" in f.metadata}
+        extra = {}
+        for k, v in obj.items():
+            if k in typed:
+                continue
+            if k in keys and keys[k]["check"](v):
+                parse = keys[k]["parse"]
+                typed[k] = parse(v) if parse else v
+            else:
+                extra[k] = v
+        return cls(**typed, extra=extra, order=tuple(obj))
+
+
+@dataclass(frozen=True)
+class FeatureMeta(_Record):
+    """"features": the local features of the map's descriptors."""
+
+    name: str  # sift | superpoint
+    # the extractor's options as recorded (fields of SiftConfig / SuperPointConfig; options not
+    # recorded take their defaults): make_extractor(name, **options)
+    options: dict[str, Json] = field(default_factory=dict)
+
+    def _typed(self) -> dict[str, Json]:
+        return {"name": self.name, **deepcopy(self.options)}
+
+    @classmethod
+    def _from_json(cls, obj: dict) -> FeatureMeta:
+        return cls(obj["name"], {k: v for k, v in obj.items() if k != "name"}, order=tuple(obj))
+
+
+@dataclass(frozen=True)
+class RegressorMeta(_Record):
+    """"regressor": the scene-coordinate regressor whose weights regressor.npz holds."""
+
+    arch: str  # the preset it was made from (RegressorConfig.preset): paper | tiny | wide ...
+    config: dict[str, Json]  # RegressorConfig.to_dict() as recorded (`to_config`)
+    parameters: int  # number of parameters
+
+    @classmethod
+    def _from_json(cls, obj: dict) -> RegressorMeta:
+        rest = {k: v for k, v in obj.items() if k not in ("arch", "config", "parameters")}
+        return cls(obj["arch"], obj["config"], obj["parameters"], extra=rest, order=tuple(obj))
+
+    def to_config(self) -> RegressorConfig:
+        """The config as a RegressorConfig (keys a map does not record take the defaults)."""
+        return RegressorConfig.from_dict(self.config)
+
+
+@dataclass(frozen=True)
+class CameraMeta(_Record):
+    """"camera": the training frames' camera as `Camera.to_dict()` writes it: image size and
+    intrinsics in pixels (OpenCV convention: pixel centres at integer coordinates); `model` and
+    `distortion` (a COLMAP lens model and its distortion parameters) only for a distorted lens.
+    Values are kept as recorded (`to_camera` makes the Camera)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    model: str | None = None
+    distortion: tuple[float, ...] | None = None
+
+    @classmethod
+    def from_camera(cls, camera: Camera) -> CameraMeta:
+        d = camera.to_dict()
+        return cls(**{**d, "distortion": tuple(d["distortion"]) if "distortion" in d else None})
+
+    @classmethod
+    def _from_json(cls, obj: dict) -> CameraMeta:
+        dist = obj.get("distortion")
+        return cls(**{**obj, "distortion": None if dist is None else tuple(dist)},
+                   order=tuple(obj))
+
+    def to_camera(self) -> Camera:
+        return Camera.from_dict(self.to_json())
+
+
+@dataclass(frozen=True)
+class DatasetMeta(_Record):
+    """"dataset": the dataset the map was built from."""
+
+    root: str | None = _key(_is_str)  # its folder (or bag), an absolute path
+    kind: str | None = _key(_is_str)  # its detected format: colmap | 7scenes | tum | synthetic...
+    split: str | None = _key(_is_str)  # the split (or sequences) mapped
+    metric: bool | None = _key(_is_bool)  # poses in metres (False: an SfM model without scale)
+    poses: str | None = _key(_is_str)  # "dataset" (its own poses) or the --poses file used
+
+
+@dataclass(frozen=True)
+class UpdateMeta(_Record):
+    """"pseudo_label": the last map update from an unlabelled sequence (pseudo-labelling)."""
+
+    source_map: str | None = _key(_is_str)  # the map it updated (absolute path)
+    dataset: dict[str, Json] | None = _key(_is_object)  # {"root": path, "split": name or null}
+    n_frames: int | None = _key(_is_int)  # frames of the sequence
+    # registered frames: their database rows are appended last, after the updated map's
+    n_frames_registered: int | None = _key(_is_int)
+    n_inherited_labels: int | None = _key(_is_int)  # map labels taken over by matches
+    n_triangulated_labels: int | None = _key(_is_int)  # labels triangulated anew
+    n_new_points: int | None = _key(_is_int)  # new 3D points among those
+    update: str | None = _key(_is_str)  # finetune | retrain
+    provenance: str | None = _key(_is_str)  # what provenance.npz holds (prose)
+    history: tuple[str, ...] | None = _key(_is_strings, tuple)  # every map updated, oldest first
+
+
+@dataclass(frozen=True)
+class SurfaceMeta(_Record):
+    """"surface": the fused depth surface in surface.npz (map frame)."""
+
+    n_points: int | None = _key(_is_int)
+    voxel_m: float | None = _key(_is_number)  # fusion voxel size, metres
+
+
+@dataclass(frozen=True, kw_only=True)
+class MapMeta(_Record):
+    """slamreloc_map.json. Poses and points of a map are in its map frame (the frame of the
+    poses it was built from), in metres when `metric`; the database's training poses are
+    camera-to-world (world_from_cam).
+
+    Built in code, only the four checked sections are required; `save_map` stamps the
+    format and slamreloc versions, the files' checksums and the frame names (`stamped`)."""
+
+    format_version: int = _key(_is_int, default=FORMAT_VERSION)
+    slamreloc_version: str | None = _key(_is_str)  # the version that wrote it
+    features: FeatureMeta = field(metadata={"check": _is_object,
+                                            "parse": FeatureMeta._from_json})
+    regressor: RegressorMeta = field(metadata={"check": _is_object,
+                                               "parse": RegressorMeta._from_json})
+    # training settings (TrainConfig.to_dict(), `precision` the one it ran in) and stats
+    # (train_regressor's: `final_loss_m`, metres...); a map update adds `update`
+    train: dict[str, Json] | None = _key(_is_object)
+    # label statistics (build_labels'): `n_labelled` database rows, `labelled_fraction`,
+    # `median_reproj_error_px` (pixels, or null)...; a map update adds its label counts
+    labels: dict[str, Json] = field(metadata={"check": _is_object, "parse": None})
+    camera: CameraMeta = field(metadata={"check": _is_object, "parse": CameraMeta._from_json})
+    dataset: DatasetMeta | None = _key(_is_object, DatasetMeta._parse)
+    timings_s: dict[str, Json] | None = _key(_is_object)  # seconds per mapping stage
+    pseudo_label: UpdateMeta | None = _key(_is_object, UpdateMeta._parse)
+    surface: SurfaceMeta | None = _key(_is_object, SurfaceMeta._parse)
+    files: dict[str, str] | None = _key(_is_object)  # file name -> SHA-256 hex (format >= 2)
+    # the database's training frames, in the order of its poses (None: not recorded)
+    frame_names: tuple[str, ...] | None = _key(_is_strings, tuple)
+
+    def _typed(self) -> dict[str, Json]:
+        return {"format": MAP_FORMAT, **super()._typed()}
+
+    # -- reading ---------------------------------------------------------------------------
+
+    @classmethod
+    def read(cls, root: str | Path) -> MapMeta:
+        """MAP/slamreloc_map.json, parsed and checked."""
+        path = Path(root) / META
+        return cls.from_json(parse_json(read_bytes(path, "map metadata", MAX_META_BYTES), path),
+                             path)
+
+    @classmethod
+    def from_json(cls, doc: Json, path: str | Path) -> MapMeta:
+        """The metadata of a parsed JSON document, checked: InputError naming `path` (the file
+        it came from) and the problem unless it is a map's metadata this version reads."""
+        if not isinstance(doc, dict):
+            raise InputError(f"{path}: expected a JSON object, got {type(doc).__name__}")
+        if doc.get("format") != MAP_FORMAT:
+            raise InputError(f"{path}: not a slamreloc map (format={_short(doc.get('format'))})")
+        version = doc.get("format_version", doc.get("version"))
+        writer = doc.get("slamreloc_version")
+        writer = writer if isinstance(writer, str) else "an unknown version"
+        if not _is_int(version):
+            raise InputError(f"{path}: format_version must be an integer, got {_short(version)}")
+        if version > FORMAT_VERSION:
+            raise InputError(f"{path}: map format version {version} (written by slamreloc "
+                             f"{writer[:40]}) is newer than this slamreloc {__version__} reads "
+                             f"(format versions 1 to {FORMAT_VERSION}); upgrade slamreloc")
+        if version < 1:
+            raise InputError(f"{path}: unknown map format version {version}")
+        _check_schema(doc, version, path)
+        meta = cls._parse({k: v for k, v in doc.items() if k != "format"},
+                          format_version=version)
+        return replace(meta, order=tuple(doc))
+
+    # -- writing ---------------------------------------------------------------------------
+
+    def stamped(self, files: dict[str, str], frame_names) -> MapMeta:
+        """This metadata as `save_map` writes it: today's format version, this slamreloc's
+        version, the map's `files` (name -> SHA-256) and the database's `frame_names`; the
+        format keys first, then the others in their order, `files` and `frame_names` last.
+        A format-1 map's `version` is dropped."""
+        body = [k for k in self.to_json() if k not in _STAMPED]
+        return replace(self, format_version=FORMAT_VERSION, slamreloc_version=__version__,
+                       files=dict(files), frame_names=tuple(frame_names),
+                       extra={k: v for k, v in self.extra.items() if k not in _STAMPED},
+                       order=(*_HEADER, *body, *_TRAILER))
+
+    # -- typed views -----------------------------------------------------------------------
+
+    @property
+    def weights_file(self) -> str:
+        """The regressor's file in a map of this format version."""
+        return LEGACY_WEIGHTS if self.format_version == 1 else WEIGHTS
+
+    @property
+    def feature_name(self) -> str:
+        return self.features.name
+
+    @property
+    def feature_options(self) -> dict[str, Json]:
+        """make_extractor(feature_name, **feature_options) makes the map's extractor."""
+        return dict(self.features.options)
+
+    @property
+    def regressor_arch(self) -> str:
+        return self.regressor.arch
+
+    @property
+    def n_parameters(self) -> int:
+        return self.regressor.parameters
+
+    @property
+    def n_labelled(self) -> int:
+        """Database rows the regressor was trained on."""
+        return self.labels["n_labelled"]
+
+    @property
+    def label_reproj_error_px(self) -> float | None:
+        """Median reprojection error (pixels) of the training tracks triangulated with the
+        map's poses: how well labels and images agree (None: not recorded)."""
+        error = self.labels.get("median_reproj_error_px")
+        return float(error) if _is_number(error) and math.isfinite(error) else None
+
+    @property
+    def train_config(self) -> TrainConfig:
+        """The recorded training settings; unrecorded or malformed ones take the defaults.
+        `precision` is the one training ran in (fp32 | bf16), `auto` when not recorded."""
+        train = self.train
+        if train is None:
+            return TrainConfig()
+        kinds = {f.name: (int, float) if type(f.default) is float else type(f.default)
+                 for f in fields(TrainConfig)}
+        values = {k: v for k, v in train.items()
+                  if k in kinds and k != "betas" and isinstance(v, kinds[k])}
+        betas = train.get("betas")
+        if isinstance(betas, list) and len(betas) == 2:
+            values["betas"] = tuple(betas)
+        return TrainConfig(**values)
+
+    @property
+    def dataset_root(self) -> Path | None:
+        """The dataset the map was built from, when recorded."""
+        root = self.dataset.root if self.dataset else None
+        return None if root is None else Path(root)
+
+    @property
+    def poses_source(self) -> str:
+        """"dataset" (built from the dataset's own poses) or the --poses file it used."""
+        return self.dataset.get("poses", "dataset") if self.dataset else "dataset"
+
+    @property
+    def metric(self) -> bool:
+        """Whether the map is in metres (False: an SfM model's units; recorded or true)."""
+        return bool(self.dataset.get("metric", True)) if self.dataset else True
+
+    @property
+    def n_frames_updated(self) -> int:
+        """Frames the map's last update registered, appended last to the database (0: none)."""
+        n = self.pseudo_label.get("n_frames_registered", 0) if self.pseudo_label else 0
+        return n if isinstance(n, int) else 0
+
+
+def _check_schema(meta: dict, version: int, path) -> None:
+    def need(obj: dict, key: str, kind, where: str):
+        if key not in obj:
+            raise InputError(f"{path}: missing key '{where}{key}'")
+        val = obj[key]
+        ok = _is_int(val) if kind is int else (
+            _is_number(val) if kind is float else isinstance(val, kind))
+        if not ok:
+            name = {int: "an integer", float: "a number", dict: "an object", str: "a string",
+                    list: "a list", bool: "true or false"}[kind]
+            raise InputError(f"{path}: '{where}{key}' must be {name}, got {_short(val)}")
+        return val
+
+    feats = need(meta, "features", dict, "")
+    _check_feature_options(feats, path)
+    reg = need(meta, "regressor", dict, "")
+    need(reg, "arch", str, "regressor.")
+    need(reg, "parameters", int, "regressor.")
+    cfg = need(reg, "config", dict, "regressor.")
+    _check_regressor_config(cfg, path)
+    labels = need(meta, "labels", dict, "")
+    if need(labels, "n_labelled", int, "labels.") < 0:
+        raise InputError(f"{path}: 'labels.n_labelled' must not be negative")
+    cam = need(meta, "camera", dict, "")
+    for key in ("width", "height"):
+        if not 0 < need(cam, key, int, "camera.") <= 1 << 16:
+            raise InputError(f"{path}: 'camera.{key}' must be in 1..65536, got {cam[key]}")
+    for key in ("fx", "fy", "cx", "cy"):
+        need(cam, key, float, "camera.")
+    problem = camera_problem(*(cam[k] for k in ("width", "height", "fx", "fy", "cx", "cy")))
+    if problem:
+        raise InputError(f"{path}: 'camera': {problem}")
+    extra = set(cam) - {"width", "height", "fx", "fy", "cx", "cy", "model", "distortion"}
+    if extra:
+        raise InputError(f"{path}: unknown camera key '{sorted(extra)[0]}'")
+    if "model" in cam or "distortion" in cam:
+        model = need(cam, "model", str, "camera.")
+        dist = need(cam, "distortion", list, "camera.")
+        problem = distortion_problem(model, dist)
+        if problem:
+            raise InputError(f"{path}: 'camera': {problem}")
+    names = meta.get("frame_names", [])
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise InputError(f"{path}: 'frame_names' must be a list of strings")
+    if version >= 2:
+        files = need(meta, "files", dict, "")
+        for name in (WEIGHTS, DATABASE):
+            digest = need(files, name, str, "files.")
+            if len(digest) != 64 or any(c not in "0123456789abcdef" for c in digest):
+                raise InputError(f"{path}: 'files.{name}' must be a SHA-256 hex digest")
+
+
+def _check_feature_options(feats: dict, path) -> None:
+    from slamreloc.features.sift import SiftConfig
+
+    name = feats.get("name")
+    if name == "sift":
+        config_cls = SiftConfig
+    elif name == "superpoint":
+        from slamreloc.features.superpoint import SuperPointConfig as config_cls
+    else:
+        raise InputError(f"{path}: 'features.name' must be sift or superpoint, got {_short(name)}")
+    defaults = config_cls()
+    for key, val in feats.items():
+        if key == "name":
+            continue
+        known = {f.name for f in fields(config_cls)}
+        if key not in known:
+            raise InputError(f"{path}: unknown feature option 'features.{key}'")
+        default = getattr(defaults, key)
+        ok = (isinstance(val, bool) if isinstance(default, bool) else
+              _is_int(val) if isinstance(default, int) else
+              _is_number(val) and math.isfinite(val) if isinstance(default, float) else
+              isinstance(val, type(default)))
+        if not ok:
+            raise InputError(f"{path}: 'features.{key}' has the wrong type ({_short(val)})")
+    if _is_int(feats.get("max_keypoints")) and not 0 < feats["max_keypoints"] <= 1 << 20:
+        raise InputError(f"{path}: 'features.max_keypoints' out of range")
+    try:
+        config_cls(**{k: v for k, v in feats.items() if k != "name"})  # the options' ranges
+    except InputError as err:
+        raise InputError(f"{path}: 'features': {err}") from None
+
+
+def _check_regressor_config(cfg: dict, path) -> None:
+    where = "regressor.config."
+    known = {f.name for f in fields(RegressorConfig)}
+    extra = set(cfg) - known
+    if extra:
+        raise InputError(f"{path}: unknown key '{where}{sorted(extra)[0]}'")
+    for key in ("in_dim", "hidden"):
+        if key not in cfg:
+            raise InputError(f"{path}: missing key '{where}{key}'")
+    if not _is_int(cfg["in_dim"]) or not 0 < cfg["in_dim"] <= 4096:
+        raise InputError(f"{path}: '{where}in_dim' must be an integer in 1..4096")
+    hidden = cfg["hidden"]
+    if (not isinstance(hidden, list) or not 0 < len(hidden) <= 32
+            or not all(_is_int(h) and 0 < h <= 1 << 16 for h in hidden)):
+        raise InputError(f"{path}: '{where}hidden' must be a list of 1..32 layer widths "
+                         "in 1..65536")
+    if cfg.get("head", "regression") not in ("regression", "clusters"):
+        raise InputError(f"{path}: '{where}head' must be regression or clusters")
+    n = cfg.get("n_clusters", 1)
+    if not _is_int(n) or not 0 < n <= 1 << 16:
+        raise InputError(f"{path}: '{where}n_clusters' must be an integer in 1..65536")
+    if not isinstance(cfg.get("prototype_init", True), bool):
+        raise InputError(f"{path}: '{where}prototype_init' must be true or false")
+    thr = cfg.get("prototype_threshold", 0.0)
+    if not _is_number(thr) or not math.isfinite(thr):
+        raise InputError(f"{path}: '{where}prototype_threshold' must be a finite number")

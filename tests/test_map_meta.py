@@ -1,0 +1,268 @@
+"""The one schema of slamreloc_map.json (slamreloc.map.meta.MapMeta).
+
+- `from_json` then `to_json` gives back every metadata it accepts, key order and values
+  included (a rewrite changes no byte it need not), also keys and values it does not type;
+- `from_json` refuses a bad field with one line naming the file and the field;
+- `stamped` lays the metadata out as `save_map` writes it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from slamreloc import __version__
+from slamreloc.errors import InputError
+from slamreloc.io.jsonio import parse_json
+from slamreloc.map.format import DATABASE, FORMAT_VERSION, MAP_FORMAT, WEIGHTS
+from slamreloc.map.meta import (CameraMeta, DatasetMeta, FeatureMeta, MapMeta, RegressorMeta,
+                                SurfaceMeta, UpdateMeta)
+from slamreloc.types import Camera
+from tests.fuzzing import damaged_json, fuzz_settings, json_values
+
+PATH = Path("/maps/m/slamreloc_map.json")
+SHA = "0123456789abcdef" * 4
+finite_json = st.recursive(
+    st.none() | st.booleans() | st.integers(-(2 ** 40), 2 ** 40)
+    | st.floats(allow_nan=False, allow_infinity=False) | st.text(max_size=6),
+    lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner,
+                                                                 max_size=3),
+    max_leaves=5)  # what a JSON file can hold (parse_json refuses NaN and infinities)
+numbers = st.integers(1, 5000) | st.floats(1.0, 5000.0)
+
+
+@st.composite
+def shuffled(draw, doc: dict) -> dict:
+    return {k: doc[k] for k in draw(st.permutations(list(doc)))}
+
+
+@st.composite
+def some_keys(draw, typed: dict) -> dict:
+    """A JSON object with some of the keys `typed` names (key -> strategy of the right type),
+    each of the right type or, sometimes, any JSON value; and sometimes an unknown key."""
+    doc = {}
+    for key, strategy in typed.items():
+        if draw(st.booleans()):
+            doc[key] = draw(strategy | finite_json)
+    if draw(st.booleans()):
+        doc["x_" + draw(st.text("abc", max_size=3))] = draw(finite_json)
+    return draw(shuffled(doc))
+
+
+@st.composite
+def metadata(draw) -> dict:
+    """Metadata that `from_json` accepts, in any key order, as parsed from a file."""
+    version = draw(st.sampled_from([1, FORMAT_VERSION]))
+    features = {"name": "sift"}
+    for key, strategy in (("max_keypoints", st.integers(1, 1 << 20)),
+                          ("contrast_threshold", st.floats(1e-6, 1.0)),
+                          ("n_octave_layers", st.integers(1, 16)), ("root", st.booleans()),
+                          ("upsample", st.booleans())):
+        if draw(st.booleans()):
+            features[key] = draw(strategy)
+    config = {"in_dim": draw(st.integers(1, 4096)),
+              "hidden": draw(st.lists(st.integers(1, 1 << 16), min_size=1, max_size=4))}
+    for key, strategy in (("prototype_init", st.booleans()),
+                          ("prototype_threshold", st.floats(-1.0, 1.0) | st.integers(-1, 1)),
+                          ("head", st.sampled_from(["regression", "clusters"])),
+                          ("n_clusters", st.integers(1, 1 << 16))):
+        if draw(st.booleans()):
+            config[key] = draw(strategy)
+    width, height = draw(st.integers(1, 4096)), draw(st.integers(1, 4096))
+    camera = {"width": width, "height": height, "fx": draw(numbers), "fy": draw(numbers),
+              "cx": draw(numbers), "cy": draw(numbers)}
+    lens = draw(st.sampled_from([None, ("PINHOLE", 0), ("OPENCV", 4), ("OPENCV_FISHEYE", 4),
+                                 ("SIMPLE_RADIAL", 1)]))
+    if lens:
+        camera["model"] = lens[0]
+        camera["distortion"] = draw(st.lists(st.floats(-0.5, 0.5) | st.integers(-1, 1),
+                                             min_size=lens[1], max_size=lens[1]))
+    doc = {"format": MAP_FORMAT,
+           "features": draw(shuffled(features)),
+           "regressor": draw(shuffled({"arch": draw(st.sampled_from(["wide", "tiny"])),
+                                       "config": draw(shuffled(config)),
+                                       "parameters": draw(st.integers(0, 10 ** 8)),
+                                       **draw(some_keys({}))})),
+           "labels": draw(shuffled({"n_labelled": draw(st.integers(0, 10 ** 7)),
+                                    **draw(st.dictionaries(st.text("nm_", max_size=5),
+                                                           finite_json, max_size=3))})),
+           "camera": draw(shuffled(camera))}
+    doc["format_version" if version > 1 or draw(st.booleans()) else "version"] = version
+    if version > 1:
+        doc["files"] = {WEIGHTS: SHA, DATABASE: SHA,
+                        **draw(st.dictionaries(st.sampled_from(["surface.npz", "provenance.npz"]),
+                                               st.just(SHA)))}
+    optional = {
+        "slamreloc_version": st.text(max_size=8) | finite_json,
+        "train": st.dictionaries(st.text("abc_", max_size=5), finite_json, max_size=4)
+        | finite_json,
+        "timings_s": st.dictionaries(st.text("abc_", max_size=5), st.floats(0, 100), max_size=3),
+        "dataset": some_keys({"root": st.text(max_size=8), "kind": st.text(max_size=8),
+                              "split": st.text(max_size=5), "metric": st.booleans(),
+                              "poses": st.text(max_size=8)}) | finite_json,
+        "surface": some_keys({"n_points": st.integers(0, 10 ** 6),
+                              "voxel_m": st.floats(0.001, 1.0) | st.integers(1, 2)}),
+        "pseudo_label": some_keys({"source_map": st.text(max_size=8),
+                                   "n_frames_registered": st.integers(0, 1000),
+                                   "dataset": st.dictionaries(st.sampled_from(["root", "split"]),
+                                                              st.none() | st.text(max_size=4)),
+                                   "history": st.lists(st.text(max_size=5), max_size=3)}),
+        "frame_names": st.lists(st.text(max_size=8), max_size=4),
+        "tag": finite_json,
+    }
+    for key, strategy in optional.items():
+        if draw(st.booleans()):
+            doc[key] = draw(strategy)
+    return json.loads(json.dumps(draw(shuffled(doc))))
+
+
+@fuzz_settings(300)
+@given(doc=metadata())
+def test_from_json_then_to_json_gives_back_every_accepted_metadata(doc):
+    meta = MapMeta.from_json(doc, PATH)
+    out = meta.to_json()
+    if "format_version" not in doc:  # format 1 recorded `version`; the reader adds the other
+        assert out.pop("format_version") == doc["version"]
+    assert json.dumps(out, indent=1) == json.dumps(doc, indent=1)  # key order included
+    again = MapMeta.from_json(meta.to_json(), PATH)
+    assert again == meta and again.to_json() == meta.to_json()
+
+
+@fuzz_settings(300)
+@given(doc=metadata())
+def test_typed_views_read_what_the_metadata_records(doc):
+    meta = MapMeta.from_json(doc, PATH)
+    assert meta.feature_name == doc["features"]["name"]
+    assert meta.feature_options == {k: v for k, v in doc["features"].items() if k != "name"}
+    assert meta.n_labelled == doc["labels"]["n_labelled"]
+    assert meta.camera.to_camera() == Camera.from_dict(doc["camera"])
+    assert meta.regressor.to_config().hidden == tuple(doc["regressor"]["config"]["hidden"])
+    assert meta.format_version == doc.get("format_version", doc.get("version"))
+    dataset = doc.get("dataset")
+    root = dataset.get("root") if isinstance(dataset, dict) else None
+    assert meta.dataset_root == (Path(root) if isinstance(root, str) else None)
+    assert meta.metric is (bool(dataset.get("metric", True)) if isinstance(dataset, dict)
+                           else True)
+    assert meta.frame_names == (tuple(doc["frame_names"]) if "frame_names" in doc else None)
+    meta.train_config  # noqa: B018 - malformed training settings take the defaults
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: 3, "expected a JSON object, got int"),
+    (lambda d: {**d, "format": "x"}, "not a slamreloc map (format='x')"),
+    (lambda d: {**d, "format_version": True}, "format_version must be an integer, got True"),
+    (lambda d: {**d, "format_version": 3, "slamreloc_version": "9.0"},
+     f"map format version 3 (written by slamreloc 9.0) is newer than this slamreloc "
+     f"{__version__} reads (format versions 1 to {FORMAT_VERSION}); upgrade slamreloc"),
+    (lambda d: {**d, "format_version": 0}, "unknown map format version 0"),
+    (lambda d: {k: v for k, v in d.items() if k != "features"}, "missing key 'features'"),
+    (lambda d: {**d, "features": {"name": "orb"}},
+     "'features.name' must be sift or superpoint, got 'orb'"),
+    (lambda d: {**d, "features": {"name": "sift", "root": 1}},
+     "'features.root' has the wrong type (1)"),
+    (lambda d: {**d, "features": {"name": "sift", "max_keypoints": -1}},
+     "'features.max_keypoints' out of range"),
+    (lambda d: {**d, "regressor": {**d["regressor"], "arch": 1}},
+     "'regressor.arch' must be a string, got 1"),
+    (lambda d: {**d, "regressor": {**d["regressor"], "parameters": 1.5}},
+     "'regressor.parameters' must be an integer, got 1.5"),
+    (lambda d: {**d, "regressor": {**d["regressor"], "config": {"in_dim": 8}}},
+     "missing key 'regressor.config.hidden'"),
+    (lambda d: {**d, "regressor": {**d["regressor"], "config": {"in_dim": 8, "hidden": [4],
+                                                                 "depth": 3}}},
+     "unknown key 'regressor.config.depth'"),
+    (lambda d: {**d, "labels": {"n_labelled": -1}}, "'labels.n_labelled' must not be negative"),
+    (lambda d: {**d, "labels": []}, "'labels' must be an object, got []"),
+    (lambda d: {**d, "camera": {**d["camera"], "width": 0}},
+     "'camera.width' must be in 1..65536, got 0"),
+    (lambda d: {**d, "camera": {**d["camera"], "fx": "60"}},
+     "'camera.fx' must be a number, got '60'"),
+    (lambda d: {**d, "camera": {**d["camera"], "fx": 0.5}}, "'camera': focal lengths must be"),
+    (lambda d: {**d, "camera": {**d["camera"], "k1": 0.1}}, "unknown camera key 'k1'"),
+    (lambda d: {**d, "camera": {**d["camera"], "model": "OPENCV"}},
+     "missing key 'camera.distortion'"),
+    (lambda d: {**d, "camera": {**d["camera"], "model": "OPENCV", "distortion": [0.1]}},
+     "'camera': OPENCV has 4 distortion parameters, got 1"),
+    (lambda d: {**d, "frame_names": ["a", 1]}, "'frame_names' must be a list of strings"),
+    (lambda d: {k: v for k, v in d.items() if k != "files"}, "missing key 'files'"),
+    (lambda d: {**d, "files": {WEIGHTS: "00", DATABASE: SHA}},
+     f"'files.{WEIGHTS}' must be a SHA-256 hex digest"),
+])
+def test_from_json_refuses_a_bad_field_in_one_line_naming_the_file(change, message):
+    with pytest.raises(InputError) as err:
+        MapMeta.from_json(change(_valid_doc()), PATH)
+    assert str(err.value) == f"{PATH}: {message}" or (
+        str(err.value).startswith(f"{PATH}: {message}") and "\n" not in str(err.value))
+
+
+@fuzz_settings(300)
+@given(data=st.data())
+def test_damaged_metadata_is_refused_in_one_line_or_read_back_whole(data):
+    text = data.draw(damaged_json(_valid_doc()) | json_values.map(
+        lambda v: json.dumps(v).encode()))
+    try:
+        doc = parse_json(text, PATH)  # as MapMeta.read parses the file
+        meta = MapMeta.from_json(doc, PATH)
+    except InputError as err:
+        assert str(err).startswith(f"{PATH}: ") and "\n" not in str(err)
+        return
+    out = meta.to_json()
+    if "format_version" not in doc:
+        out.pop("format_version")
+    assert out == doc
+
+
+def test_stamped_lays_out_the_metadata_as_save_map_writes_it():
+    meta = replace(_built(), extra={"tag": "t", "version": 1, "slamreloc_version": 5})
+    doc = meta.stamped({WEIGHTS: SHA, DATABASE: SHA}, ["f0", "f1"]).to_json()
+    assert list(doc) == ["format", "format_version", "slamreloc_version", "features",
+                         "regressor", "train", "labels", "camera", "dataset", "timings_s",
+                         "surface", "tag", "files", "frame_names"]
+    assert doc["format_version"] == FORMAT_VERSION and doc["slamreloc_version"] == __version__
+    assert doc["frame_names"] == ["f0", "f1"] and doc["files"][WEIGHTS] == SHA
+    # a rewrite keeps the order it read (the surface before the update it gained)
+    read = MapMeta.from_json(doc, PATH)
+    updated = replace(read, pseudo_label=UpdateMeta(n_frames=3, history=("a",)))
+    layout = list(updated.stamped(doc["files"], ["f0"]).to_json())
+    assert layout[-4:] == ["tag", "pseudo_label", "files", "frame_names"]
+    assert updated.stamped(doc["files"], []).to_json()["pseudo_label"] == {"n_frames": 3,
+                                                                           "history": ["a"]}
+
+
+def test_values_the_schema_does_not_type_are_kept_verbatim():
+    doc = {**_valid_doc(), "dataset": {"root": 7, "metric": None, "poses": "p.txt"},
+           "pseudo_label": "odd", "slamreloc_version": ["x"]}
+    meta = MapMeta.from_json(doc, PATH)
+    assert meta.dataset == DatasetMeta(poses="p.txt", extra={"root": 7, "metric": None})
+    # read as before the schema: a recorded null is not metric, a root that is no path none
+    assert meta.dataset_root is None and meta.metric is False and meta.poses_source == "p.txt"
+    assert meta.pseudo_label is None and meta.n_frames_updated == 0
+    assert meta.slamreloc_version is None and meta.extra["slamreloc_version"] == ["x"]
+    assert meta.to_json() == doc and list(meta.to_json()["dataset"]) == ["root", "metric", "poses"]
+
+
+def test_a_camera_is_recorded_as_the_camera_writes_itself():
+    for cam in (Camera(64, 48, 60.0, 60.0, 31.5, 23.5),
+                Camera(64, 48, 60.0, 61.0, 32.0, 24.0, "OPENCV", (0.1, -0.01, 0.0, 0.0))):
+        record = CameraMeta.from_camera(cam)
+        assert record.to_json() == cam.to_dict() and record.to_camera() == cam
+
+
+def _built() -> MapMeta:
+    return MapMeta(features=FeatureMeta("sift", {"max_keypoints": 256, "upsample": True}),
+                   regressor=RegressorMeta("tiny", {"in_dim": 8, "hidden": [16]}, 200),
+                   train={"epochs": 2, "precision": "fp32"},
+                   labels={"n_labelled": 20, "median_reproj_error_px": None},
+                   camera=CameraMeta(64, 48, 60.0, 60.0, 32.0, 24.0),
+                   dataset=DatasetMeta(root="/d", kind="synthetic", split="train", metric=True,
+                                       poses="dataset"),
+                   timings_s={"train_s": 1.5}, surface=SurfaceMeta(n_points=10, voxel_m=0.01))
+
+
+def _valid_doc() -> dict:
+    return _built().stamped({WEIGHTS: SHA, DATABASE: SHA}, ["f0"]).to_json()
