@@ -80,7 +80,7 @@ def test_plugins_come_from_the_entry_point_group(monkeypatch):
     ep = metadata.EntryPoint("dummy", "tests.test_slam_api:Dummy", "slamreloc.plugins")
     real = metadata.entry_points
     monkeypatch.setattr(metadata, "entry_points",
-                        lambda **kw: [ep] if kw.get("group") == "slamreloc.plugins"
+                        lambda **kw: [*real(**kw), ep] if kw.get("group") == "slamreloc.plugins"
                         else real(**kw))
     globals()["Dummy"] = Dummy
     plugins = available_plugins()

@@ -111,7 +111,8 @@ class _Record:
 
     def get(self, key: str, default: Json = None) -> Json:
         """The value recorded under `key`, typed or not (`default` when absent), as dict.get."""
-        value = getattr(self, key, None) if key not in ("extra", "order") else None
+        typed = key not in ("extra", "order") and key in {f.name for f in fields(self)}
+        value = getattr(self, key) if typed else None
         return self.extra.get(key, default) if value is None else value
 
     def to_json(self) -> dict[str, Json]:
