@@ -185,13 +185,20 @@ PRODUCERS = {
 }
 
 
-def _port_free(port: int) -> bool:
-    with socket.socket() as s:
-        try:
-            s.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
+def _port_free(port: int, wait_s: float = 30.0) -> bool:
+    """Whether a server may bind `port` (as gRPC does, with SO_REUSEADDR: a server stopped a
+    moment ago leaves its port in TIME_WAIT), waiting a while for one that is still closing."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        with socket.socket() as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind(("127.0.0.1", port))
+                return True
+            except OSError:
+                if time.monotonic() > deadline:
+                    return False
+        time.sleep(0.5)
 
 
 # ----------------------------------------------------------------------------- running
