@@ -12,7 +12,7 @@ no learned regressor involved:
         [--leave-out 30] [--plot consistency.png]
 
 On RedKitchen (issue 9's split) this shows the seq-01 ground truth bending between its two
-halves: BENCHMARKS.md, "What bounds the update on RedKitchen".
+halves: docs/history.md, "What bounds the update on RedKitchen".
 """
 
 from __future__ import annotations

@@ -55,9 +55,8 @@ def depth_labels(dataset: Dataset, config: MapConfig) -> bool:
     """Whether depth labels keypoints (else tracks are triangulated from the poses alone).
     Only with the dataset's own poses: a depth sensor's poses were made from that depth and
     share its frame and scale. Poses from elsewhere (`--poses`, e.g. SfM, metric to ~1 %) need
-    not: on RedKitchen with SfM poses, depth points lie a median 2.8 cm from the triangulated
-    ones, which reproject to 0.67 px; their labels come from triangulation, which agrees with
-    the poses by construction (BENCHMARKS.md, "Two references")."""
+    not: their labels come from triangulation, which agrees with the poses by construction
+    (BENCHMARKS.md, "Localization on RedKitchen, against both references")."""
     return config.labels.use_depth and dataset.poses_source == "dataset"
 
 

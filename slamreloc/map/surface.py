@@ -50,11 +50,9 @@ class IcpConfig:
     distances_m: tuple[float, ...] = (0.10, 0.05, 0.025)
     iterations: int = 15  # at most, Gauss-Newton steps per distance
     source_voxel_m: float = 0.04  # the frame's cloud is thinned to one point per voxel ...
-    max_source_points: int = 600  # ... and to this many (RedKitchen: 1.3 cm / 0.5 deg from
-    # 7 cm / 2.5 deg guesses, ~25 ms; 2500 points: 1.2 cm, 3x the time; BENCHMARKS.md)
-    # RedKitchen seq-02 against seq-01's surface: every PnP pose (up to 38 cm / 8.7 deg off)
-    # converged to within 5 cm, fitness 0.66-0.97; from guesses 0.5 m or 20 deg off ICP lands
-    # elsewhere with fitness ~0.25 (BENCHMARKS.md, issue 8)
+    max_source_points: int = 600  # ... and to this many (more points cost time for little;
+    # docs/history.md, "Depth refinement against the map's surface"); a fit whose fitness
+    # stays below min_fitness landed elsewhere (guesses far off) and is not accepted
     min_fitness: float = 0.6
     max_shift_m: float = 0.5
     max_turn_deg: float = 15.0
