@@ -224,6 +224,14 @@ def test_no_import_cycle():
         " -> ".join([c[0].source, *(f"{i.target} ({i.where})" for i in c)]) for c in found)
 
 
+def imports_in(sources: dict[str, str], tmp_path: Path) -> list[Import]:
+    """The imports of modules written from `sources` (dotted name -> text) under tmp_path."""
+    modules = {name: tmp_path / f"{name}.py" for name in sources}
+    for name, text in sources.items():
+        modules[name].write_text(text)
+    return [imp for m, p in modules.items() for imp in imports_of(m, p, modules, root=tmp_path)]
+
+
 def test_a_bad_import_is_reported_with_its_line(tmp_path):
     """The checks name the file and line of each import against the layers (a function-local
     one, a relative one, one wing into another, a wing into the CLI) and of a cycle."""
@@ -232,11 +240,7 @@ def test_a_bad_import_is_reported_with_its_line(tmp_path):
                "slamreloc.viewer.c": "from ..pseudo_label import d\nimport slamreloc.cli\n",
                "slamreloc.pseudo_label.d": "from slamreloc.slam.b import x\n",
                "slamreloc.cli": ""}
-    modules = {name: tmp_path / f"{name}.py" for name in sources}
-    for name, text in sources.items():
-        modules[name].write_text(text)
-    imports = [imp for m, p in modules.items()
-               for imp in imports_of(m, p, modules, root=tmp_path)]
+    imports = imports_in(sources, tmp_path)
     assert layer_violations(imports) == [
         "slamreloc.a.py:4: slamreloc.a (core) imports slamreloc.slam.b (slam)",
         "slamreloc.viewer.c.py:1: wing slamreloc.viewer.c imports another wing's "
@@ -245,24 +249,24 @@ def test_a_bad_import_is_reported_with_its_line(tmp_path):
         "(application)"]
     (cycle,) = cycles(imports)
 
-    # a plugin named by module string (an upward import the graph would not see), or imported
-    # directly by the backend or the service
+    assert [(i.source, i.target, i.where) for i in cycle] == [
+        ("slamreloc.a", "slamreloc.slam.b", "slamreloc.a.py:4"),
+        ("slamreloc.slam.b", "slamreloc.a", "slamreloc.slam.b.py:1")]
+
+
+
+def test_a_plugin_named_outside_plugins_is_reported(tmp_path):
+    """A plugin named by module string (an upward import the graph would not see), or imported
+    directly by the backend or the service."""
     sources = {"slamreloc.slam.e": 'BUILTIN = {"r": "slamreloc.plugins.p:Plugin"}\n',
                "slamreloc.service.s": "from slamreloc.plugins.p import Config\n",
                "slamreloc.plugins.p": "", "slamreloc.service": "",
                "slamreloc.slam": "", "slamreloc.plugins": ""}
-    modules = {name: tmp_path / f"{name}.py" for name in sources}
-    for name, text in sources.items():
-        modules[name].write_text(text)
-    imports = [imp for m, p in modules.items()
-               for imp in imports_of(m, p, modules, root=tmp_path)]
+    imports = imports_in(sources, tmp_path)
     assert layer_violations(imports) == [
         "slamreloc.slam.e.py:1: slamreloc.slam.e (slam) imports slamreloc.plugins.p (wing)",
         "slamreloc.service.s.py:1: slamreloc.service.s names the plugin slamreloc.plugins.p "
         "(plugins are loaded through the entry-point group slamreloc.plugins)"]
-    assert [(i.source, i.target, i.where) for i in cycle] == [
-        ("slamreloc.a", "slamreloc.slam.b", "slamreloc.a.py:4"),
-        ("slamreloc.slam.b", "slamreloc.a", "slamreloc.slam.b.py:1")]
 
 
 def test_the_command_line_loads_its_pipeline_only_when_a_command_runs():
