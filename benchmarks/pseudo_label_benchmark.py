@@ -134,8 +134,8 @@ def main() -> None:
                             args.poses)
 
     config = PseudoLabelConfig(rounds=args.rounds)
-    labels = pseudo_label(labelled.root, load_dataset(split / "unlabelled"), "all", config,
-                          truth=args.source, truth_poses=args.poses)
+    labels = pseudo_label(labelled, load_dataset(split / "unlabelled"), "all", config,
+                          truth=load_dataset(args.source, args.poses))
     maps = {}
     reports = {}
     for update in ("finetune", "retrain"):

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from slamreloc.errors import InputError
 from slamreloc.map.labels import LabelConfig
 from slamreloc.pseudo_label.finetune import FinetuneConfig
 from slamreloc.pseudo_label.register import RegistrationConfig
+from slamreloc.registry import UPDATES
 
 
 @dataclass(frozen=True)
@@ -24,3 +26,11 @@ class PseudoLabelConfig:
     smooth: bool = True  # fuse registrations with depth odometry (where frames have depth)
     extend_surface: bool = True  # registered frames' depth joins the map's surface (new area)
     device: str = "auto"
+
+    def __post_init__(self) -> None:
+        if self.update not in UPDATES:
+            raise InputError(f"`update`: unknown '{self.update}' (known: {', '.join(UPDATES)})")
+        if self.rounds < 1:
+            raise InputError(f"`rounds` must be at least 1, got {self.rounds}")
+        if self.epochs is not None and self.epochs < 1:
+            raise InputError(f"`epochs` must be at least 1, got {self.epochs}")

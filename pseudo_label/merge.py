@@ -17,7 +17,8 @@ from slamreloc.geometry import reprojection_px
 from slamreloc.pseudo_label.config import PseudoLabelConfig
 
 
-def label_frames(frames, feats, states, depths, config: PseudoLabelConfig):
+def label_frames(frames, feats, states, depths, config: PseudoLabelConfig,
+                 progress: bool = False):
     """Triangulate tracks among registered frames with their estimated poses (core labels)."""
     reg = [i for i, s in enumerate(states) if s.registered]
     if len(reg) < 2:
@@ -25,18 +26,19 @@ def label_frames(frames, feats, states, depths, config: PseudoLabelConfig):
     posed = [replace(frames[i], world_from_cam=states[i].world_from_cam) for i in reg]
     labels = build_labels(posed, [feats[i] for i in reg],
                           None if depths is None else [depths[i] for i in reg],
-                          config.labels, progress=False)
+                          config.labels, progress=progress)
     return reg, labels
 
 
 def apply_labels(frames, feats, states, depths, config: PseudoLabelConfig,
-                  final: bool = False) -> dict:
+                 final: bool = False, progress: bool = False) -> dict:
     """Merge triangulated labels into the frame states: keypoints without a label get the
     triangulated point (NEW); inherited labels that disagree with it (or with the frame's
     depth) are dropped; in the `final` labelling, with `config.depth_required`, so are the
     labels of keypoints without a depth reading in frames with depth (the rounds before keep
-    them: they help register frames further out). Returns counts."""
-    reg, labels = label_frames(frames, feats, states, depths, config)
+    them: they help register frames further out). Returns counts. `progress`: the
+    labelling's bars."""
+    reg, labels = label_frames(frames, feats, states, depths, config, progress)
     n_new = n_conflict = n_unread = 0
     for k, i in enumerate(reg):
         s = states[i]

@@ -75,7 +75,7 @@ def register_sequence(frames: list[Frame], feats, base: MapDatabase, depths,
             if new is not None and consistent(i, new.world_from_cam, states, rc, new.num_inliers):
                 states[i] = new
         dropped = continuity_sweep(states, rc)
-        extension = apply_labels(frames, feats, states, depths, config)
+        extension = apply_labels(frames, feats, states, depths, config, progress=progress)
         after = sum(s.registered for s in states)
         history.append({"round": r + 1, "registered": after, "dropped": len(dropped),
                         "database": len(db), "new_labels": extension["n_new_labels"]})
@@ -85,10 +85,11 @@ def register_sequence(frames: list[Frame], feats, base: MapDatabase, depths,
         if after == before and r > 0:
             break
     smoothed = smooth_states(frames, feats, states, base, anchored, smoother,
-                             config.registration)
+                             config.registration, progress)
     if smoothed is not None:
         states, n_priors = smoothed
-        extension = apply_labels(frames, feats, states, depths, config, final=True)
+        extension = apply_labels(frames, feats, states, depths, config, final=True,
+                                 progress=progress)
         history.append({"round": "smoothed", "registered": sum(s.registered for s in states),
                         "priors": n_priors, "dropped": 0, "database": len(base.points),
                         "new_labels": extension["n_new_labels"]})
@@ -102,7 +103,8 @@ def register_sequence(frames: list[Frame], feats, base: MapDatabase, depths,
         ok = new is not None and consistent(i, new.world_from_cam, states, rc, new.num_inliers)
         states[i] = new if ok else FrameState.empty(len(feats[i]))
     dropped = continuity_sweep(states, rc)
-    extension = apply_labels(frames, feats, states, depths, config, final=True)
+    extension = apply_labels(frames, feats, states, depths, config, final=True,
+                                 progress=progress)
     history.append({"round": "final", "registered": sum(s.registered for s in states),
                     "dropped": len(dropped), "database": len(db),
                     "new_labels": extension["n_new_labels"]})

@@ -29,17 +29,17 @@ def map_views(base: MapDatabase, camera, rows: np.ndarray) -> tuple[list[Frame],
 
 
 def score(frames, feats, states, truth_poses, depths, label_config: LabelConfig,
-          views: tuple[list[Frame], list[Features]] = ([], [])) -> dict:
+          views: tuple[list[Frame], list[Features]] = ([], []), progress: bool = False) -> dict:
     """Pseudo-label precision against the truth of each labelled keypoint: its depth reading
     (registered depth, or depth warped into the RGB camera) lifted with the true pose; where it
     has none, the same keypoints triangulated with the true poses (core labels code: tracks of
     these frames and of the map's labelled `views`, whose wide baselines pin the points down).
     Also the precision against the triangulation alone, and the pose errors of registered
-    frames."""
+    frames. `progress`: the reference triangulation's bars."""
     gt_frames = [replace(f, world_from_cam=p) for f, p in zip(frames, truth_poses)]
     v_frames, v_feats = views
     tri = build_labels([*v_frames, *gt_frames], [*v_feats, *feats], None, label_config,
-                       progress=False).points[len(v_frames):]
+                       progress=progress).points[len(v_frames):]
     errs = {PSEUDO: [], NEW: []}
     tri_errs, n_by_depth, n_labels = [], 0, 0
     for i, s in enumerate(states):

@@ -87,22 +87,25 @@ def smooth_poses(dataset: Dataset, frames: list[Frame], priors: list[Prior | Non
 
 
 def smooth_states(frames: list[Frame], feats: list[Features], states: list[FrameState],
-                  base: MapDatabase, anchored: np.ndarray, smoother, rc: RegistrationConfig
-                  ) -> tuple[list[FrameState], int] | None:
+                  base: MapDatabase, anchored: np.ndarray, smoother, rc: RegistrationConfig,
+                  progress: bool = False) -> tuple[list[FrameState], int] | None:
     """Each registered frame is registered again on the map's own labels alone; where that
     holds (enough inliers, near the chain's pose) it becomes a prior of the odometry pose graph,
     independent of the chain (registrations through the sequence's own pseudo-labels drift with
     the chain that made them). The other registered frames give their chain pose as a prior
     `rc.chain_prior_sigma_scale` times less certain: beyond the map the chain drifts less than
     long stretches of odometry. Every frame then takes the graph's pose and inherits only map
-    labels that fit it. Returns (states, number of map priors), or None without a smoother."""
+    labels that fit it. Returns (states, number of map priors), or None without a smoother.
+    `progress`: a bar over the frames' matching with the map."""
     if smoother is None:
         return None
     rows = np.flatnonzero(anchored)
     db = Database(base.descriptors[rows].astype(np.float32), base.points[rows], rows)
-    corr = [db.correspondences(f.descriptors, rc) for f in feats]  # for priors and labels
-    on_map = [map_prior(s, f, frame.camera, c, rc) if s.registered else None
-              for s, f, frame, c in zip(states, feats, frames, corr)]
+    corr, on_map = [], []  # correspondences for priors and labels; priors on the map alone
+    for s, f, frame in track(list(zip(states, feats, frames)), "matching with the map",
+                             enabled=progress):
+        corr.append(db.correspondences(f.descriptors, rc))
+        on_map.append(map_prior(s, f, frame.camera, corr[-1], rc) if s.registered else None)
     n_priors = sum(p is not None for p in on_map)
     priors = [graph_prior(p, s, rc) for p, s in zip(on_map, states)]
     poses = smoother(priors) if n_priors else None

@@ -1,8 +1,8 @@
 """`update_map`: a map + an unlabelled sequence -> a better, larger map (pseudo-labelling).
 
 1. Features of the unlabelled frames (the map's extractor). Their poses are stripped here:
-   nothing below reads them; the truth (the dataset's own poses, or --truth) only scores
-   (score.py).
+   nothing below reads them; the truth (the dataset's own poses, or another dataset's)
+   only scores (score.py).
 2. Rounds of registration and extension (rounds.py): frames register against the growing
    correspondence database (register.py); then the core labelling code (`build_labels`)
    triangulates multi-view tracks among all registered frames with the *estimated* poses,
@@ -36,16 +36,14 @@ from slamreloc.pseudo_label.score import map_views, score
 from slamreloc.pseudo_label.smooth import smooth_poses
 from slamreloc.pseudo_label.write import PseudoLabels, base_provenance, write_updated_map
 
-from slamreloc.datasets import Dataset, apply_poses, load_dataset, read_reference
+from slamreloc.datasets import Dataset
 from slamreloc.errors import InputError
 from slamreloc.features.extract import extract_frames
 from slamreloc.features import make_extractor
-from slamreloc.io.fileio import check_outputs
 from slamreloc.map.labels import LabelConfig
 from slamreloc.map.format import LABELLED, NEW, PSEUDO
 from slamreloc.map.lock import map_write_lock
 from slamreloc.map.write import check_map_target
-from slamreloc.registry import UPDATES
 from slamreloc.rgbd import registered_depths
 from slamreloc.map.scene_map import MapDatabase, SceneMap
 from slamreloc.map.surface import extend_surface, frame_cloud
@@ -56,37 +54,27 @@ def _frames_for_registration(frames: list[Frame]) -> list[Frame]:
     return [replace(f, world_from_cam=None) for f in frames]  # the truth is not ours to read
 
 
-def _truth_poses(dataset: Dataset, frames: list[Frame], truth: Path | None,
-                 truth_poses: Path | None) -> tuple[list | None, str]:
+def _truth_poses(dataset: Dataset, frames: list[Frame], truth: Dataset | None
+                 ) -> tuple[list | None, str]:
     """Ground-truth world_from_cam per frame for scoring (None when not every frame has one)
-    and where it comes from: --truth's dataset (matched by frame name) or the dataset's own
-    pose files, with `truth_poses` (--poses, `datasets.poses`) instead of that dataset's."""
-    if truth is None and truth_poses is None:
+    and where it comes from: `truth`'s poses, matched by frame name, else `dataset`'s own."""
+    if truth is None:
         poses, source = [f.world_from_cam for f in frames], "dataset"
     else:
-        reference = (load_dataset(truth, truth_poses) if truth is not None
-                     else apply_poses(dataset, read_reference(truth_poses)))
-        by_name = {f.name: f.world_from_cam for f in reference.frames("all")}
+        by_name = {f.name: f.world_from_cam for f in truth.frames("all")}
         poses = [by_name.get(f.name) for f in frames]
-        source = (reference.poses_source if reference.poses_source != "dataset"
-                  else str(Path(reference.root).resolve()))
+        source = (truth.poses_source if truth.poses_source != "dataset"
+                  else str(Path(truth.root).resolve()))
     return (poses if all(p is not None for p in poses) else None), source
 
 
-def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
-                 config: PseudoLabelConfig = PseudoLabelConfig(), truth: Path | None = None,
-                 progress: bool = True, truth_poses: Path | None = None) -> PseudoLabels:
-    """Register `dataset`'s split in the map at `map_dir`, label and extend (no training).
-    The report is scored against `truth`'s poses, else `dataset`'s own; `truth_poses` (a
-    pose file, `datasets.poses`) replaces those of whichever is used."""
-    map_dir = Path(map_dir)
-    if config.update not in UPDATES:
-        raise InputError(f"unknown update '{config.update}' (known: {', '.join(UPDATES)})")
-    if config.rounds < 1:
-        raise InputError(f"--rounds must be at least 1, got {config.rounds}")
-    if config.epochs is not None and config.epochs < 1:
-        raise InputError(f"--epochs must be at least 1, got {config.epochs}")
-    old = SceneMap.load(map_dir)
+def pseudo_label(old: SceneMap, dataset: Dataset, split: str | None = None,
+                 config: PseudoLabelConfig = PseudoLabelConfig(), truth: Dataset | None = None,
+                 progress: bool = True) -> PseudoLabels:
+    """Register `dataset`'s split (default: its 'unlabelled' role, else all) in the map `old`,
+    label and extend (no training). The report is scored against `truth`'s poses (a dataset
+    holding the same frames, matched by name), else `dataset`'s own; neither is read
+    otherwise."""
     base = old.database
     if split is None:
         split = "unlabelled" if "unlabelled" in dataset.roles.values() else "all"
@@ -95,7 +83,7 @@ def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
         raise InputError(f"{dataset.root}: split '{split}' has {len(frames_in)} frames; "
                          "pseudo-labelling needs a sequence")
     frames = _frames_for_registration(frames_in)
-    truth_world_from_cam, reference = _truth_poses(dataset, frames_in, truth, truth_poses)
+    truth_world_from_cam, reference = _truth_poses(dataset, frames_in, truth)
     timings = {}
     t_all = time.perf_counter()
     extractor = make_extractor(old.info.feature_name, **old.info.feature_options)
@@ -148,7 +136,7 @@ def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
     timings["pseudo_label_s"] = time.perf_counter() - t_all
 
     report = {
-        "map": str(map_dir.resolve()),
+        "map": str(Path(old.root).resolve()),
         "dataset": {"root": str(Path(dataset.root).resolve()), "split": split},
         "n_frames": len(frames), "n_frames_registered": len(reg),
         "registered_fraction": len(reg) / len(frames),
@@ -172,28 +160,23 @@ def pseudo_label(map_dir: Path, dataset: Dataset, split: str | None = None,
         truth_depths = depths if depths is not None else registered_depths(dataset, frames)
         report.update(score(frames, feats, states, truth_world_from_cam, truth_depths,
                             LabelConfig(),
-                            map_views(base, old.camera, labelled_rows)))
+                            map_views(base, old.camera, labelled_rows), progress))
         report["timings_s"]["scoring_s"] = time.perf_counter() - t0
     else:
         report["pseudo_label_precision_10cm"] = None
         report["note"] = "the dataset has no poses: precision and pose errors not scored"
-    return PseudoLabels(old, map_dir, db, weights, source, report, surface)
+    return PseudoLabels(old, db, weights, source, report, surface)
 
 
-def update_map(map_dir: Path, dataset: Dataset, out: Path, split: str | None = None,
-               config: PseudoLabelConfig = PseudoLabelConfig(), truth: Path | None = None,
-               progress: bool = True, truth_poses: Path | None = None
-               ) -> tuple[SceneMap, dict]:
-    """Pseudo-label `dataset`'s split against the map at `map_dir`, write NEW_MAP at `out`.
-    Returns (the new map, the report). NEW_MAP's write lock is held from the start: a second
-    writer of it fails at once, not after the work. `truth`, `truth_poses`: `pseudo_label`."""
-    map_dir, out = Path(map_dir), Path(out)
-    SceneMap.load(map_dir)  # fail early on a bad map or target, before the work
-    check_outputs({"the new map": out}, {"the map it updates": map_dir,
-                                         "the dataset": dataset.root, "--truth": truth,
-                                         "--poses": truth_poses},
-                  folders=("the new map",))
+def update_map(old: SceneMap, dataset: Dataset, out: Path, split: str | None = None,
+               config: PseudoLabelConfig = PseudoLabelConfig(), truth: Dataset | None = None,
+               progress: bool = True) -> tuple[SceneMap, dict]:
+    """Pseudo-label `dataset`'s split against the map `old`, write NEW_MAP at `out` (`old`'s
+    folder is kept). Returns (the new map, the report). NEW_MAP's write lock is held from the
+    start: a second writer of it fails at once, not after the work. `split`, `truth`:
+    `pseudo_label`."""
+    out = Path(out)
     with map_write_lock(out):
         check_map_target(out)
-        labels = pseudo_label(map_dir, dataset, split, config, truth, progress, truth_poses)
+        labels = pseudo_label(old, dataset, split, config, truth, progress)
         return write_updated_map(labels, out, config, progress)

@@ -4,6 +4,7 @@ database row; read from the map being updated, written with the new one), the re
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -12,10 +13,9 @@ import numpy as np
 from slamreloc.pseudo_label.config import PseudoLabelConfig
 from slamreloc.pseudo_label.finetune import finetune_regressor
 
-from slamreloc.io.fileio import check_outputs
 from slamreloc.map.format import LABELLED, PROVENANCE, SURFACE
 from slamreloc.map.meta import MapMeta, SurfaceMeta, UpdateMeta
-from slamreloc.map.write import check_map_target, save_map
+from slamreloc.map.write import save_map
 from slamreloc.regressor.model import SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
 from slamreloc.map.scene_map import MapDatabase, SceneMap
@@ -26,8 +26,7 @@ from slamreloc.map.surface import Surface
 class PseudoLabels:
     """What registration and extension produced, before the regressor update."""
 
-    old: SceneMap
-    map_dir: Path
+    old: SceneMap  # the map updated (its folder is kept)
     db: MapDatabase  # the map's labels + the new ones
     weights: np.ndarray  # per database row
     source: np.ndarray  # per database row: LABELLED, PSEUDO, NEW
@@ -60,16 +59,13 @@ def write_updated_map(labels: PseudoLabels, out: Path,
     """Update the regressor (fine-tune or retrain) and write NEW_MAP; returns it and the
     report (with the update's stats and timing)."""
     out = Path(out)
-    check_outputs({"the new map": out}, {"the map it updates": labels.map_dir},
-                  folders=("the new map",))
-    check_map_target(out)
     old, db, rep = labels.old, labels.db, dict(labels.report)
     rep["timings_s"] = dict(rep["timings_s"])
     map_epochs = old.info.train_config.epochs
     t0 = time.perf_counter()
     if config.update == "finetune":
         # a fresh copy of the old weights: the old map's files and object stay as they were
-        model = SceneMap.load(labels.map_dir).regressor
+        model = copy.deepcopy(old.regressor)
         epochs = config.epochs or max(1, round(config.finetune_epoch_fraction * map_epochs))
         train_stats = finetune_regressor(model, db.descriptors, db.points, labels.weights,
                                          replace(config.finetune, epochs=epochs), config.device,
@@ -91,14 +87,14 @@ def write_updated_map(labels: PseudoLabels, out: Path,
     info = old.info
     history = (info.pseudo_label.history if info.pseudo_label else None) or ()
     update = UpdateMeta(
-        source_map=str(labels.map_dir.resolve()), dataset=rep["dataset"],
+        source_map=str(Path(old.root).resolve()), dataset=rep["dataset"],
         n_frames=rep["n_frames"], n_frames_registered=rep["n_frames_registered"],
         n_inherited_labels=rep["n_inherited_labels"],
         n_triangulated_labels=rep["n_triangulated_labels"],
         n_new_points=rep["n_new_points"], update=config.update,
         provenance=f"{PROVENANCE}: source per database row (0 labelled, 1 inherited "
                    "pseudo-label, 2 triangulated from registered frames), quality weight",
-        history=(*history, str(labels.map_dir.resolve())))
+        history=(*history, str(Path(old.root).resolve())))
     meta = replace(
         info, labels={**info.labels, "n_labelled": int(len(db.points)),
                       "n_labelled_map": int(len(old.database.points)),

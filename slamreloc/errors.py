@@ -1,4 +1,9 @@
-"""Errors that reach the user as one line: which file, what is wrong."""
+"""Errors that reach the user as one line: which file, what is wrong.
+
+The library names a setting by its field in backticks (`min_parallax`, `port`); the command
+line shows those that are its options as flags (`--min-parallax`, `--port`), so one message
+reads right from Python and from the shell, and no module below the CLI names a flag.
+"""
 
 
 class SlamrelocError(Exception):

@@ -115,26 +115,26 @@ class SfmConfig:
 
     def __post_init__(self) -> None:
         if self.select not in SELECTIONS:
-            raise InputError(f"--select must be one of {', '.join(SELECTIONS)}, got "
+            raise InputError(f"`select` must be one of {', '.join(SELECTIONS)}, got "
                              f"{self.select!r}")
         if self.matching not in MATCHING:
-            raise InputError(f"--matching must be one of {', '.join(MATCHING)}, got "
+            raise InputError(f"`matching` must be one of {', '.join(MATCHING)}, got "
                              f"{self.matching!r}")
         if self.mapper not in MAPPERS:
-            raise InputError(f"--mapper must be one of {', '.join(MAPPERS)}, got "
+            raise InputError(f"`mapper` must be one of {', '.join(MAPPERS)}, got "
                              f"{self.mapper!r}")
         if self.scale is not None and not 0 < self.scale < 1e6:
-            raise InputError(f"--scale must be a positive number of metres per SfM unit, got "
+            raise InputError(f"`scale` must be a positive number of metres per SfM unit, got "
                              f"{self.scale}")
         if self.scale is not None and self.scale_from_depth:
-            raise InputError("--scale and --scale-from-depth: give one of them")
+            raise InputError("`scale` and `scale_from_depth`: give one of them")
         initial_camera(self, None)  # a bad --camera fails before any work
         for name, low, high in (("overlap", 1, 1000), ("max_features", 100, 1 << 16),
                                 ("max_image_size", 64, 1 << 16), ("fps", 1e-3, 1000),
                                 ("min_registered", 0.0, 1.0), ("min_parallax", 0.01, 60.0)):
             v = getattr(self, name)
             if not low <= v <= high:
-                raise InputError(f"--{name.replace('_', '-')} must be in {low}..{high}, got {v}")
+                raise InputError(f"`{name}` must be in {low}..{high}, got {v}")
 
 
 @dataclass
@@ -300,7 +300,7 @@ def _selector(config: SfmConfig, kind: str, camera: Camera | None) -> KeyframeSe
         return None
     text = config.camera.strip()
     if text and len(text.split()) > 1:
-        camera = Camera.parse(text, "--camera")
+        camera = Camera.parse(text, "`camera`")
     if camera is None:
         return KeyframeSelector(config.min_parallax)
     return KeyframeSelector(config.min_parallax, camera.fx, camera.width)
@@ -410,8 +410,8 @@ def _collect_dataset(dataset, images_dir: Path, config: SfmConfig,
     if not frames:
         raise InputError(f"{dataset.root}: split '{config.split}' has no frames")
     if config.scale_from_depth and not any(f.depth_path is not None for f in frames):
-        raise InputError(f"{dataset.root}: --scale-from-depth needs depth, and split "
-                         f"'{config.split}' has none (give --scale M instead)")
+        raise InputError(f"{dataset.root}: `scale_from_depth` needs depth, and split "
+                         f"'{config.split}' has none (give `scale` M instead)")
     selector = _selector(config, "dataset", frames[0].camera)
     if selector is not None:
         from slamreloc.io.images import read_image
@@ -465,7 +465,7 @@ def initial_camera(config: SfmConfig, given: Camera | None) -> tuple[str, str]:
     if text and len(text.split()) == 1:
         model = text.upper()
         if model not in MODELS:
-            raise InputError(f"--camera: unknown camera model {text[:40]!r} (known: "
+            raise InputError(f"`camera`: unknown camera model {text[:40]!r} (known: "
                              f"{', '.join(MODELS)})")
         if given is None:
             return model, ""
@@ -473,7 +473,7 @@ def initial_camera(config: SfmConfig, given: Camera | None) -> tuple[str, str]:
         head = colmap_head(model, *given.params())
         params = [*head, *([0.0] * (len(PARAMS[model]) - len(head)))]
         return model, ",".join(repr(float(p)) for p in params)
-    camera = Camera.parse(text, "--camera") if text else given
+    camera = Camera.parse(text, "`camera`") if text else given
     if camera is None:
         return "SIMPLE_RADIAL", ""
     return camera.model, ",".join(repr(float(p)) for p in camera.colmap_params())
@@ -491,11 +491,11 @@ def run_sfm(source: Path, out: Path, config: SfmConfig = SfmConfig(),
     source, out = Path(source), Path(out)
     if not source.exists():
         raise InputError(f"{source}: not found (a folder of images, a video or a dataset)")
-    check_outputs({"--out": out}, {"the input": source}, folders=("--out",))
+    check_outputs({"`out`": out}, {"the input": source}, folders=("`out`",))
     if config.scale_from_depth and (is_video(source) or source.is_dir()
                                     and not _looks_like_dataset(source)):
-        raise InputError(f"{source}: --scale-from-depth needs depth, and a video or a folder "
-                         "of images has none (give --scale M instead)")
+        raise InputError(f"{source}: `scale_from_depth` needs depth, and a video or a folder "
+                         "of images has none (give `scale` M instead)")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(f"{out}: exists and is not empty; choose a new folder")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -561,8 +561,8 @@ def _run(source: Path, root: Path, config: SfmConfig, progress: bool) -> dict:
         scale, scale_note = config.scale, "metres (user scale)"
     elif config.scale_from_depth:
         if inp.depth_of is None:
-            raise InputError(f"{source}: --scale-from-depth needs depth, and this input has "
-                             "none (give --scale M instead)")
+            raise InputError(f"{source}: `scale_from_depth` needs depth, and this input has "
+                             "none (give `scale` M instead)")
         t0 = time.perf_counter()
         scale, spread, n_obs = depth_scale(rec, inp.depth_of, progress)
         timings["scale_s"] = time.perf_counter() - t0
@@ -669,7 +669,7 @@ def _failure(source: Path, inp: SfmInput, config: SfmConfig, matching: str, n_re
         advice = ["move the camera more between the first and the last view (steps sideways "
                   "or around the scene, not only turning)"]
         if duplicates:
-            advice.insert(0, f"keep fewer, more spread-out {what} (--select parallax keeps one "
+            advice.insert(0, f"keep fewer, more spread-out {what} (`select` parallax keeps one "
                              f"once it has {config.min_parallax:g} deg of parallax to the last "
                              "one kept)")
         return f"{head}: {cause}; {_either(advice)}"
@@ -678,17 +678,17 @@ def _failure(source: Path, inp: SfmInput, config: SfmConfig, matching: str, n_re
                                 "overlap or texture)")
     advice = []
     if matching == "sequential":
-        advice.append("--matching exhaustive")
+        advice.append("`matching` exhaustive")
     if not config.camera.strip():
-        advice.append("a camera model that fits the lens (--camera OPENCV or OPENCV_FISHEYE)")
+        advice.append("a camera model that fits the lens (`camera` OPENCV or OPENCV_FISHEYE)")
     if inp.kind == "video":
-        advice.append(f"more overlap (a higher --fps than {config.fps:g})")
+        advice.append(f"more overlap (a higher `fps` than {config.fps:g})")
     elif not matched:
         advice.append(f"{what} that overlap more")
     if matching == "sequential":
-        advice.append(f"a higher --overlap than {config.overlap}")
+        advice.append(f"a higher `overlap` than {config.overlap}")
     if config.min_registered > 0 and n_registered >= 3:
-        advice.append("a lower --min-registered")
+        advice.append("a lower `min_registered`")
     return f"{head}{cause}" + (f"; try {_either(advice)}" if advice else "")
 
 
@@ -804,7 +804,7 @@ def depth_scale(rec, depth_of: Callable[[str], np.ndarray | None],
                 ratios.append(depth[v, u] / z)
     if len(ratios) < 20:
         raise InputError(f"only {len(ratios)} SfM points have a depth measurement; "
-                         "--scale-from-depth needs depth registered to the images")
+                         "`scale_from_depth` needs depth registered to the images")
     ratios = np.asarray(ratios)
     q1, med, q3 = np.percentile(ratios, [25, 50, 75])
     return float(med), float((q3 - q1) / 2 / med), len(ratios)

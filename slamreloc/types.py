@@ -53,7 +53,7 @@ class Camera:
         return cls(width, height, fx, fy, cx, cy, model, distortion)
 
     @classmethod
-    def parse(cls, text: str, source: str = "--camera") -> Camera:
+    def parse(cls, text: str, source: str = "`camera`") -> Camera:
         """A COLMAP camera string, `"OPENCV 640 480 fx fy cx cy k1 k2 p1 p2"`, or a line of
         cameras.txt (principal point in COLMAP's convention)."""
         model, width, height, params = lens.split_camera_string(text, source)

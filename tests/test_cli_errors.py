@@ -131,3 +131,40 @@ def test_the_payloads_are_real(tmp_path):
     """The pickle payloads used above do run when unpickled unsafely."""
     pickle.loads(pickle.dumps(Payload(tmp_path / "ran")))
     assert (tmp_path / "ran").exists()
+
+
+@pytest.mark.parametrize("argv, flags", [
+    (["sfm", "IN", "--out", "OUT", "--scale", "2", "--scale-from-depth"],
+     ["--scale and --scale-from-depth: give one of them"]),
+    (["serve", "MAP", "--host", "0.0.0.0"],
+     ["--host 0.0.0.0 is not a loopback address", "--token-file", "--tls-cert/--tls-key"]),
+    # numbers that are no number or out of range are refused, never taken as "off"
+    (["serve", "MAP", "--max-request-mb", "nan"], ["--max-request-mb nan: 0.0625 to 2047"]),
+    (["serve", "MAP", "--watch", "nan"], ["--watch nan: seconds between checks"]),
+    (["serve", "MAP", "--watch", "-1"], ["--watch -1.0: seconds between checks"]),
+])
+def test_a_library_error_names_the_flag(tmp_path, argv, flags):
+    """The library names a setting `field` (SfmConfig, ServeConfig); the command line's error
+    line names its flag, with no backtick left."""
+    argv = [str(tmp_path / a) if a.isupper() else a for a in argv]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    res = subprocess.run([sys.executable, "-m", "slamreloc.cli", *argv], cwd=REPO, env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    (line,) = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert line.startswith("error: ") and "`" not in line, line
+    for text in flags:
+        assert text in line, line
+
+
+def test_the_same_errors_name_the_fields_in_python():
+    from slamreloc.errors import InputError
+    from slamreloc.service.server import ServeConfig
+    from slamreloc.sfm import SfmConfig
+
+    with pytest.raises(InputError, match="^`scale` and `scale_from_depth`: give one of them$"):
+        SfmConfig(scale=2.0, scale_from_depth=True)
+    with pytest.raises(InputError, match="^`port` 70000: not a TCP port$"):
+        ServeConfig(port=70000).check()
+    with pytest.raises(InputError, match="^`watch_s` nan: seconds between checks"):
+        ServeConfig(watch_s=float("nan")).check()

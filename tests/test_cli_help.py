@@ -76,3 +76,26 @@ def test_device_defaults():
     assert defaults == {"map": "auto", "pseudo-label": "auto", "evaluate": "cpu"}
     text = " ".join(help_text("evaluate").replace("│", " ").split())  # the panel's lines
     assert "cpu by default, where localize, slam and serve run it" in text
+
+
+def test_one_option_name_is_one_flag():
+    """An option's name (`port`, `scale_from_depth`) is the same flag in every command, so a
+    library message naming a setting `name` shows one flag (`slamreloc.cli.with_flags`)."""
+    from slamreloc.cli import _flags, with_flags
+
+    root = typer.main.get_command(app)
+    seen: dict[str, dict[str, str]] = {}  # name -> flag -> the first command that has it
+    for command_name, command in [("slamreloc", root), *sorted(root.commands.items())]:
+        for p in command.params:
+            if p.param_type_name != "option":
+                continue
+            flags = [o for o in p.opts if o.startswith("--")]
+            assert len(flags) == 1, (command_name, p.name, p.opts)
+            seen.setdefault(p.name, {}).setdefault(flags[0], command_name)
+    clashes = {name: flags for name, flags in seen.items() if len(flags) > 1}
+    assert not clashes, f"one option name, several flags: {clashes}"
+    assert _flags() == {name: next(iter(flags)) for name, flags in seen.items()}
+    assert {"port", "scale", "scale_from_depth", "limit", "topic"} <= set(seen)
+    # a name that is no option stays as written
+    assert with_flags("`scale` and `scale_from_depth`: give one; `max_image_size` 2") == \
+        "--scale and --scale-from-depth: give one; `max_image_size` 2"

@@ -245,7 +245,7 @@ def test_kill_9_at_random_moments_of_pseudo_label_never_loses_the_map(scene_dir,
     base = _tiny_map(_small_dataset(scene_dir, tmp_path / "ds"), tmp_path / "maps" / "map")
     unlabelled = _small_dataset(scene_dir, tmp_path / "unlabelled", slice(6, 12), poses=False)
     out = tmp_path / "maps" / "new"
-    _, rep = update_map(base.root, load_dataset(unlabelled), out, "seq-01",
+    _, rep = update_map(base, load_dataset(unlabelled), out, "seq-01",
                         PseudoLabelConfig(rounds=1, epochs=1, device="cpu"), progress=False)
     assert rep["n_frames_registered"] >= 3  # real registration work happens in every run
     before = _digests(base.root)
@@ -283,7 +283,7 @@ def test_map_and_pseudo_label_take_the_write_lock_before_their_work(scene_dir, t
             _tiny_map(ds, out)
         assert "\n" not in str(err.value)
         with pytest.raises(InputError, match=lock_error):
-            update_map(base.root, load_dataset(ds), out, "seq-01",
+            update_map(base, load_dataset(ds), out, "seq-01",
                        PseudoLabelConfig(rounds=1, epochs=1), progress=False)
         assert _tag(out) == "first"
     finally:

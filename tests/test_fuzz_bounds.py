@@ -565,7 +565,7 @@ def test_view_refuses_an_unresolvable_host_before_reading(small_map):
     from slamreloc.viewer.data import ViewerInputs
     from slamreloc.viewer.server import start
 
-    with no_hang(30), pytest.raises(InputError, match="--host"):
+    with no_hang(30), pytest.raises(InputError, match="`host`"):
         start(ViewerInputs(small_map.root, host="no.such.host.invalid"))
 
 

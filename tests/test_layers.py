@@ -11,6 +11,9 @@ does a string that names a module (`"slamreloc.x.y"`, `"slamreloc.x.y:Name"`: wh
 group `slamreloc.plugins`: no module outside them imports or names one. The modules
 are found by walking the source folders that pyproject.toml's package-dir maps into the
 `slamreloc` namespace, so files that move are checked where they land.
+
+Below the command line (every module outside `slamreloc.cli`) no message names a flag: the
+library names a setting `field` in backticks, and the CLI's error line shows its flag.
 """
 
 from __future__ import annotations
@@ -291,3 +294,88 @@ def test_the_command_line_loads_its_pipeline_only_when_a_command_runs():
     assert {m.value for m in Method} == {"regressor", "matching"}
     assert {p.value for p in Precision} == {"auto", "fp32", "bf16"}
     assert {u.value for u in Update} == {"finetune", "retrain"}
+
+
+# ---- no flag named below the command line ----------------------------------------------------
+# A module below the CLI names a setting by its field in backticks (`port`, `scale_from_depth`);
+# the CLI's error printer (`slamreloc.cli.with_flags`) shows it as its flag. A flag written out
+# there (`--port`) would read wrong from Python and drift from the CLI's own options.
+FLAG = re.compile(r"(?<![\w`-])--[a-z][a-z0-9-]*")
+BUILT_FLAG = re.compile(r"(?<![\w`-])--$")  # f"--{name}": a flag made from a field's name
+# Text that names a flag and is no message of the library, keyed by (file, flag): why.
+FLAG_EXEMPT = {
+    ("viewer/scene.py", "--trajectory"): "the viewer's web page tells its user which file of "
+                                         "`slamreloc evaluate` to pass; no error or log line",
+}
+
+
+def docstrings(tree: ast.AST) -> set[int]:
+    """ids of the docstring constants of the module, its classes and its functions."""
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) \
+                and node.body and isinstance(node.body[0], ast.Expr) \
+                and isinstance(node.body[0].value, ast.Constant) \
+                and isinstance(node.body[0].value.value, str):
+            out.add(id(node.body[0].value))
+    return out
+
+
+def flags_named(path: Path, root: Path = ROOT) -> list[str]:
+    """`file:line: --flag` for each flag in a string constant or f-string part of the file,
+    docstrings aside; a part ending in `--` before a formatted value counts as a flag built
+    from a name."""
+    tree = ast.parse(path.read_text(), str(path))
+    skip = docstrings(tree)
+    where = path.relative_to(root).as_posix()
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.JoinedStr):  # its parts, at its first line (as Python < 3.12)
+            parts = [*node.values, None]
+            skip.update(id(part) for part in node.values)
+            for part, nxt in zip(parts, parts[1:]):
+                if not isinstance(part, ast.Constant):
+                    continue
+                found += [(node.lineno, m[0]) for m in FLAG.finditer(part.value)]
+                if isinstance(nxt, ast.FormattedValue) and BUILT_FLAG.search(part.value):
+                    found.append((node.lineno, f"--{{{ast.unparse(nxt.value)}}}"))
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) \
+                and id(node) not in skip:
+            found += [(node.lineno, m[0]) for m in FLAG.finditer(node.value)]
+    return [f"{where}:{line}: {flag}" for line, flag in sorted(set(found))
+            if (where, flag) not in FLAG_EXEMPT]
+
+
+def below_the_cli() -> list[Path]:
+    """The files of every module outside `slamreloc.cli` (core, backend, wings, service)."""
+    return [path for module, path in sorted(discover_modules().items())
+            if module != "slamreloc.cli" and not module.startswith("slamreloc.cli.")]
+
+
+def test_no_flag_is_named_below_the_command_line():
+    """Messages below the CLI name a setting `field` (backticks), never its `--flag`."""
+    files = below_the_cli()
+    assert any(p.parts[-2:] == ("service", "server.py") for p in files)  # the walk sees them
+    assert any(p.parts[-2:] == ("viewer", "server.py") for p in files)
+    assert not any("cli" in p.relative_to(ROOT).parts[:2] for p in files)
+    bad = [line for path in files for line in flags_named(path)]
+    assert not bad, ("a flag named below the command line (name the setting `field` instead; "
+                     "the CLI shows it as its flag):\n" + "\n".join(bad))
+
+
+def test_a_flag_named_below_the_cli_is_reported_with_its_line(tmp_path):
+    """A flag in a message, in an f-string part, built from a name, or in a help line is
+    reported; docstrings and a setting named `field` are not."""
+    path = tmp_path / "m.py"
+    path.write_text('"""Run `slamreloc serve --port 0`."""\n'
+                    "def f(port, name):\n"
+                    '    """--port: the port."""\n'
+                    '    if port < 0:\n'
+                    '        raise ValueError(f"--port {port}: not a TCP port")\n'
+                    '    if port > 65535:\n'
+                    '        raise ValueError(f"`port` {port}: not a TCP port")\n'
+                    '    advice = ["a higher --max-points", "x--y", "a -- b"]\n'
+                    '    raise ValueError(f"--{name} must be positive; or give "\n'
+                    '                     f"{name} --scale-from-depth")\n')
+    assert flags_named(path, tmp_path) == ["m.py:5: --port", "m.py:8: --max-points",
+                                           "m.py:9: --scale-from-depth", "m.py:9: --{name}"]

@@ -49,8 +49,9 @@ def updated(small_map, scene_dir, tmp_path_factory):
     data = unposed_copy(scene_dir, tmp / "unlabelled")
     assert all(f.world_from_cam is None for f in load_dataset(data).frames("all"))
     before = digest(small_map.root)
-    new_map, report = update_map(small_map.root, load_dataset(data), tmp / "new_map", None,
-                                 PseudoLabelConfig(epochs=5), truth=scene_dir, progress=False)
+    new_map, report = update_map(small_map, load_dataset(data), tmp / "new_map", None,
+                                 PseudoLabelConfig(epochs=5), truth=load_dataset(scene_dir),
+                                 progress=False)
     return new_map, report, before
 
 
@@ -161,7 +162,7 @@ def test_retrain_update_chooses_precision_for_this_machine(small_map, scene_dir,
     data = unposed_copy(scene_dir, tmp_path / "unlabelled")
     with warnings.catch_warnings():
         warnings.simplefilter("error", precision.EmulatedBf16Warning)
-        new_map, rep = update_map(src, load_dataset(data), tmp_path / "new", None,
+        new_map, rep = update_map(SceneMap.load(src), load_dataset(data), tmp_path / "new", None,
                                   PseudoLabelConfig(update="retrain", epochs=1, rounds=1),
                                   progress=False)
     assert rep["update"]["mode"] == "retrain" and rep["update"]["precision"] == "fp32"

@@ -177,7 +177,7 @@ def test_session_is_left_to_the_native_server(service):
     opened = iter([pb.SessionRequest(open=pb.SessionOpen(map="alpha"))])
     code, details, _ = refusal(lambda: list(service.stub.Session(opened, timeout=30)))
     assert code == grpc.StatusCode.UNIMPLEMENTED
-    assert "--engine grpc" in details
+    assert "`engine` grpc" in details
 
 
 # ---- without Ray running ---------------------------------------------------------------------

@@ -205,7 +205,7 @@ def test_parse_topics():
     assert parse_topics(["image=cam/x", "camera-info=/ci", "pose=tf:map:cam", "depth=/d"]) == \
         BagTopics(image="/cam/x", depth="/d", camera_info="/ci", pose="tf:map:cam")
     for bad in ("image", "colour=/x", "image=", "pose=tf:map", "pose=tf::cam"):
-        with pytest.raises(InputError, match="--topic") as err:
+        with pytest.raises(InputError, match="`topic`") as err:
             parse_topics([bad])
         assert "\n" not in str(err.value)
 

@@ -34,8 +34,8 @@ def load_scene_data(inputs: ViewerInputs) -> SceneData:
     dataset = open_dataset(inputs.dataset or scene_map.info.dataset_root)
     if reference is not None:  # the ground truth shown: --poses instead of the dataset's
         if dataset is None:
-            raise InputError(f"{inputs.poses}: --poses needs the dataset its frames belong to "
-                             "(--dataset DATASET; the map records none that can be read)")
+            raise InputError(f"{inputs.poses}: `poses` needs the dataset its frames belong to "
+                             "(`dataset` DATASET; the map records none that can be read)")
         dataset = apply_poses(dataset, reference)
     map_view = load_map(inputs, scene_map, dataset)
     for traj in trajectories:

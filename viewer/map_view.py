@@ -38,7 +38,7 @@ def voxel_downsample(points: np.ndarray, max_points: int) -> tuple[np.ndarray, f
     and the voxel size used (0 when nothing was dropped)."""
     n = len(points)
     if max_points < 1:
-        raise InputError(f"--max-points must be at least 1, got {max_points}")
+        raise InputError(f"`max_points` must be at least 1, got {max_points}")
     if n <= max_points:
         return np.arange(n), 0.0
     lo, hi = points.min(axis=0), points.max(axis=0)

@@ -41,11 +41,11 @@ def check_address(host: str, port: int) -> None:
     import socket
 
     if not 0 < port < 65536:
-        raise InputError(f"--port {port}: must be in 1..65535")
+        raise InputError(f"`port` {port}: must be in 1..65535")
     try:
         socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
     except (OSError, UnicodeError) as err:
-        raise InputError(f"--host {host[:80]!r}: cannot resolve it ({err})") from None
+        raise InputError(f"`host` {host[:80]!r}: cannot resolve it ({err})") from None
 
 
 def start(inputs: ViewerInputs, data: SceneData | None = None) -> tuple[object, SceneHandles]:

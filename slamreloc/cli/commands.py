@@ -3,7 +3,9 @@ of its options come from the registries (`slamreloc.cli.choices`)."""
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
+from functools import cache
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -164,7 +166,7 @@ def localize(
     for line, status in jobs.localize(map_dir, images, query_camera, method.value, guided):
         if status == "error":
             errors += 1
-            typer.echo(line, err=True)
+            typer.echo(with_flags(line), err=True)
         else:
             typer.echo(line)
     if errors:
@@ -200,30 +202,12 @@ def pseudo_label_cmd(
 
     DATASET's poses are never read except to score the report (as are --truth's and
     --poses')."""
-    from slamreloc.datasets import load_dataset
-    from slamreloc.io.fileio import check_outputs, write_json
-    from slamreloc.map.format import check_is_map
-    from slamreloc.runtime.progress import console
-    from slamreloc.pseudo_label import PseudoLabelConfig, update_map
-
-    check_is_map(map_dir)  # what the inputs are, then where the outputs may go
-    check_outputs({"--report": report, "--out": out},
-                  {"the map": map_dir, "the dataset": dataset, "--truth": truth,
-                   "--poses": poses}, folders=("--out",))
+    from slamreloc.cli import jobs
+    from slamreloc.pseudo_label import PseudoLabelConfig
 
     config = PseudoLabelConfig(rounds=rounds, update=update.value, epochs=epochs,
                                device=device.value)
-    new_map, rep = update_map(map_dir, load_dataset(dataset), out, split, config, truth,
-                              truth_poses=poses)
-    write_json(report, rep)
-    prec = rep.get("pseudo_label_precision_10cm")
-    console.print(
-        f"[green]map written[/green] to {new_map.root}: {rep['n_frames_registered']}/"
-        f"{rep['n_frames']} frames registered, {rep['n_pseudo_labels']} pseudo-labels "
-        f"({rep['n_new_points']} new points)"
-        + ("" if prec is None else f", precision {100 * prec:.1f} % within 10 cm, median pose "
-           f"error {100 * rep['median_pose_error_m']:.1f} cm / "
-           f"{rep['median_pose_error_deg']:.2f} deg"))
+    jobs.pseudo_label(map_dir, dataset, out, report, split, config, truth, poses)
 
 
 @app.command()
@@ -388,3 +372,22 @@ def _print_map(scene_map) -> None:
     if not info.metric:
         console.print("[yellow]units[/yellow]: the dataset's SfM units, not metres (it was "
                       "made by `slamreloc sfm` without --scale or --scale-from-depth)")
+
+
+@cache
+def _flags() -> dict[str, str]:
+    """Each option's field name -> its flag, over every command (one name, one flag)."""
+    from typer.main import get_command
+
+    root = get_command(app)
+    commands = [root, *getattr(root, "commands", {}).values()]
+    return {p.name: next(o for o in p.opts if o.startswith("--"))
+            for c in commands for p in c.params
+            if p.param_type_name == "option" and any(o.startswith("--") for o in p.opts)}
+
+
+def with_flags(message: str) -> str:
+    """A library message as the command line says it: a setting named `field` (backticks,
+    `slamreloc.errors`) becomes its flag where it is one of the commands' options."""
+    flags = _flags()
+    return re.sub(r"`([a-z][a-z0-9_]*)`", lambda m: flags.get(m[1], m[0]), message)

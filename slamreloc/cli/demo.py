@@ -56,11 +56,13 @@ def pseudo_label_stage(workdir: Path, map_dir: Path, dataset,
     """Update the map from the unlabelled sequence (its poses only score the report), then
     relocalize the query and kidnap sequences with the old and the updated map; `done()`
     after each of these four steps."""
+    from slamreloc.map.scene_map import SceneMap
     from slamreloc.pseudo_label import update_map
 
     console.print("registering the unlabelled frames in the map, smoothing them with "
                   "odometry, pseudo-labelling, then fine-tuning the regressor")
-    new_map, rep = update_map(map_dir, dataset, workdir / "map_updated", "unlabelled")
+    new_map, rep = update_map(SceneMap.load(map_dir), dataset, workdir / "map_updated",
+                              "unlabelled")
     done()
     write_json(workdir / "report_pseudo_label.json", rep)
     prec = rep.get("pseudo_label_precision_10cm")

@@ -190,6 +190,42 @@ def slam(dataset: Path, map_dir: Path, report: Path, split: str = "test",
     return result
 
 
+def pseudo_label(map_dir: Path, dataset_dir: Path, out: Path, report: Path,
+                 split: str | None = None, config=None, truth: Path | None = None,
+                 poses: Path | None = None, progress: bool = True) -> tuple[SceneMap, dict]:
+    """`slamreloc pseudo-label`: register DATASET's split in MAP, write NEW_MAP at `out` and
+    REPORT.json; returns (the new map, the report). The report is scored against `truth`'s
+    poses (a dataset of the same frames), else DATASET's, with `poses` (a pose file,
+    `datasets.poses`) in place of whichever is used. `config`: a `PseudoLabelConfig`."""
+    from slamreloc.datasets import apply_poses, read_reference
+    from slamreloc.pseudo_label import PseudoLabelConfig, update_map
+
+    check_is_map(map_dir)  # what the inputs are, then where the outputs may go
+    check_outputs({"--report": report, "--out": out},
+                  {"the map": map_dir, "the dataset": dataset_dir, "--truth": truth,
+                   "--poses": poses}, folders=("--out",))
+    old = SceneMap.load(map_dir)
+    dataset = load_dataset(dataset_dir)
+    if truth is not None:
+        reference = load_dataset(truth, poses)
+    elif poses is not None:
+        reference = apply_poses(dataset, read_reference(poses))
+    else:
+        reference = None
+    new_map, result = update_map(old, dataset, out, split, config or PseudoLabelConfig(),
+                                 reference, progress)
+    write_json(report, result)
+    prec = result.get("pseudo_label_precision_10cm")
+    console.print(
+        f"[green]map written[/green] to {new_map.root}: {result['n_frames_registered']}/"
+        f"{result['n_frames']} frames registered, {result['n_pseudo_labels']} pseudo-labels "
+        f"({result['n_new_points']} new points)"
+        + ("" if prec is None else f", precision {100 * prec:.1f} % within 10 cm, median pose "
+           f"error {100 * result['median_pose_error_m']:.1f} cm / "
+           f"{result['median_pose_error_deg']:.2f} deg"))
+    return new_map, result
+
+
 def print_slam_summary(r: dict) -> None:
     table = Table(title="SLAM backend")
     for col in ("frames", "ATE", "ATE odometry only", "kidnaps recovered", "frames to recover",

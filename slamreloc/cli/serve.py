@@ -66,6 +66,11 @@ def serve(
 ) -> None:
     """Serve MAPs over gRPC (protocol slamreloc.v1): Localize, SLAM sessions, health, list and
     reload maps. Runs until Ctrl-C."""
+    # the options in their own units (the service's config takes bytes and seconds); NaN fails
+    if not 1 / 16 <= max_request_mb <= 2047:
+        raise InputError(f"--max-request-mb {max_request_mb}: 0.0625 to 2047")
+    if not 0 <= watch < float("inf"):
+        raise InputError(f"--watch {watch}: seconds between checks, 0 (only ReloadMap) or more")
     named = map_names(maps, list(name or []))
     token = read_token(token_file)
     if engine == Engine.ray:

@@ -101,10 +101,10 @@ def parse_topics(items: list[str]) -> BagTopics:
         kind, sep, name = (s.strip() for s in item.partition("="))
         kind = kind.replace("-", "_")
         if not sep or kind not in TOPIC_KINDS or not name:
-            raise InputError(f"--topic {item!r}: expected KIND=NAME with KIND one of "
+            raise InputError(f"`topic` {item!r}: expected KIND=NAME with KIND one of "
                              f"{', '.join(TOPIC_KINDS)}")
         if kind == "pose" and name.startswith("tf:"):
-            tf_frames(name, f"--topic {item!r}")
+            tf_frames(name, f"`topic` {item!r}")
         elif not name.startswith("/"):
             name = "/" + name
         chosen[kind] = name
@@ -316,7 +316,7 @@ def _unchosen(bag: _Bag, kind: str) -> str:
     TransformStamped / tf ones, which are never picked automatically)."""
     names = _of_type(bag, *POSE_TYPES, TF_MESSAGE) if kind == "pose" else []
     names = [n for n in names if n != TF_STATIC_TOPIC]
-    return (f" (candidates: {', '.join(names)}; name one with --topic pose=NAME or "
+    return (f" (candidates: {', '.join(names)}; name one with `topic` pose=NAME or "
             "pose=tf:PARENT:CHILD)") if names else ""
 
 
@@ -470,7 +470,7 @@ def _camera(bag: _Bag, topic: str | None, image: str, size: tuple[int, int]) -> 
     if topic is None:
         expected = "/".join(("", _namespace(image), "camera_info")).replace("//", "/")
         raise InputError(f"{bag.path}: no sensor_msgs/CameraInfo for image topic {image}: add "
-                         f"{expected} to the bag, or name one with --topic camera_info=NAME")
+                         f"{expected} to the bag, or name one with `topic` camera_info=NAME")
     msg = bag.first(topic)
     if msg is None:
         raise InputError(f"{bag.path}: camera_info topic {topic} has no messages")

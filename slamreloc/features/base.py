@@ -70,7 +70,7 @@ class Extractor:
         if need > limit:
             raise InputError(f"{source}: {self.name} features of a {width}x{height} image need "
                              f"~{need / 1e9:.1f} GB of memory, over the {limit / 1e9:.1f} GB "
-                             "limit (raise it with `slamreloc --limit max_feature_bytes=N` or "
+                             "limit (raise it with `limit` max_feature_bytes=N or "
                              "SLAMRELOC_MAX_FEATURE_BYTES)")
 
     def check_frames(self, frames) -> None:

@@ -145,7 +145,7 @@ def check_image_size(width: int, height: int, source, what: str = "image") -> No
     if width * height > lim.max_image_pixels:
         raise InputError(f"{source}: {what} is {width}x{height} = {width * height / 1e6:.1f} "
                          f"MP, over the {lim.max_image_pixels / 1e6:.1f} MP limit (raise it "
-                         "with `slamreloc --limit max_image_pixels=N` or "
+                         "with `limit` max_image_pixels=N or "
                          "SLAMRELOC_MAX_IMAGE_PIXELS)")
 
 

@@ -82,13 +82,13 @@ def parse_limits(items: list[str]) -> dict[str, int]:
         name, sep, text = item.partition("=")
         name = name.strip().replace("-", "_")
         if not sep or name not in names:
-            raise InputError(f"--limit {item!r}: expected NAME=VALUE with NAME one of "
+            raise InputError(f"`limit` {item!r}: expected NAME=VALUE with NAME one of "
                              f"{', '.join(names)}")
         try:
             value = float(text)
         except ValueError:
-            raise InputError(f"--limit {item!r}: {text!r} is not a number") from None
+            raise InputError(f"`limit` {item!r}: {text!r} is not a number") from None
         if not value.is_integer() or value <= 0:
-            raise InputError(f"--limit {item!r}: must be a positive whole number")
+            raise InputError(f"`limit` {item!r}: must be a positive whole number")
         out[name] = int(value)
     return out

@@ -25,7 +25,7 @@ def video_frames(path: Path, fps: float) -> Iterator[tuple[float, np.ndarray]]:
 
     path = Path(path)
     if not fps > 0:
-        raise InputError(f"--fps must be positive, got {fps}")
+        raise InputError(f"`fps` must be positive, got {fps}")
     cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
     if not cap.isOpened():
         cap.release()

@@ -74,7 +74,7 @@ def build_map(dataset: Dataset, out: Path, split: str = "train", config: MapConf
 def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progress: bool,
                resume: bool) -> SceneMap:
     poses_file = None if dataset.poses_source == "dataset" else dataset.poses_source
-    check_outputs({"the map": out}, {"the dataset": dataset.root, "--poses": poses_file},
+    check_outputs({"the map": out}, {"the dataset": dataset.root, "`poses`": poses_file},
                   folders=("the map",))
     check_map_target(out)  # fail before the work, not after it
     ckpt = checkpoint_path(out)

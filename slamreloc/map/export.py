@@ -176,10 +176,10 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
     from slamreloc.map.format import check_is_map
 
     if colmap is None and ply is None and tum is None:
-        raise InputError("export: nothing to write (give --colmap DIR, --ply FILE or --tum FILE)")
+        raise InputError("export: nothing to write (give `colmap` DIR, `ply` FILE or `tum` FILE)")
     check_is_map(map_dir)
-    check_outputs({"--colmap": colmap, "--ply": ply, "--tum": tum},
-                  {"the map": map_dir, "--dataset": dataset_dir}, folders=("--colmap",))
+    check_outputs({"`colmap`": colmap, "`ply`": ply, "`tum`": tum},
+                  {"the map": map_dir, "`dataset`": dataset_dir}, folders=("`colmap`",))
     if colmap is not None and Path(colmap).is_dir() and any(Path(colmap).iterdir()) and not (
             Path(colmap) / "points3D.txt").is_file():
         raise InputError(f"{colmap}: exists and is not a COLMAP model; refusing to replace it")

@@ -56,5 +56,5 @@ def load_checkpoint(path: Path, fp: str) -> dict:
         raise InputError(f"{path}: unreadable training checkpoint ({type(err).__name__})") from None
     if not isinstance(state, dict) or state.get("fingerprint") != fp:
         raise InputError(f"{path}: checkpoint is from other training data or settings; "
-                         "remove it or run without --resume")
+                         "remove it or run without `resume`")
     return state

@@ -48,7 +48,7 @@ def resolve_device(device: str) -> torch.device:
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if device == "cuda" and not torch.cuda.is_available():
-        raise ValueError("--device cuda asked for, but torch sees no CUDA device")
+        raise ValueError("`device` cuda asked for, but torch sees no CUDA device")
     return torch.device(device)
 
 
@@ -144,7 +144,7 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
         save_checkpoint(checkpoint, fp, epoch, losses, model, opt, sched, gen, average)
         raise Interrupted(
             f"{checkpoint}: training interrupted at epoch {epoch + 1}/{config.epochs}; its "
-            "state is saved there: run the same command with --resume to continue") from None
+            "state is saved there: run the same command with `resume` to continue") from None
     averaged = average.copy_to(model)
     model.eval().cpu()
     return {"final_loss_m": losses[-1] if losses else None, "epochs": config.epochs,

@@ -213,8 +213,8 @@ class Router:
     async def Session(self, request_stream, grpc_context: RayServegRPCContext):
         """Not on Ray (see the module's docstring): UNIMPLEMENTED."""
         grpc_context.set_code(grpc.StatusCode.UNIMPLEMENTED)
-        grpc_context.set_details("sessions are not served on Ray Serve; use `slamreloc serve "
-                                 "--engine grpc` for the Session stream")
+        grpc_context.set_details("sessions are not served on Ray Serve; use the grpc engine "
+                                 "(`engine` grpc) for the Session stream")
         raise NotImplementedError("Session on Ray Serve")
         yield pb.SessionUpdate()  # pragma: no cover - makes this a generator, as Serve expects
 
@@ -243,7 +243,7 @@ def application(maps: dict[str, Path], replicas: int = 1, *, replica_cpus: float
     """The Serve application: a `MapReplica` deployment per map (`replicas` each, `replica_cpus`
     Ray CPUs each) behind one `Router`."""
     if not 1 <= replicas <= 256:
-        raise InputError(f"--replicas {replicas}: 1 to 256")
+        raise InputError(f"`replicas` {replicas}: 1 to 256")
     if not 0 < replica_cpus <= 64:
         raise InputError(f"replica_cpus {replica_cpus}: more than 0, at most 64")
     if token is not None and len(token) < 16:

@@ -59,21 +59,25 @@ class ServeConfig:
         """InputError for a configuration that must not run (a non-local bind without a token,
         half a TLS pair, out-of-range numbers)."""
         if not 0 <= self.port <= 65535:
-            raise InputError(f"--port {self.port}: not a TCP port")
+            raise InputError(f"`port` {self.port}: not a TCP port")
         if not 1 <= self.workers <= 256:
-            raise InputError(f"--workers {self.workers}: 1 to 256")
+            raise InputError(f"`workers` {self.workers}: 1 to 256")
         if not 1 <= self.max_sessions <= 4096:
-            raise InputError(f"--max-sessions {self.max_sessions}: 1 to 4096")
+            raise InputError(f"`max_sessions` {self.max_sessions}: 1 to 4096")
         if not (1 << 16) <= self.max_request_bytes <= (2 << 30) - 1:
-            raise InputError("--max-request-mb: 0.0625 to 2047")
+            raise InputError(f"`max_request_bytes` {self.max_request_bytes}: 65536 to "
+                             f"{(2 << 30) - 1}")
+        if not 0 <= self.watch_s < float("inf"):  # NaN too
+            raise InputError(f"`watch_s` {self.watch_s}: seconds between checks, 0 (only "
+                             "ReloadMap) or more")
         if (self.tls_cert is None) != (self.tls_key is None):
-            raise InputError("--tls-cert and --tls-key go together")
+            raise InputError("`tls_cert` and `tls_key` go together")
         if self.token is not None and len(self.token) < 16:
             raise InputError("the token must have at least 16 characters")
         if not is_loopback(self.host) and self.token is None:
-            raise InputError(f"--host {self.host} is not a loopback address: anyone who reaches "
-                             "it could use the server; give a token (--token-file or "
-                             "SLAMRELOC_TOKEN), and TLS (--tls-cert/--tls-key) off a trusted "
+            raise InputError(f"`host` {self.host} is not a loopback address: anyone who reaches "
+                             "it could use the server; give a token (`token_file` or "
+                             "SLAMRELOC_TOKEN), and TLS (`tls_cert`/`tls_key`) off a trusted "
                              "network")
 
 

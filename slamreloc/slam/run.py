@@ -71,7 +71,7 @@ def make_odometry(name: str, depth_camera: Camera | None,
 
         topic = name[len(TOPIC_PREFIX):]
         if dataset_dir is None:
-            raise InputError(f"--odometry {name}: a topic is read from a ROS bag dataset")
+            raise InputError(f"`odometry` {name}: a topic is read from a ROS bag dataset")
         stamps, poses = bag_trajectory(dataset_dir, topic)
         return TrajectoryOdometry(stamps, poses, f"{dataset_dir}: topic {topic}")
     return TrajectoryOdometry.from_file(name)
