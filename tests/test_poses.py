@@ -455,17 +455,20 @@ def test_a_reference_without_queries_is_an_error(small_map, scene_dir, files, tm
 def test_pseudo_label_scores_against_the_poses_file(scene_dir, files, truth):
     """`pseudo-label --poses`: the truth of the report from the file, matched to --truth's
     frames if given, else to the dataset's (whose own poses are then not the truth)."""
+    from slamreloc.cli.jobs import scoring_truth
     from slamreloc.pseudo_label.update import _truth_poses
 
     dataset = load_dataset(scene_dir)
     frames = dataset.frames("unlabelled")
     want = [MOVE.apply_to_pose(truth[f.name]) for f in frames]
     for truth_dir in (None, scene_dir):
-        poses, source = _truth_poses(dataset, frames, truth_dir, files["moved"])
+        reference = scoring_truth(dataset, truth_dir, files["moved"])
+        poses, source = _truth_poses(dataset, frames, reference)
         assert source == str(files["moved"].resolve())
         for got, pose in zip(poses, want):
             dt, dr = pose_error(got, pose)
             assert dt < 1e-5 and dr < 1e-3
-    poses, source = _truth_poses(dataset, frames, scene_dir, None)
+    poses, source = _truth_poses(dataset, frames, scoring_truth(dataset, scene_dir, None))
     assert source == str(scene_dir.resolve()) and poses[0] is not None
-    assert _truth_poses(dataset, frames, None, None)[1] == "dataset"
+    assert scoring_truth(dataset, None, None) is None
+    assert _truth_poses(dataset, frames, None)[1] == "dataset"

@@ -16,7 +16,7 @@ from rich.table import Table
 
 from slamreloc.datasets import Dataset, load_dataset, read_image
 from slamreloc.errors import InputError
-from slamreloc.geometry import Rigid3, tum_line, write_tum_trajectory
+from slamreloc.geometry import Rigid3, names_sidecar, tum_line, write_tum_trajectory
 from slamreloc.io.fileio import check_outputs, write_json
 from slamreloc.localize.evaluate import (
     EvaluationConfig,
@@ -25,7 +25,7 @@ from slamreloc.localize.evaluate import (
     query_frames,
     write_tum,
 )
-from slamreloc.map.format import check_is_map
+from slamreloc.map.format import check_is_map, is_map
 from slamreloc.map.scene_map import SceneMap
 from slamreloc.map.surface import IcpConfig, read_frame_depth, refine_with_depth
 from slamreloc.runtime.progress import console
@@ -43,9 +43,10 @@ def evaluate(map_dir: Path, dataset_dir: Path, report: Path, split: str = "test"
     training cameras; `guided`: `EvaluationConfig`. Everything is read and checked before the
     work."""
     check_is_map(map_dir)  # what the inputs are, then where the outputs may go
-    check_outputs({"--report": report, "--trajectory": trajectory, "--plot": plot},
+    check_outputs({"--report": report, "--trajectory": trajectory,
+                   "--trajectory's names file": sidecar(trajectory), "--plot": plot},
                   {"the map": map_dir, "the dataset": dataset_dir, "--poses": poses,
-                   **{f"--reference {p}": p for p in references}})
+                   **{f"--reference {p}": p for p in references}, **recorded_inputs(map_dir)})
     scene_map = SceneMap.load(map_dir)
     labels = reference_labels(list(references))
     dataset = load_dataset(dataset_dir, poses)
@@ -67,6 +68,19 @@ def evaluate(map_dir: Path, dataset_dir: Path, report: Path, split: str = "test"
 
         plot_evaluation(plot, {method: result.results}, result.frames)
     return result.report
+
+
+def recorded_inputs(map_dir: Path) -> dict[str, Path | None]:
+    """What the map at `map_dir` records it was made from (`MapMeta.recorded_inputs`): inputs
+    of every command that has the map."""
+    from slamreloc.map.meta import MapMeta
+
+    return MapMeta.read(map_dir).recorded_inputs()
+
+
+def sidecar(trajectory: Path | None) -> Path | None:
+    """The frame-names file written beside a TUM trajectory (`names_sidecar`), None for none."""
+    return None if trajectory is None else names_sidecar(trajectory)
 
 
 def depth_refiner(scene_map: SceneMap, dataset: Dataset, config: IcpConfig = IcpConfig()):
@@ -112,7 +126,8 @@ def localize(map_dir: Path, images: list[Path],
     `images`): a TUM line plus inlier count ("ok"), `# name: not localized` ("failed"), or
     `error: ...` for an image that cannot be read or is out of bounds ("error").
     `intrinsics`: a Camera (any lens model, scaled to each image), pinhole (fx, fy, cx, cy)
-    in pixels, else the bag's camera or the map's, scaled to each image."""
+    in pixels, else the bag's camera or the map's, scaled to each image (`Camera.for_image`:
+    an image of another aspect ratio than the camera is an "error" line, never stretched)."""
     if intrinsics is not None and not isinstance(intrinsics, Camera):
         problem = camera_problem(1, 1, *intrinsics)
         if problem:
@@ -127,12 +142,19 @@ def localize(map_dir: Path, images: list[Path],
             yield f"error: {err}", "error"
             continue
         h, w = image.shape[:2]
-        if isinstance(intrinsics, Camera):
-            camera = intrinsics.scaled_to(w, h)
-        elif intrinsics:
-            camera = Camera(w, h, *intrinsics)
-        else:
-            camera = (own_camera or scene_map.camera).scaled_to(w, h)
+        try:  # a camera of another aspect ratio than the image is never stretched onto it
+            if isinstance(intrinsics, Camera):
+                camera = intrinsics.for_image(w, h, f"{path}: --camera")
+            elif intrinsics:
+                camera = Camera(w, h, *intrinsics)
+            elif own_camera is not None:
+                camera = own_camera.for_image(w, h, f"{path}: the bag's camera")
+            else:
+                camera = scene_map.camera.for_image(w, h, f"{path}: the map's camera (give "
+                                                    "--camera or --intrinsics)")
+        except InputError as err:
+            yield f"error: {err}", "error"
+            continue
         est = localizer.localize(image, camera).estimate
         if est.success:
             yield f"{tum_line(name, est.world_from_cam)} {est.num_inliers}", "ok"
@@ -170,9 +192,10 @@ def slam(dataset: Path, map_dir: Path, report: Path, split: str = "test",
     check_is_map(map_dir)  # what the inputs are, then where the outputs may go
     odometry_file = (odometry if odometry not in ("auto", "kiss-icp", "open3d")
                      and not odometry.startswith(TOPIC_PREFIX) else None)
-    check_outputs({"--report": report, "--trajectory": trajectory},
+    check_outputs({"--report": report, "--trajectory": trajectory,
+                   "--trajectory's names file": sidecar(trajectory)},
                   {"the dataset": dataset, "the map": map_dir, "--odometry": odometry_file,
-                   "--poses": poses})
+                   "--poses": poses, **recorded_inputs(map_dir)})
     config = SlamRunConfig(split=split, odometry=odometry, kidnap_every=kidnap_every,
                            kidnap_skip=kidnap_skip, progress=progress,
                            plugin_options=plugin_options or {}, poses=poses)
@@ -197,23 +220,16 @@ def pseudo_label(map_dir: Path, dataset_dir: Path, out: Path, report: Path,
     REPORT.json; returns (the new map, the report). The report is scored against `truth`'s
     poses (a dataset of the same frames), else DATASET's, with `poses` (a pose file,
     `datasets.poses`) in place of whichever is used. `config`: a `PseudoLabelConfig`."""
-    from slamreloc.datasets import apply_poses, read_reference
     from slamreloc.pseudo_label import PseudoLabelConfig, update_map
 
     check_is_map(map_dir)  # what the inputs are, then where the outputs may go
     check_outputs({"--report": report, "--out": out},
                   {"the map": map_dir, "the dataset": dataset_dir, "--truth": truth,
-                   "--poses": poses}, folders=("--out",))
+                   "--poses": poses, **recorded_inputs(map_dir)}, folders={"--out": is_map})
     old = SceneMap.load(map_dir)
     dataset = load_dataset(dataset_dir)
-    if truth is not None:
-        reference = load_dataset(truth, poses)
-    elif poses is not None:
-        reference = apply_poses(dataset, read_reference(poses))
-    else:
-        reference = None
     new_map, result = update_map(old, dataset, out, split, config or PseudoLabelConfig(),
-                                 reference, progress)
+                                 scoring_truth(dataset, truth, poses), progress)
     write_json(report, result)
     prec = result.get("pseudo_label_precision_10cm")
     console.print(
@@ -224,6 +240,17 @@ def pseudo_label(map_dir: Path, dataset_dir: Path, out: Path, report: Path,
            f"error {100 * result['median_pose_error_m']:.1f} cm / "
            f"{result['median_pose_error_deg']:.2f} deg"))
     return new_map, result
+
+
+def scoring_truth(dataset: Dataset, truth: Path | None, poses: Path | None) -> Dataset | None:
+    """The dataset whose poses score a pseudo-label report: `truth` (a dataset of the same
+    frames) with `poses` (a pose file) in place of its own if given, else `dataset` with
+    `poses`'; None: `dataset`'s own poses."""
+    from slamreloc.datasets import apply_poses, read_reference
+
+    if truth is not None:
+        return load_dataset(truth, poses)
+    return None if poses is None else apply_poses(dataset, read_reference(poses))
 
 
 def print_slam_summary(r: dict) -> None:
