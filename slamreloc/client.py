@@ -76,7 +76,10 @@ class LocalizeResult:
 def image_msg(image) -> pb.Image:
     """A path or bytes (an encoded image file), or a uint8 array (H, W) / (H, W, 3) RGB."""
     if isinstance(image, (str, Path)):
-        return pb.Image(encoded=Path(image).read_bytes())
+        from slamreloc.io.fileio import read_bytes
+        from slamreloc.io.limits import limits
+
+        return pb.Image(encoded=read_bytes(image, "image", limits().max_image_bytes))
     if isinstance(image, (bytes, bytearray, memoryview)):
         return pb.Image(encoded=bytes(image))
     arr = np.ascontiguousarray(image)
@@ -118,7 +121,9 @@ class Client:
         options = [("grpc.max_send_message_length", max_message_bytes),
                    ("grpc.max_receive_message_length", max_message_bytes)]
         if tls_ca is not None:
-            ca = tls_ca if isinstance(tls_ca, bytes) else Path(tls_ca).read_bytes()
+            from slamreloc.io.fileio import read_bytes
+
+            ca = tls_ca if isinstance(tls_ca, bytes) else read_bytes(tls_ca, "TLS CA", 1 << 20)
             self.channel = grpc.secure_channel(address, grpc.ssl_channel_credentials(ca),
                                                options)
         else:

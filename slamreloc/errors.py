@@ -14,5 +14,21 @@ class InputError(SlamrelocError):
     """Bad input: a missing or malformed file, wrong dimensions, a folder that is not a map."""
 
 
+class OutOfMemory(InputError):
+    """An input whose processing did not fit in the memory the process may use (the service
+    answers it TOO_LARGE, as an input over a bound)."""
+
+
 class Interrupted(SlamrelocError):
     """Ctrl-C during long work; the message says what was saved and how to continue."""
+
+
+def is_out_of_memory(err: BaseException) -> bool:
+    """Whether `err` says an allocation failed (MemoryError, OpenCV's "Insufficient memory",
+    torch's OutOfMemoryError)."""
+    if isinstance(err, MemoryError) or type(err).__name__ == "OutOfMemoryError":
+        return True
+    text = str(err)
+    return (type(err).__name__ == "error" and "Insufficient memory" in text
+            or "can't allocate memory" in text
+            or "out of memory" in text.lower() and "alloc" in text.lower())

@@ -235,7 +235,7 @@ def parse_tum_line(line: str, source: str = "trajectory",
     """`name tx ty tz qx qy qz qw` (camera-to-world) -> (name, world_from_cam).
 
     `numeric_stamp`: the first field must be a finite number (a timestamp or frame index).
-    The quaternion needs not be unit length but must be finite and non-zero."""
+    The quaternion must be a unit quaternion (`unit_quaternion`)."""
     parts = line.split()
     if len(parts) != 8:
         raise InputError(f"{source}: expected 8 fields 'name tx ty tz qx qy qz qw', got {len(parts)}")
@@ -245,14 +245,36 @@ def parse_tum_line(line: str, source: str = "trajectory",
         vals = np.array([float(p) for p in parts[1:]])
     except ValueError as err:
         raise InputError(f"{source}: non-numeric pose value ({err})") from None
-    quat = vals[3:]
-    scale = np.abs(quat).max() if np.all(np.isfinite(quat)) else 0.0
-    if not np.all(np.isfinite(vals)) or scale < 1e-12:
+    if not np.all(np.isfinite(vals[:3])):
         raise InputError(f"{source}: invalid pose values in line {line.strip()[:120]!r}")
     if np.abs(vals[:3]).max() > MAX_COORDINATE:
         raise InputError(f"{source}: translation beyond {MAX_COORDINATE:g} m")
-    quat = quat / scale  # no overflow in the norm of huge values
-    return parts[0], Rigid3.from_qt(quat / np.linalg.norm(quat), vals[:3])
+    return parts[0], Rigid3.from_qt(unit_quaternion(vals[3:], source), vals[:3])
+
+
+QUATERNION_NORM_TOL = 1e-3  # |norm - 1|: files written with 4 decimals (TUM's) are within 2e-4
+
+
+def unit_quaternion(quat, source: str) -> np.ndarray:
+    """The quaternion (any component order) divided by its norm, if it is a unit quaternion:
+    finite, norm 1 within QUATERNION_NORM_TOL; InputError naming `source` otherwise (a zero,
+    far-from-unit or damaged quaternion: normalising it would make up a rotation). The one
+    rule for every pose read: pose and trajectory files, COLMAP models, ROS bags, the
+    service's messages."""
+    q = np.asarray(quat, np.float64).reshape(-1)
+    if q.shape != (4,) or not np.all(np.isfinite(q)):
+        raise InputError(f"{source}: quaternion {_short_values(q)} is not 4 finite numbers")
+    with np.errstate(over="ignore"):
+        norm = float(np.sqrt(np.sum(q * q)))
+    if not abs(norm - 1.0) <= QUATERNION_NORM_TOL:
+        raise InputError(f"{source}: quaternion norm {norm:.6g}, not 1 (a unit quaternion is "
+                         f"expected, within {QUATERNION_NORM_TOL:g})")
+    return q / norm
+
+
+def _short_values(v: np.ndarray) -> str:
+    text = " ".join(f"{x:.6g}" for x in v[:8].tolist())
+    return f"({text}{' ...' if len(v) > 8 else ''})"
 
 
 def read_tum_trajectory(path, numeric_stamps: bool = False) -> list[tuple[str, Rigid3]]:
@@ -268,12 +290,13 @@ def read_tum_trajectory(path, numeric_stamps: bool = False) -> list[tuple[str, R
 def _content_lines(path: Path, what: str) -> list[tuple[int, str]]:
     """(line number, line) of a UTF-8 text file, blank lines and `#` comments skipped;
     an unreadable or binary file is an InputError naming it."""
+    from slamreloc.io.fileio import read_bytes
+    from slamreloc.io.limits import limits
+
     try:
-        text = path.read_bytes().decode("utf-8")
+        text = read_bytes(path, what, limits().max_text_bytes).decode("utf-8")
     except UnicodeDecodeError:
         raise InputError(f"{path}: {what} is not a text file (not UTF-8)") from None
-    except OSError as err:
-        raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None
     return [(i, line) for i, line in enumerate(text.splitlines(), 1)
             if line.strip() and not line.lstrip().startswith("#")]
 

@@ -148,6 +148,7 @@ class SfmInput:
     depth_of: Callable[[str], np.ndarray | None] | None = None
     sequential: bool = True  # ordered input (video, sequences): sequential matching
     notes: dict = field(default_factory=dict)
+    sizes: dict = field(default_factory=dict)  # (width, height) -> the first image of that size
 
 
 def parallax_deg(x1: np.ndarray, x2: np.ndarray, focal: float = 1000.0) -> float | None:
@@ -316,6 +317,54 @@ def _report_selection(selector: KeyframeSelector | None, what: str, progress: bo
     return {"selection": s}
 
 
+def checked_image(path: Path) -> tuple[bytes, np.ndarray]:
+    """(the bytes, the decoded RGB) of an image file SfM may take: bounded, complete (a JPEG
+    with its scan data: headers alone, or a scan cut right after its header, are refused, not
+    left for COLMAP to fail on or to read as a grey picture) and decoded in full. InputError
+    naming the file otherwise."""
+    from slamreloc.io.fileio import read_bytes
+    from slamreloc.io.images import decode_rgb
+    from slamreloc.io.limits import limits
+
+    data = read_bytes(path, "image", limits().max_image_bytes)
+    check_encoded_image(data, path)
+    if data[:2] == b"\xff\xd8" and not jpeg_has_scan_data(data):
+        raise InputError(f"{path}: not a readable image (JPEG without scan data: the picture "
+                         "itself is missing)")
+    return data, decode_rgb(data, path)
+
+
+def jpeg_has_scan_data(data: bytes) -> bool:
+    """Whether a JPEG's first scan (SOS) is followed by entropy-coded bytes: the markers are
+    walked from SOI by their lengths up to it."""
+    i, n = 2, len(data)
+    while i + 1 < n:
+        if data[i] != 0xFF:
+            return False  # not a marker where one must be: damaged
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0x01, 0xD8) or 0xD0 <= marker <= 0xD7:  # no length
+            i += 2
+            continue
+        if marker == 0xD9 or i + 4 > n:  # EOI (or the end) before any scan
+            return False
+        length = int.from_bytes(data[i + 2:i + 4], "big")
+        if length < 2:
+            return False
+        start = i + 2 + length
+        if marker != 0xDA:
+            i = start
+            continue
+        j = start  # the scan's data: up to the next marker that is not a stuffed 0xFF or RSTn
+        while j + 1 < n and not (data[j] == 0xFF and data[j + 1] != 0x00
+                                 and not 0xD0 <= data[j + 1] <= 0xD7):
+            j += 1
+        return j > start and j + 1 < n
+    return False
+
+
 def _is_image_file(path: Path) -> bool:
     return path.suffix.lower() in IMAGE_SUFFIXES and path.is_file()
 
@@ -347,7 +396,7 @@ def _collect_video(path: Path, images_dir: Path, config: SfmConfig,
                    progress: bool) -> SfmInput:
     import cv2
 
-    names = []
+    names, sizes = [], {}
     folder = images_dir / path.stem
     folder.mkdir(parents=True)
     frames = video_frames(path, config.fps)  # a file FFmpeg cannot open fails here
@@ -368,38 +417,42 @@ def _collect_video(path: Path, images_dir: Path, config: SfmConfig,
                                [cv2.IMWRITE_JPEG_QUALITY, 95]):
                 raise InputError(f"{images_dir / name}: could not write a video frame")
             names.append(name)
+            sizes.setdefault((rgb.shape[1], rgb.shape[0]), name)
     return SfmInput("video", names, notes={"video": str(path), "fps": config.fps,
-                                           **_report_selection(selector, "frames", progress)})
+                                           **_report_selection(selector, "frames", progress)},
+                    sizes=sizes)
 
 
 def _collect_folder(root: Path, images_dir: Path, config: SfmConfig,
                     progress: bool) -> SfmInput:
-    from slamreloc.io.images import decode_rgb
-
     paths = sorted(p for p in root.rglob("*") if _is_image_file(p))
     if not paths:
         raise InputError(f"{root}: no images ({', '.join(IMAGE_SUFFIXES)}) in this folder, and "
                          "it is not a dataset slamreloc reads")
     selector = _selector(config, "images", None)
 
-    def checked():  # (path, RGB for selection)
+    sizes: dict = {}
+
+    def checked():  # (path, RGB), its checked bytes copied (not the path read again)
         for path in _tracked(paths, "copying images" if selector is None
                              else "selecting images", progress):
-            data = path.read_bytes()
-            check_encoded_image(data, path)
-            yield path, (None if selector is None else decode_rgb(data, path))
+            data, rgb = checked_image(path)
+            name = path.relative_to(root).as_posix()
+            sizes.setdefault((rgb.shape[1], rgb.shape[0]), name)
+            (images_dir / name).parent.mkdir(parents=True, exist_ok=True)
+            (images_dir / name).write_bytes(data)
+            yield path, rgb
 
-    names = []
-    for path, _ in checked() if selector is None else selector.select(checked()):
-        name = path.relative_to(root).as_posix()
-        (images_dir / name).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(path, images_dir / name)
-        names.append(name)
+    names = [path.relative_to(root).as_posix() for path, _ in
+             (checked() if selector is None else selector.select(checked()))]
+    for path in [] if selector is None else selector.dropped:
+        (images_dir / path.relative_to(root).as_posix()).unlink(missing_ok=True)
     notes = _report_selection(selector, "photos", progress)
     if selector is not None:
         notes["selection"]["not_kept"] = [p.relative_to(root).as_posix()
                                           for p in selector.dropped]
-    return SfmInput("images", names, sequential=len(names) > EXHAUSTIVE_UP_TO, notes=notes)
+    return SfmInput("images", names, sequential=len(names) > EXHAUSTIVE_UP_TO, notes=notes,
+                    sizes=sizes)
 
 
 def _collect_dataset(dataset, images_dir: Path, config: SfmConfig,
@@ -418,12 +471,14 @@ def _collect_dataset(dataset, images_dir: Path, config: SfmConfig,
 
         listed = _tracked(frames, "selecting images", progress)
         frames = [f for f, _ in selector.select((f, read_image(f.image_path)) for f in listed)]
-    by_name = {}
+    by_name, sizes = {}, {}
     for frame in _tracked(frames, "copying images", progress):
         named = PurePosixPath(frame.name).suffix.lower() in IMAGE_SUFFIXES
         name = frame.name if named else f"{frame.name}{frame.image_path.suffix.lower()}"
+        data, rgb = checked_image(frame.image_path)
+        sizes.setdefault((rgb.shape[1], rgb.shape[0]), name)
         (images_dir / name).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(frame.image_path, images_dir / name)
+        (images_dir / name).write_bytes(data)  # the bytes checked, not the path again
         by_name[name] = frame
 
     def depth_of(name: str) -> np.ndarray | None:
@@ -436,7 +491,7 @@ def _collect_dataset(dataset, images_dir: Path, config: SfmConfig,
     if selector is not None:
         notes["selection"]["not_kept"] = [f.name for f in selector.dropped]
     return SfmInput("dataset", list(by_name), frames[0].camera,
-                    depth_of if has_depth else None, notes=notes)
+                    depth_of if has_depth else None, notes=notes, sizes=sizes)
 
 
 class _NoBar:
@@ -459,8 +514,12 @@ def _tracked(items, description: str, progress: bool):
     return track(items, description, enabled=progress)
 
 
-def initial_camera(config: SfmConfig, given: Camera | None) -> tuple[str, str]:
-    """(COLMAP model, comma-separated starting parameters or "" for COLMAP's guess)."""
+def initial_camera(config: SfmConfig, given: Camera | None,
+                   sizes: dict | None = None) -> tuple[str, str]:
+    """(COLMAP model, comma-separated starting parameters or "" for COLMAP's guess).
+    `sizes`: the images' sizes ((width, height) -> an image of that size): a `camera` string
+    is scaled to them (`Camera.for_image`: refused for another aspect ratio, or for images of
+    several sizes, which one camera cannot describe)."""
     text = config.camera.strip()
     if text and len(text.split()) == 1:
         model = text.upper()
@@ -476,6 +535,14 @@ def initial_camera(config: SfmConfig, given: Camera | None) -> tuple[str, str]:
     camera = Camera.parse(text, "`camera`") if text else given
     if camera is None:
         return "SIMPLE_RADIAL", ""
+    if text and sizes:
+        if len(sizes) > 1:
+            (w1, h1), (w2, h2) = list(sizes)[:2]
+            raise InputError(f"`camera`: the images have several sizes ({w1}x{h1}: "
+                             f"{sizes[(w1, h1)]}, {w2}x{h2}: {sizes[(w2, h2)]}); one camera "
+                             "string describes one size")
+        (w, h), name = next(iter(sizes.items()))
+        camera = camera.for_image(w, h, f"`camera` for {name}")
     return camera.model, ",".join(repr(float(p)) for p in camera.colmap_params())
 
 
@@ -491,7 +558,7 @@ def run_sfm(source: Path, out: Path, config: SfmConfig = SfmConfig(),
     source, out = Path(source), Path(out)
     if not source.exists():
         raise InputError(f"{source}: not found (a folder of images, a video or a dataset)")
-    check_outputs({"`out`": out}, {"the input": source}, folders=("`out`",))
+    check_outputs({"`out`": out}, {"the input": source}, folders={"`out`": None})
     if config.scale_from_depth and (is_video(source) or source.is_dir()
                                     and not _looks_like_dataset(source)):
         raise InputError(f"{source}: `scale_from_depth` needs depth, and a video or a folder "
@@ -500,7 +567,10 @@ def run_sfm(source: Path, out: Path, config: SfmConfig = SfmConfig(),
         raise InputError(f"{out}: exists and is not empty; choose a new folder")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f"{out.name}.tmp-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
+    if tmp.is_dir() and not tmp.is_symlink():  # a leftover of this process id: ours
+        shutil.rmtree(tmp, ignore_errors=True)
+    elif tmp.exists() or tmp.is_symlink():
+        tmp.unlink()
     tmp.mkdir()
     try:
         summary = _run(source, tmp, config, progress)
@@ -526,7 +596,7 @@ def _run(source: Path, root: Path, config: SfmConfig, progress: bool) -> dict:
     if len(inp.names) < 2:
         raise InputError(f"{source}: SfM needs at least 2 images, found {len(inp.names)}")
     timings["import_s"] = time.perf_counter() - t0
-    model, params = initial_camera(config, inp.camera)
+    model, params = initial_camera(config, inp.camera, inp.sizes)
     # a dataset's camera is a calibration: kept unless --camera asks for another model
     fixed = config.fix_intrinsics or (inp.camera is not None and not config.camera.strip())
     with tempfile.TemporaryDirectory(prefix="slamreloc-sfm-") as work:

@@ -107,7 +107,20 @@ class Camera:
     def params(self) -> list[float]:
         return [self.fx, self.fy, self.cx, self.cy]
 
+    def for_image(self, width: int, height: int, source: str = "camera") -> Camera:
+        """This camera for an image of width x height: scaled to it (`scaled_to`) when the
+        image has the camera's aspect ratio (within ASPECT_TOL, what rounding a resized image's
+        sides gives), else InputError naming `source`: a camera of another aspect ratio is
+        never stretched onto an image. The one rule wherever a camera meets an image
+        (`localize`'s cameras, `sfm --camera`, the service's query cameras)."""
+        problem = aspect_problem(self.width, self.height, width, height)
+        if problem:
+            raise InputError(f"{source}: {problem}")
+        return self.scaled_to(width, height)
+
     def scaled_to(self, width: int, height: int) -> Camera:
+        """The intrinsics scaled by the size ratio, each axis on its own (no check: a camera
+        applied to an image goes through `for_image`)."""
         sx, sy = width / self.width, height / self.height
         return Camera(width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy,
                       self.model, self.distortion)
@@ -129,6 +142,20 @@ class Camera:
     @classmethod
     def from_dict(cls, d: dict) -> Camera:
         return cls(**{**d, "distortion": tuple(d.get("distortion", ()))})
+
+
+ASPECT_TOL = 0.01  # relative difference of the two sides' scales
+
+
+def aspect_problem(cam_width: int, cam_height: int, width: int, height: int) -> str | None:
+    """Why a camera of cam_width x cam_height cannot describe an image of width x height (None
+    when it can: the same aspect ratio within ASPECT_TOL, any size)."""
+    sx, sy = width / cam_width, height / cam_height
+    if abs(sx - sy) <= ASPECT_TOL * max(sx, sy):
+        return None
+    return (f"the camera is {cam_width}x{cam_height} and the image {width}x{height}: another "
+            "aspect ratio (a camera is scaled to an image of its aspect ratio, never "
+            "stretched)")
 
 
 MAX_INTRINSIC = 1e7  # pixels: beyond any real camera (a 65536-pixel image at 0.4 degrees)

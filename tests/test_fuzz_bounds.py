@@ -200,12 +200,14 @@ def test_images_at_the_bounds_fit_in_memory(small_map, tmp_path):
     (SIFT with upsampling, 240 B a pixel) takes images up to max_feature_bytes / 240 pixels;
     one pixel side more is refused by the feature bound, not by running out of memory."""
     per_px = small_map_working_bytes(small_map)
-    side = int((limits().max_feature_bytes / per_px) ** 0.5)
+    aspect = small_map.camera.width / small_map.camera.height  # the map's camera fits both
+    h = int((limits().max_feature_bytes / per_px / aspect) ** 0.5)
+    w = int(h * aspect)
     rng = np.random.default_rng(0)
-    texture = (rng.random((side // 8, side // 8)) * 255).astype(np.uint8)
-    ok = cv2.resize(texture, (side, side), interpolation=cv2.INTER_LINEAR)
+    texture = (rng.random((h // 8, w // 8)) * 255).astype(np.uint8)
+    ok = cv2.resize(texture, (w, h), interpolation=cv2.INTER_LINEAR)
     cv2.imwrite(str(tmp_path / "ok.png"), ok)
-    cv2.imwrite(str(tmp_path / "over.png"), cv2.resize(ok, (side + 8, side + 8)))
+    cv2.imwrite(str(tmp_path / "over.png"), cv2.resize(ok, (round((h + 8) * aspect), h + 8)))
     code, out, err, peak = _run_capped(
         [sys.executable, "-m", "slamreloc.cli", "localize", str(small_map.root),
          str(tmp_path / "ok.png"), str(tmp_path / "over.png")])

@@ -13,6 +13,8 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from slamreloc.datasets import load_dataset
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, look_at
@@ -250,3 +252,89 @@ def test_video_selection_drops_the_frames_of_a_camera_that_stops(scene_dir, tmp_
     names = sorted(p.name for p in (out / "images" / "stops").iterdir())
     assert names == [f"frame-{3 * i:06d}.jpg" for i in range(20)], names
     assert summary["n_registered"] >= 18, summary
+
+
+# --- what SfM is given: cameras of the photos' aspect ratio, complete JPEGs (issue 43) ------
+
+def _textured(path: Path, width: int, height: int, seed: int) -> Path:
+    rng = np.random.default_rng(seed)
+    img = cv2.resize(rng.integers(0, 255, (height // 8, width // 8, 3), np.uint8),
+                     (width, height), interpolation=cv2.INTER_NEAREST)
+    cv2.imwrite(str(path), img)
+    return path
+
+
+def test_a_camera_string_is_scaled_to_the_photos_of_its_aspect_ratio():
+    from slamreloc.sfm import SfmConfig, initial_camera
+    from slamreloc.types import Camera
+
+    text = "OPENCV 640 480 500 510 319.5 239.5 0.1 -0.02 0.001 0.002"
+    model, params = initial_camera(SfmConfig(camera=text), None, {(160, 120): "a.png"})
+    want = Camera.parse(text).scaled_to(160, 120)
+    assert model == "OPENCV"
+    assert [float(p) for p in params.split(",")] == pytest.approx(want.colmap_params())
+    assert float(params.split(",")[0]) == pytest.approx(125.0)
+    # the size it was given: unchanged
+    _, same = initial_camera(SfmConfig(camera=text), None, {(640, 480): "a.png"})
+    assert [float(p) for p in same.split(",")] == pytest.approx(Camera.parse(text)
+                                                                .colmap_params())
+
+
+@pytest.mark.parametrize("size", [(640, 360), (480, 640), (641, 400)])
+def test_a_camera_of_another_aspect_ratio_is_refused(tmp_path, size):
+    from slamreloc.errors import InputError
+    from slamreloc.sfm import SfmConfig, initial_camera
+
+    with pytest.raises(InputError, match="another aspect ratio"):
+        initial_camera(SfmConfig(camera="PINHOLE 640 480 500 500 320 240"), None,
+                       {size: "a.png"})
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        _textured(photos / f"{i}.png", *size, seed=i)
+    _one_line_error([str(photos), "--out", str(tmp_path / "out"), "--camera",
+                     "PINHOLE 640 480 500 500 320 240"], "--camera", "another aspect ratio",
+                    f"{size[0]}x{size[1]}", after_work=True)
+    assert not (tmp_path / "out").exists()
+
+
+def _jpeg_cut_at_scan(data: bytes, keep_header: bool) -> bytes:
+    """The JPEG's headers (and the scan's header with `keep_header`), then EOI: no picture."""
+    sos = data.index(b"\xff\xda")
+    end = sos + 2 + int.from_bytes(data[sos + 2:sos + 4], "big")
+    return data[:end if keep_header else sos] + b"\xff\xd9"
+
+
+@pytest.mark.parametrize("keep_header", [False, True])
+def test_a_jpeg_without_its_scan_data_is_refused_by_name(tmp_path, keep_header):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        _textured(photos / f"{i}.jpg", 160, 120, seed=i)
+    bad = photos / "1.jpg"
+    bad.write_bytes(_jpeg_cut_at_scan(bad.read_bytes(), keep_header))
+    _one_line_error([str(photos), "--out", str(tmp_path / "out")], str(bad), "JPEG")
+    assert not (tmp_path / "out").exists()
+
+
+@settings(max_examples=30, deadline=None, derandomize=True, database=None)
+@given(cut=st.floats(0, 1))
+def test_jpegs_cut_before_their_scan_data_are_refused(cut):
+    from slamreloc.errors import InputError
+    from slamreloc.sfm import checked_image, jpeg_has_scan_data
+
+    import tempfile
+
+    _, data = cv2.imencode(".jpg", np.random.default_rng(0).integers(0, 255, (48, 64, 3),
+                                                                       np.uint8))
+    data = data.tobytes()
+    assert jpeg_has_scan_data(data)
+    sos = data.index(b"\xff\xda")
+    end = sos + 2 + int.from_bytes(data[sos + 2:sos + 4], "big")
+    damaged = data[:2 + int(cut * (end - 2))] + b"\xff\xd9"
+    assert not jpeg_has_scan_data(damaged)
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "x.jpg"
+        path.write_bytes(damaged)
+        with pytest.raises(InputError, match="x.jpg"):
+            checked_image(path)

@@ -16,6 +16,7 @@ from slamreloc.geometry import Rigid3
 from slamreloc.io.images import pixel_colours
 from slamreloc.map.format import DATABASE, LABELLED
 from slamreloc.map.scene_map import SceneMap, rows_by_frame
+from slamreloc.types import aspect_problem
 
 
 def estimate_up(world_from_cam: np.ndarray) -> np.ndarray:
@@ -95,8 +96,9 @@ def load_map(inputs: ViewerInputs, scene_map: SceneMap, dataset=None) -> MapView
         img = read_rgb(frame.image_path)
         if img is None:
             continue
-        if len(idx):
-            camera = scene_map.camera.scaled_to(img.shape[1], img.shape[0])
+        cam = scene_map.camera  # never stretched onto an image of another aspect ratio
+        if len(idx) and not aspect_problem(cam.width, cam.height, img.shape[1], img.shape[0]):
+            camera = cam.scaled_to(img.shape[1], img.shape[0])
             colors[idx] = pixel_colours(img, camera.distort(keypoints[idx]))  # image pixels
             coloured[idx] = True
         if i in with_image:

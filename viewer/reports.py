@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from slamreloc.errors import InputError
@@ -14,12 +15,40 @@ from slamreloc.viewer.data import (EvalReport, FrameView, PseudoLabelReport, Que
 from slamreloc.viewer.images import frames_by_name
 
 
+MAX_INT = 2 ** 63 - 1  # a report's counts and indices: int64 (numpy reads them as such)
+
+
 def read_json(path: str | Path) -> dict:
-    """A report: a JSON object (bounded size and depth, finite numbers; `slamreloc.io.jsonio`)."""
+    """A report: a JSON object (bounded size and depth; `slamreloc.io.jsonio`) whose numbers
+    are all finite floats or integers within int64: an integer literal of 400 digits or a
+    `1e400` (infinite once read) is refused here, naming the file and the field, not left to
+    fail in whatever converts it later."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: report not found")
-    return read_json_file(path, "JSON")
+    data = read_json_file(path, "JSON")
+    check_numbers(data, path)
+    return data
+
+
+def check_numbers(value, source) -> None:
+    """InputError naming `source` and the field of the first number that is not a finite
+    float or an integer within +-MAX_INT (iterative: any nesting)."""
+    stack = [(value, "")]
+    while stack:
+        v, where = stack.pop()
+        if isinstance(v, dict):
+            stack.extend((c, f"{where}.{k}" if where else str(k)) for k, c in v.items())
+        elif isinstance(v, list):
+            stack.extend((c, f"{where}[{i}]") for i, c in enumerate(v))
+        elif isinstance(v, bool):
+            continue
+        elif isinstance(v, int) and abs(v) > MAX_INT:
+            raise InputError(f"{source}: {where or 'the value'}: an integer of "
+                             f"{len(str(abs(v)))} digits, out of range (at most {MAX_INT})")
+        elif isinstance(v, float) and not math.isfinite(v):
+            raise InputError(f"{source}: {where or 'the value'}: a number beyond the range of "
+                             "a float (read as infinite)")
 
 
 def report_kind(data: dict) -> str:

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
+from slamreloc.geometry import unit_quaternion
 from slamreloc.io.jsonio import Json
 from slamreloc.viewer.data import GraphEdge, SlamEvent, SlamReport, Trajectory
 from slamreloc.viewer.trajectories import read_trajectory
@@ -73,7 +74,10 @@ def _position(e: Json) -> np.ndarray | None:
         if e.has(key):
             v = e.child(key)
             n = len(v.value) if isinstance(v.value, list) else 0
-            return v.array((7 if n == 7 else 3,))[:3]
+            values = v.array((7 if n == 7 else 3,))
+            if n == 7:  # tx ty tz qx qy qz qw: the quaternion by every pose reader's rule
+                unit_quaternion(values[3:], f"{v.source}: {v.where}")
+            return values[:3]
     return None
 
 

@@ -6,7 +6,8 @@ from __future__ import annotations
 import sys
 
 from slamreloc.cli.commands import _flags, app, with_flags
-from slamreloc.errors import Interrupted, SlamrelocError
+from slamreloc.errors import Interrupted, SlamrelocError, is_out_of_memory
+from slamreloc.runtime.progress import stop_bars
 
 __all__ = ["_flags", "app", "main", "with_flags"]
 
@@ -17,7 +18,10 @@ def main() -> None:
     warnings.formatwarning = (
         lambda message, *args, **kwargs: f"warning: {with_flags(str(message))}\n")
     try:
-        app()
+        try:
+            app()
+        finally:
+            stop_bars()  # a bar left up by a failure: erased before the error line
     except Interrupted as err:
         print(f"interrupted: {with_flags(' '.join(str(err).split()))}", file=sys.stderr)
         sys.exit(130)
@@ -26,8 +30,11 @@ def main() -> None:
         message = with_flags(' '.join(str(err).split())) or type(err).__name__
         print(f"error: {message}", file=sys.stderr)
         sys.exit(2)
-    except MemoryError:
-        print("error: out of memory", file=sys.stderr)
+    except Exception as err:  # an allocation that failed is one line too
+        if not is_out_of_memory(err):
+            raise
+        print(f"error: out of memory ({type(err).__name__}: {' '.join(str(err).split())[:200]})"
+              if str(err) else "error: out of memory", file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

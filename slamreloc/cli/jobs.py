@@ -15,7 +15,7 @@ from pathlib import Path
 from rich.table import Table
 
 from slamreloc.datasets import Dataset, load_dataset, read_image
-from slamreloc.errors import InputError
+from slamreloc.errors import InputError, OutOfMemory
 from slamreloc.geometry import Rigid3, names_sidecar, tum_line, write_tum_trajectory
 from slamreloc.io.fileio import check_outputs, write_json
 from slamreloc.localize.evaluate import (
@@ -155,7 +155,11 @@ def localize(map_dir: Path, images: list[Path],
         except InputError as err:
             yield f"error: {err}", "error"
             continue
-        est = localizer.localize(image, camera).estimate
+        try:
+            est = localizer.localize(image, camera).estimate
+        except OutOfMemory as err:  # this image; the next may fit
+            yield f"error: {path}: {err}", "error"
+            continue
         if est.success:
             yield f"{tum_line(name, est.world_from_cam)} {est.num_inliers}", "ok"
         else:

@@ -31,14 +31,23 @@ def map_names(maps: list[Path], names: list[str]) -> dict[str, Path]:
 
 def read_token(token_file: Path | None) -> str | None:
     if token_file is not None:
-        try:
-            token = token_file.read_text().strip()
-        except (OSError, UnicodeDecodeError) as err:
-            raise InputError(f"{token_file}: cannot read the token ({err})") from None
+        from slamreloc.io.fileio import read_text
+
+        token = read_text(token_file, "token (`token_file`)", 1 << 16).strip()
         if not token:
             raise InputError(f"{token_file}: empty token file")
         return token
     return os.environ.get(TOKEN_ENV) or None
+
+
+def require_ray() -> None:
+    """InputError unless Ray Serve can be imported (`--engine ray`)."""
+    try:
+        import ray  # noqa: F401
+        from ray import serve  # noqa: F401
+    except ImportError as err:
+        raise InputError("Ray is not installed (pip install 'ray[serve]'), which `engine` ray "
+                         f"needs ({' '.join(str(err).split())[:120]})") from None
 
 
 def serve(
@@ -74,6 +83,7 @@ def serve(
     named = map_names(maps, list(name or []))
     token = read_token(token_file)
     if engine == Engine.ray:
+        require_ray()
         from slamreloc.service.ray_serve import serve_forever as ray_serve_forever
 
         if tls_cert is not None or tls_key is not None:

@@ -19,7 +19,8 @@ from pathlib import Path
 
 from slamreloc.datasets.io import read_text
 from slamreloc.errors import InputError
-from slamreloc.geometry import MAX_COORDINATE
+from slamreloc.io.fileio import open_regular
+from slamreloc.geometry import MAX_COORDINATE, unit_quaternion
 
 MAX_NAME_BYTES = 4096
 MAX_TEXT_BYTES = 1 << 31
@@ -86,7 +87,7 @@ class _Binary:
 
 def _walk_binary(path: Path, walk) -> object:
     try:
-        with open(path, "rb") as f:
+        with open_regular(path, "COLMAP model") as f:  # never a pipe or a device
             size = f.seek(0, 2)
             if size == 0:
                 raise InputError(f"{path}: empty file")
@@ -148,10 +149,7 @@ def _check_image_pose(where, image_id: int, pose) -> None:
     if not all(math.isfinite(v) for v in pose) or max(abs(v) for v in pose[4:]) > MAX_COORDINATE:
         raise InputError(f"{where}: image {image_id} has a non-finite pose or a translation "
                          f"beyond {MAX_COORDINATE:g}")
-    norm = math.sqrt(sum(v * v for v in pose[:4]))
-    if abs(norm - 1.0) > 1e-3:
-        raise InputError(f"{where}: image {image_id} has a quaternion of norm {norm:.6g}, not a "
-                         "unit quaternion (QW QX QY QZ)")
+    unit_quaternion(pose[:4], f"{where}: image {image_id} (QW QX QY QZ)")
 
 
 def _add_image(out: dict, path, image_id: int, name: str, cam_id: int) -> None:

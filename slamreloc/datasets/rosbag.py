@@ -39,7 +39,8 @@ import numpy as np
 
 from slamreloc.datasets.base import Dataset
 from slamreloc.errors import InputError
-from slamreloc.geometry import MAX_COORDINATE, Rigid3, matrix_to_quat, nearest_stamps
+from slamreloc.geometry import (MAX_COORDINATE, Rigid3, matrix_to_quat, nearest_stamps,
+                                unit_quaternion)
 from slamreloc.io.images import check_encoded_image, check_image_size
 from slamreloc.runtime.progress import console
 from slamreloc.types import Camera, Frame
@@ -490,14 +491,14 @@ class PoseTrack:
 
 
 def _rigid(translation: Any, rotation: Any, source: str) -> Rigid3:
-    """A Rigid3 from ROS Point/Vector3 and Quaternion (x y z w; normalised here)."""
+    """A Rigid3 from ROS Point/Vector3 and Quaternion (x y z w: a unit quaternion,
+    `unit_quaternion`'s rule, as every pose file's)."""
     t = np.array([translation.x, translation.y, translation.z], np.float64)
     q = np.array([rotation.x, rotation.y, rotation.z, rotation.w], np.float64)
-    norm = np.linalg.norm(q) if np.all(np.isfinite(q)) else 0.0
-    if not np.all(np.isfinite(t)) or norm < 1e-9 or np.abs(t).max() > MAX_COORDINATE:
+    if not np.all(np.isfinite(t)) or np.abs(t).max() > MAX_COORDINATE:
         raise InputError(f"{source}: invalid pose (translation {t.tolist()}, quaternion "
                          f"{q.tolist()})")
-    return Rigid3.from_qt(q / norm, t)
+    return Rigid3.from_qt(unit_quaternion(q, source), t)
 
 
 def _pose_fields(msg: Any) -> tuple[Any, str | None, Any, Any]:

@@ -101,8 +101,10 @@ def _camera(root: Path) -> Camera:
     if (root / "intrinsics.txt").is_file():
         k = read_intrinsics(root / "intrinsics.txt")
         return Camera(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
-    fx, fy, cx, cy = DEFAULT_K
-    return Camera(640, 480, fx, fy, cx, cy).scaled_to(width, height)
+    fx, fy, cx, cy = DEFAULT_K  # 7-Scenes' camera: never stretched onto another aspect ratio
+    return Camera(640, 480, fx, fy, cx, cy).for_image(
+        width, height, f"{first}: the default 7-Scenes camera (give the dataset an "
+        "intrinsics.txt or a camera.txt)")
 
 
 def _is_image(path: Path) -> bool:

@@ -8,7 +8,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from slamreloc.errors import InputError
+from slamreloc.errors import InputError, OutOfMemory, is_out_of_memory
 from slamreloc.io.limits import limits
 from slamreloc.types import Camera, Features
 
@@ -45,9 +45,17 @@ class Extractor:
     def __call__(self, image: np.ndarray) -> Features:
         """image: (H, W, 3) uint8 RGB or (H, W) uint8 grey. Returns at most max_keypoints."""
         self.check_size(image.shape[1], image.shape[0], "image")
-        if image.ndim == 3:
-            image = _to_grey(image)
-        return self.extract_grey(image)
+        try:
+            if image.ndim == 3:
+                image = _to_grey(image)
+            return self.extract_grey(image)
+        except Exception as err:  # only running out of memory is turned
+            if not is_out_of_memory(err):  # into a one-line error; anything else is a bug
+                raise
+            raise OutOfMemory(f"image: out of memory extracting {self.name} features of a "
+                              f"{image.shape[1]}x{image.shape[0]} image; give a smaller image "
+                              "or run with more memory (lower `limit` max_feature_bytes to "
+                              "refuse such images up front)") from None
 
     def extract(self, image: np.ndarray, camera: Camera | None = None) -> Features:
         """Features of `image` with keypoints in `camera`'s pinhole pixels: undistorted where

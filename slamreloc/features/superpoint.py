@@ -124,8 +124,13 @@ def load_superpoint_state(path: str | Path) -> dict[str, torch.Tensor]:
     p = Path(path).expanduser()
     if not p.is_file():
         raise InputError(f"SuperPoint weights {path}: no such file")
+    from slamreloc.io.fileio import open_regular
+
     try:
-        obj = torch.load(p, map_location="cpu", weights_only=True)
+        with open_regular(p, "SuperPoint weights") as f:
+            obj = torch.load(f, map_location="cpu", weights_only=True)
+    except InputError:
+        raise
     except Exception as e:  # noqa: BLE001 - any unreadable file is the same user error
         first = (str(e).strip().splitlines() or [""])[0][:200]
         raise InputError(f"SuperPoint weights {path}: not a readable PyTorch checkpoint "

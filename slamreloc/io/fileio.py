@@ -3,40 +3,108 @@ lost or left half-written."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
-from collections.abc import Iterator
+import stat
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import BinaryIO
 
 from slamreloc.errors import InputError
 
 
-def read_bytes(path: str | Path, what: str, limit: int) -> bytes:
-    """The bytes of a file of at most `limit` bytes; InputError naming it otherwise."""
+def open_regular(path: str | Path, what: str) -> BinaryIO:
+    """`path` opened for reading, binary, if it is a regular file (a symbolic link to one is
+    followed); InputError naming it otherwise. Every reader of a file the user or a client
+    names goes through here: the file is opened without blocking (a named pipe with no writer
+    would block `open` for ever, a device would be read for ever) and what was opened - not
+    what the path named a moment earlier - is checked, so a file swapped for a pipe, a folder
+    or a device between a check and the read is refused too."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: {what} file not found")
+    flags = (os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0)
+             | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0))
     try:
-        size = path.stat().st_size
-        if size > limit:
-            raise InputError(f"{path}: {size} bytes, too large for a {what} file (limit "
-                             f"{limit} bytes)")
-        return path.read_bytes()
+        fd = os.open(path, flags)
+    except FileNotFoundError:
+        raise InputError(f"{path}: {what} file not found") from None
+    except IsADirectoryError:  # not on Linux (a folder opens), but elsewhere
+        raise InputError(f"{path}: {what} is not a regular file (a folder)") from None
     except OSError as err:
         raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            kind = ("a folder" if stat.S_ISDIR(mode) else "a named pipe" if stat.S_ISFIFO(mode)
+                    else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+                    else "a socket" if stat.S_ISSOCK(mode) else "not a file")
+            raise InputError(f"{path}: {what} is not a regular file ({kind})")
+        if getattr(os, "O_NONBLOCK", 0):
+            os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def regular_size(f: BinaryIO) -> int:
+    """The size of a file opened by `open_regular` (from its descriptor, not its path)."""
+    return os.fstat(f.fileno()).st_size
+
+
+def read_bytes(path: str | Path, what: str, limit: int) -> bytes:
+    """The bytes of a regular file of at most `limit` bytes; InputError naming it otherwise
+    (also for a pipe, a device or a folder: see `open_regular`)."""
+    path = Path(path)
+    with open_regular(path, what) as f:
+        try:
+            size = regular_size(f)
+            if size > limit:
+                raise InputError(f"{path}: {size} bytes, too large for a {what} file (limit "
+                                 f"{limit} bytes)")
+            data = f.read(limit + 1)  # a file growing while read is bounded too
+        except OSError as err:
+            raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None
+    if len(data) > limit:
+        raise InputError(f"{path}: more than {limit} bytes, too large for a {what} file")
+    return data
+
+
+def read_text(path: str | Path, what: str, limit: int) -> str:
+    """`read_bytes` as UTF-8 text; InputError for bytes that are not UTF-8."""
+    data = read_bytes(path, what, limit)
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise InputError(f"{path}: {what} is not UTF-8 text (byte {err.start})") from None
+
+
+def sha256_of(f: BinaryIO) -> str:
+    """SHA-256 of an open file from its current position to its end."""
+    h = hashlib.sha256()
+    for chunk in iter(lambda: f.read(1 << 20), b""):
+        h.update(chunk)
+    return h.hexdigest()
 
 
 def check_outputs(outputs: dict[str, str | Path | None],
-                  inputs: dict[str, str | Path | None], folders: tuple[str, ...] = ()) -> None:
+                  inputs: dict[str, str | Path | None],
+                  folders: tuple[str, ...] | dict[str, Callable[[Path], bool] | None] = ()
+                  ) -> None:
     """A command never writes where it only reads, nor over something that is not its own kind
     of output. InputError, before any work, unless each output path (keyed by how the user
     named it, e.g. "--report") is apart from every input (keyed by what it is, e.g. "the map":
     not the same file, not inside an input folder, not a folder holding one), apart from the
-    other outputs, and absent or a regular file (a folder for the outputs named in `folders`):
-    never a device, a pipe or a socket, which an atomic rename would replace. Symbolic links
-    are followed."""
+    other outputs, under folders only (no parent is a file, a pipe or a device), and absent or
+    a regular file (a folder for the outputs named in `folders`): never a device, a pipe or a
+    socket, which an atomic rename would replace, nor a non-empty folder that is not already
+    that output's kind (`folders` as a dict: option -> `is_own(folder)`, True for a folder the
+    output may replace; None: only an empty folder; a tuple: any folder). The temporary path
+    `atomic_file` writes beside a file output must not be anything but a regular file either.
+    Symbolic links are followed."""
     ins = {what: Path(p).resolve() for what, p in inputs.items() if p is not None}
+    own = folders if isinstance(folders, dict) else dict.fromkeys(folders, ...)
     seen: dict[Path, str] = {}
     for option, out in outputs.items():
         if out is None:
@@ -45,11 +113,29 @@ def check_outputs(outputs: dict[str, str | Path | None],
         if target in seen:
             raise InputError(f"{out}: {option} and {seen[target]} name the same path")
         seen[target] = option
+        parent = next((p for p in target.parents if p.exists()), None)
+        if parent is not None and not parent.is_dir():
+            kind = "a file" if parent.is_file() else "not a folder"
+            raise InputError(f"{out}: {option} cannot be written there: its parent {parent} is "
+                             f"{kind}")
+        want_dir = option in own
         if target.exists():
-            want_dir = option in folders
             if want_dir and not target.is_dir() or not want_dir and not target.is_file():
-                kind = "a folder" if target.is_dir() else "not a regular file"
+                kind = "a folder" if target.is_dir() else (
+                    "a file" if target.is_file() else "not a regular file")
                 raise InputError(f"{out}: {option} exists and is {kind}; refusing to replace it")
+            is_own = own.get(option, ...)
+            if want_dir and is_own is not ... and any(target.iterdir()) and (
+                    is_own is None or not is_own(target)):
+                raise InputError(f"{out}: {option} exists and is not empty, holding files that "
+                                 "are not its kind of output; refusing to replace them (give a "
+                                 "new or an empty folder)")
+        if not want_dir:
+            named = Path(out)  # as `atomic_file` names its temporary
+            tmp = named.with_name(f".{named.stem}.tmp-{os.getpid()}{named.suffix}")
+            if (tmp.exists() or tmp.is_symlink()) and not tmp.is_file():
+                raise InputError(f"{out}: {option} cannot be written: its temporary path {tmp} "
+                                 "exists and is not a regular file")
         for what, src in ins.items():
             if target == src:
                 problem = f"is {what}, which this command only reads"

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import read_bytes
+from slamreloc.io.fileio import open_regular, read_bytes, regular_size
 from slamreloc.io.limits import limits
 
 INVALID_DEPTH = (0, 65535)  # raw uint16 values that mean "no measurement"
@@ -236,10 +236,8 @@ def read_depth(path: str | Path, units_per_metre: float = 1000.0,
 def image_header(path: str | Path, what: str = "image") -> ImageHeader:
     """The checked header of an image file, reading as little of it as the format allows."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: {what} file not found")
     try:
-        with open(path, "rb") as f:
+        with open_regular(path, what) as f:
             head = f.read(1 << 16)
             rest = f.peek(1) if hasattr(f, "peek") else b""
             if head.startswith(PNG_MAGIC) or not rest:
@@ -249,11 +247,11 @@ def image_header(path: str | Path, what: str = "image") -> ImageHeader:
                     return encoded_header(head, path, what)
                 except InputError:
                     pass
-            size = path.stat().st_size  # other formats' parsers want the whole file (bounded)
+            size = regular_size(f)  # other formats' parsers want the whole file (bounded)
             if size > limits().max_image_bytes:
                 raise InputError(f"{path}: {size} bytes, over the {limits().max_image_bytes} "
                                  f"byte limit for an encoded {what} (max_image_bytes)")
-            head += f.read()
+            head += f.read(limits().max_image_bytes)
     except OSError as err:
         raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None
     return encoded_header(head, path, what)

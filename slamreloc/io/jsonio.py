@@ -38,8 +38,25 @@ def _depth(value: Any, limit: int) -> int:
     return deepest
 
 
+def _bounded_int(text: str) -> int:
+    """A JSON integer that fits 64 bits (a 10^400 literal would end in OverflowError later)."""
+    digits = len(text.lstrip("-"))
+    if digits > 19 or not -(2 ** 63) <= int(text) < 2 ** 63:
+        raise ValueError(f"an integer of {digits} digits, beyond 64 bits" if digits > 19
+                         else f"integer {text} beyond 64 bits")
+    return int(text)
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"number {text[:24]} out of range")
+    return value
+
+
 def parse_json(data: bytes | str, source, what: str = "JSON") -> Any:
-    """A parsed JSON value: InputError (naming `source`) on invalid JSON, NaN / Infinity,
+    """A parsed JSON value: InputError (naming `source`) on invalid JSON, NaN / Infinity, a
+    number literal that overflows (an integer beyond 64 bits, a float that reads as infinite),
     nesting deeper than `max_json_depth` (the parser itself stops at Python's recursion limit,
     ~1000 levels: a RecursionError, refused the same way)."""
     lim = limits()
@@ -47,7 +64,8 @@ def parse_json(data: bytes | str, source, what: str = "JSON") -> Any:
         raise InputError(f"{source}: {len(data)} bytes, over the {lim.max_json_bytes} byte "
                          f"limit for {what} (max_json_bytes)")
     try:
-        value = json.loads(data, parse_constant=_refuse_constant)
+        value = json.loads(data, parse_constant=_refuse_constant, parse_int=_bounded_int,
+                           parse_float=_finite_float)
     except RecursionError:
         raise InputError(f"{source}: {what} is nested too deeply") from None
     except ValueError as err:  # JSONDecodeError, UnicodeDecodeError, NaN / Infinity

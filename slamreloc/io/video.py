@@ -26,6 +26,10 @@ def video_frames(path: Path, fps: float) -> Iterator[tuple[float, np.ndarray]]:
     path = Path(path)
     if not fps > 0:
         raise InputError(f"`fps` must be positive, got {fps}")
+    from slamreloc.io.fileio import open_regular
+
+    with open_regular(path, "video"):  # a pipe or a device would block the decoder
+        pass
     cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
     if not cap.isOpened():
         cap.release()

@@ -14,7 +14,7 @@ from slamreloc.features.extract import extract_frames
 from slamreloc.features import make_extractor
 from slamreloc.io.fileio import check_outputs
 from slamreloc.map.labels import LabelConfig, LabelSet, build_labels
-from slamreloc.map.format import SURFACE
+from slamreloc.map.format import SURFACE, is_map
 from slamreloc.map.lock import map_write_lock
 from slamreloc.map.meta import (CameraMeta, DatasetMeta, FeatureMeta, MapMeta, RegressorMeta,
                                 SurfaceMeta)
@@ -67,15 +67,20 @@ def build_map(dataset: Dataset, out: Path, split: str = "train", config: MapConf
 
     The write lock of `out` is held for the whole run, not only while saving: a second writer
     of the same map (and its checkpoint) fails at once instead of after its work."""
+    _check_target(dataset, Path(out))  # before the lock, which is written beside `out`
     with map_write_lock(out):
         return _build_map(dataset, Path(out), split, config, progress, resume)
 
 
-def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progress: bool,
-               resume: bool) -> SceneMap:
+def _check_target(dataset: Dataset, out: Path) -> None:
     poses_file = None if dataset.poses_source == "dataset" else dataset.poses_source
     check_outputs({"the map": out}, {"the dataset": dataset.root, "`poses`": poses_file},
-                  folders=("the map",))
+                  folders={"the map": is_map})
+
+
+def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progress: bool,
+               resume: bool) -> SceneMap:
+    _check_target(dataset, out)
     check_map_target(out)  # fail before the work, not after it
     ckpt = checkpoint_path(out)
     if resume and not ckpt.is_file():

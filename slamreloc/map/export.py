@@ -22,6 +22,7 @@ from slamreloc.io.fileio import atomic_file
 from slamreloc.geometry import Rigid3, matrix_to_quat, write_tum_trajectory
 from slamreloc.io.images import pixel_colours, read_image
 from slamreloc.runtime.progress import track
+from slamreloc.types import aspect_problem
 from slamreloc.map.scene_map import SceneMap, rows_by_frame
 
 GREY = 128
@@ -67,7 +68,10 @@ def export_points(scene_map: SceneMap, images: dict[str, Path],
             continue
         # keypoints are in the pinhole camera's pixels: back to the (distorted) image's
         image = read_image(images[name])
-        camera = scene_map.camera.scaled_to(image.shape[1], image.shape[0])
+        cam = scene_map.camera
+        if aspect_problem(cam.width, cam.height, image.shape[1], image.shape[0]):
+            continue  # not this camera's image (another aspect ratio): never stretched, grey
+        camera = cam.scaled_to(image.shape[1], image.shape[0])
         rgb[row_point[rows]] = pixel_colours(image, camera.distort(db.keypoints[rows]))
         coloured[row_point[rows]] = True
     # reprojection error of each observation with the map's camera
@@ -97,7 +101,7 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
         names.append(os.path.relpath(path, root) if path is not None and root is not None
                      else name)
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
+    _remove(tmp)  # a leftover of this process id: ours
     tmp.mkdir(parents=True)
     try:
         # COLMAP's pixel centres are at +0.5 (slamreloc: OpenCV, at integers)
@@ -133,10 +137,33 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
                 f.write(f"{p + 1} {x!r} {y!r} {z!r} {r} {g} {b} {points.error_px[p]:.6f} "
                         f"{track_text}\n")
         if out.exists():
+            if not is_colmap_model(out):  # changed since `check_outputs`: not ours to replace
+                raise InputError(f"{out}: is no longer a COLMAP model; refusing to replace it")
             shutil.rmtree(out)
         os.replace(tmp, out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+COLMAP_MODEL_FILES = frozenset(f"{name}.{ext}" for name in ("cameras", "images", "points3D")
+                               for ext in ("txt", "bin"))
+
+
+def is_colmap_model(folder: Path) -> bool:
+    """Whether `folder` holds a COLMAP model and nothing else (cameras, images and points3D
+    files, text or binary): the only folder `write_colmap` replaces. A model folder with
+    anything beside it (notes, an image folder) is the user's, never replaced."""
+    entries = list(Path(folder).iterdir())
+    return bool(entries) and all(e.name in COLMAP_MODEL_FILES and e.is_file()
+                                 and not e.is_symlink() for e in entries)
+
+
+def _remove(path: Path) -> None:
+    """Remove whatever is at `path` (a folder, a file, a pipe, a link)."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif path.exists() or path.is_symlink():
+        path.unlink()
 
 
 def write_ply(path: Path, points: ExportPoints) -> None:
@@ -178,11 +205,14 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
     if colmap is None and ply is None and tum is None:
         raise InputError("export: nothing to write (give `colmap` DIR, `ply` FILE or `tum` FILE)")
     check_is_map(map_dir)
-    check_outputs({"`colmap`": colmap, "`ply`": ply, "`tum`": tum},
-                  {"the map": map_dir, "`dataset`": dataset_dir}, folders=("`colmap`",))
-    if colmap is not None and Path(colmap).is_dir() and any(Path(colmap).iterdir()) and not (
-            Path(colmap) / "points3D.txt").is_file():
-        raise InputError(f"{colmap}: exists and is not a COLMAP model; refusing to replace it")
+    from slamreloc.geometry import names_sidecar
+    from slamreloc.map.meta import MapMeta
+
+    check_outputs({"`colmap`": colmap, "`ply`": ply, "`tum`": tum,
+                   "`tum`'s names file": None if tum is None else names_sidecar(tum)},
+                  {"the map": map_dir, "`dataset`": dataset_dir,
+                   **MapMeta.read(map_dir).recorded_inputs()},
+                  folders={"`colmap`": is_colmap_model})
     scene_map = SceneMap.load(map_dir, regressor=False)
     dataset = None
     if dataset_dir is not None:

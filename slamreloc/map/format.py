@@ -24,15 +24,16 @@ refused with a message naming both versions.
 
 from __future__ import annotations
 
-import hashlib
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.geometry import MAX_COORDINATE
+from slamreloc.io.fileio import open_regular, regular_size, sha256_of
 
 MAP_FORMAT = "slamreloc-map"
 FORMAT_VERSION = 2  # 1: regressor.pt (torch pickle); 2: regressor.npz + checksums
@@ -56,41 +57,63 @@ def check_is_map(path: str | Path) -> None:
         raise InputError(f"{path}: not a slamreloc map (no {META})")
 
 
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+def sha256_file(path: Path, what: str = "map file") -> str:
+    """SHA-256 of a regular file (InputError for a pipe, a device, a folder; see
+    `open_regular`)."""
+    with open_regular(path, what) as f:
+        try:
+            return sha256_of(f)
+        except OSError as err:
+            raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None
 
 
-def check_digest(root: Path, name: str, files: Mapping[str, str]) -> None:
-    """InputError unless `root/name` has the SHA-256 that `files` (the metadata's) lists for
-    it."""
+def _mismatch(path: Path) -> InputError:
+    return InputError(f"{path}: contents do not match the checksum in {META} (the file is "
+                      "corrupted, comes from another map, or the map was replaced while in use)")
+
+
+def check_digest(root: Path, name: str, files: Mapping[str, str]) -> str:
+    """The SHA-256 of `root/name`; InputError unless it is the one `files` (the metadata's)
+    lists for it."""
     path = root / name
-    try:
-        digest = sha256_file(path)
-    except OSError as err:
-        raise InputError(f"{path}: cannot read ({err.strerror or err})") from None
+    digest = sha256_file(path)
     if digest != files[name]:
-        raise InputError(f"{path}: contents do not match the checksum in {META} (the file is "
-                         "corrupted, comes from another map, or the map was replaced while in "
-                         "use)")
+        raise _mismatch(path)
+    return digest
 
 
-def read_npz(path: Path, what: str) -> dict[str, np.ndarray]:
-    """All arrays of an .npz archive, without unpickling anything."""
+def read_npz(path: Path, what: str, expected: str | None = None,
+             digests: dict[str, str] | None = None) -> dict[str, np.ndarray]:
+    """All arrays of an .npz archive, without unpickling anything. The file is opened once
+    (`open_regular`): its SHA-256 is computed from the bytes that are then parsed, checked
+    against `expected` when given, and recorded in `digests[path.name]` when given, so what
+    is checked is what is read even if the folder is replaced meanwhile."""
+    with open_regular(path, what) as f:
+        try:
+            digest = sha256_of(f)
+        except OSError as err:
+            raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None
+        if expected is not None and digest != expected:
+            raise _mismatch(path)
+        if digests is not None:
+            digests[path.name] = digest
+        f.seek(0)
+        return _parse_npz(f, path, what)
+
+
+def _parse_npz(f: BinaryIO, path: Path, what: str) -> dict[str, np.ndarray]:
     try:
-        size = path.stat().st_size
-        with zipfile.ZipFile(path) as zf:  # refuse compression bombs before numpy reads
+        size = regular_size(f)
+        with zipfile.ZipFile(f) as zf:  # refuse compression bombs before numpy reads
             for info in zf.infolist():
                 if not info.filename.endswith(".npy"):  # numpy would hand back raw bytes
                     raise InputError(f"{path}: member {info.filename[:80]!r} is not a numpy "
                                      "array (.npy); a map's archives hold arrays only")
                 if info.file_size > MAX_ARRAY_BYTES or info.file_size > 100 * size + (1 << 20):
-                    raise InputError(f"{path}: member {info.filename!r} claims "
+                    raise InputError(f"{path}: member {info.filename[:80]!r} claims "
                                      f"{info.file_size} bytes; refusing to read it")
-        with np.load(path, allow_pickle=False) as npz:
+        f.seek(0)
+        with np.load(f, allow_pickle=False) as npz:
             return {key: npz[key] for key in npz.files}
     except InputError:
         raise
@@ -98,7 +121,7 @@ def read_npz(path: Path, what: str) -> dict[str, np.ndarray]:
         if "allow_pickle" in str(err) or "pickle" in str(err).lower():
             raise InputError(f"{path}: refused: the {what} holds pickled Python objects, "
                              "which could run code; a map holds plain arrays only") from None
-        raise InputError(f"{path}: not a readable {what} ({one_line(err)})") from None
+        raise InputError(f"{path}: not a readable {what} ({one_line(err)[:200]})") from None
     except Exception as err:  # noqa: BLE001 - numpy's and zipfile's parsers raise many kinds
         # (BadZipFile, EOFError, KeyError, tokenize.TokenError, SyntaxError, MemoryError...)
         # on a damaged archive: all of them mean "this file is not readable"

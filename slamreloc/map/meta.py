@@ -384,6 +384,20 @@ class MapMeta(_Record):
         """"dataset" (built from the dataset's own poses) or the --poses file it used."""
         return self.dataset.get("poses", "dataset") if self.dataset else "dataset"
 
+    def recorded_inputs(self) -> dict[str, Path | None]:
+        """The files the map records it was made from - its dataset, the pose file it used,
+        the dataset of its last update: inputs (`check_outputs`) of every command that has the
+        map, which never writes there. Only absolute paths count (the schema's)."""
+        def absolute(p) -> Path | None:
+            return Path(p) if isinstance(p, str) and p and Path(p).is_absolute() else None
+
+        update = self.pseudo_label.dataset if self.pseudo_label else None
+        return {"the dataset the map records": absolute(self.dataset.root if self.dataset
+                                                        else None),
+                "the pose file the map records": absolute(self.poses_source),
+                "the dataset of the map's update": absolute(
+                    update.get("root") if isinstance(update, dict) else None)}
+
     @property
     def metric(self) -> bool:
         """Whether the map is in metres (False: an SfM model's units; recorded or true)."""

@@ -70,6 +70,8 @@ class SceneMap:
     root: Path
     info: MapMeta  # slamreloc_map.json, checked
     regressor: SceneCoordinateRegressor | None  # None: loaded with regressor=False
+    # file name -> SHA-256 of the bytes actually read (each file is hashed as it is parsed)
+    digests: dict[str, str] = field(default_factory=dict, compare=False, repr=False)
 
     @staticmethod
     def is_map(path: Path) -> bool:
@@ -87,11 +89,12 @@ class SceneMap:
         if not is_map(root):
             raise InputError(f"{root}: not a slamreloc map (no {META})")
         info = MapMeta.read(root)
+        digests: dict[str, str] = {}
         if regressor:
-            return SceneMap(root, info, read_regressor(root, info))
+            return SceneMap(root, info, read_regressor(root, info, digests), digests)
         if info.format_version >= 2:
-            check_digest(root, WEIGHTS, info.files)
-        return SceneMap(root, info, None)
+            digests[WEIGHTS] = check_digest(root, WEIGHTS, info.files)
+        return SceneMap(root, info, None, digests)
 
     @property
     def meta(self) -> dict:
@@ -110,11 +113,12 @@ class SceneMap:
     @cached_property
     def database(self) -> MapDatabase:
         path = self.root / DATABASE
-        if not path.is_file():
+        if not path.exists() and not path.is_symlink():
             raise InputError(f"{path}: map has no training database")
-        if self.format_version >= 2:
-            check_digest(self.root, DATABASE, self.info.files)
-        arrays = read_npz(path, "training database")
+        expected = (self.info.files or {}).get(DATABASE) if self.format_version >= 2 else None
+        if self.format_version >= 2 and expected is None:
+            raise InputError(f"{path}: no checksum for it in {META}")
+        arrays = read_npz(path, "training database", expected, self.digests)
         names = list(self.info.frame_names or ())
         check_database(arrays, path, self.info.regressor.to_config().in_dim, names)
         return MapDatabase(*(arrays[k] for k in DB_KEYS[:4]), names, arrays["world_from_cam"])
@@ -125,10 +129,10 @@ class SceneMap:
         if SURFACE not in (self.info.files or {}):
             return None
         path = self.root / SURFACE
-        if not path.is_file():
+        if not path.exists() and not path.is_symlink():
             raise InputError(f"{path}: the map lists a surface but the file is missing")
-        check_digest(self.root, SURFACE, self.info.files)
-        return Surface.from_arrays(read_npz(path, "surface"), str(path))
+        arrays = read_npz(path, "surface", self.info.files[SURFACE], self.digests)
+        return Surface.from_arrays(arrays, str(path))
 
     @cached_property
     def provenance(self) -> MapProvenance | None:
@@ -137,13 +141,13 @@ class SceneMap:
         read without the checksum."""
         path = self.root / PROVENANCE
         listed = PROVENANCE in (self.info.files or {})
-        if not listed and not path.is_file():
+        present = path.exists() or path.is_symlink()
+        if not listed and not present:
             return None
-        if not path.is_file():
+        if not present:
             raise InputError(f"{path}: the map lists provenance but the file is missing")
-        if listed:
-            check_digest(self.root, PROVENANCE, self.info.files)
-        arrays = read_npz(path, "provenance")
+        arrays = read_npz(path, "provenance", self.info.files[PROVENANCE] if listed else None,
+                          self.digests)
         check_provenance(arrays, path, len(self.database.points))
         return MapProvenance(arrays["source"].astype(np.int8),
                              arrays["quality"].astype(np.float32))
@@ -161,4 +165,5 @@ class SceneMap:
     def has_database(self) -> bool:
         """Whether the folder holds its training database (a map can be shipped without it:
         the regressor then localizes without the guided refinement)."""
-        return (self.root / DATABASE).is_file()
+        path = self.root / DATABASE
+        return path.exists() or path.is_symlink()  # a pipe or a folder there is refused on use

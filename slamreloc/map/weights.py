@@ -4,6 +4,8 @@ unpickler. Weights are checked against the regressor config before a model is bu
 
 from __future__ import annotations
 
+import hashlib
+import io
 import zipfile
 from pathlib import Path
 
@@ -11,27 +13,30 @@ import numpy as np
 import torch
 
 from slamreloc.errors import InputError
-from slamreloc.map.format import LEGACY_WEIGHTS, WEIGHTS, check_digest, one_line, read_npz
+from slamreloc.io.fileio import open_regular
+from slamreloc.map.format import LEGACY_WEIGHTS, MAX_ARRAY_BYTES, WEIGHTS, one_line, read_npz
 from slamreloc.map.meta import MapMeta
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 
 BF16_SUFFIX = "::bfloat16"  # npz key suffix: a bfloat16 tensor stored as its int16 bits
 
 
-def read_regressor(root: Path, meta: MapMeta) -> SceneCoordinateRegressor:
+def read_regressor(root: Path, meta: MapMeta,
+                   digests: dict[str, str] | None = None) -> SceneCoordinateRegressor:
     """The map's regressor, its weights checked against the checksum (format 2) and the
-    config in `meta` (the map's checked metadata)."""
+    config in `meta` (the map's checked metadata). `digests`: receives the SHA-256 of the
+    weights file as read (name -> hex)."""
     cfg = meta.regressor.to_config()
     if meta.format_version == 1:
-        state = _read_legacy_weights(root / LEGACY_WEIGHTS)
+        state = _read_legacy_weights(root / LEGACY_WEIGHTS, digests)
     else:
-        check_digest(root, WEIGHTS, meta.files)
-        state = _read_weights(root / WEIGHTS)
+        state = _read_weights(root / WEIGHTS, meta.files[WEIGHTS], digests)
     return _build_regressor(cfg, state, root / meta.weights_file)
 
 
-def _read_weights(path: Path) -> dict[str, torch.Tensor]:
-    arrays = read_npz(path, "regressor weights")
+def _read_weights(path: Path, expected: str | None = None,
+                  digests: dict[str, str] | None = None) -> dict[str, torch.Tensor]:
+    arrays = read_npz(path, "regressor weights", expected, digests)
     state = {}
     for key, arr in arrays.items():
         if key.endswith(BF16_SUFFIX):
@@ -45,17 +50,28 @@ def _read_weights(path: Path) -> dict[str, torch.Tensor]:
     return state
 
 
-def _read_legacy_weights(path: Path) -> dict[str, torch.Tensor]:
+def _read_legacy_weights(path: Path,
+                         digests: dict[str, str] | None = None) -> dict[str, torch.Tensor]:
     """Format 1: a torch zip archive of tensors, read with the weights-only unpickler."""
-    if not path.is_file():
+    if not path.exists() and not path.is_symlink():
         raise InputError(f"{path}: map has no regressor weights")
     if tuple(int(p) for p in torch.__version__.split(".")[:2]) < (2, 6):
         raise InputError(f"{path}: reading a format-1 map safely needs torch >= 2.6 "
                          f"(have {torch.__version__}); re-create the map")
-    if not zipfile.is_zipfile(path):
+    with open_regular(path, "regressor weights") as f:
+        try:
+            data = f.read(MAX_ARRAY_BYTES + 1)
+        except OSError as err:
+            raise InputError(f"{path}: cannot read regressor weights "
+                             f"({err.strerror or err})") from None
+    if len(data) > MAX_ARRAY_BYTES:
+        raise InputError(f"{path}: over {MAX_ARRAY_BYTES} bytes; refusing to read it")
+    if digests is not None:
+        digests[path.name] = hashlib.sha256(data).hexdigest()
+    if not zipfile.is_zipfile(io.BytesIO(data)):
         raise InputError(f"{path}: not a torch weights archive (format-1 maps store a zip)")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - any failure of torch's unpickler means: refuse
         kind = ("refused: it holds Python objects other than tensors, which could run code"
                 if "weights_only" in str(err) or "Unpickl" in type(err).__name__ else

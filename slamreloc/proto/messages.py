@@ -15,20 +15,43 @@ import grpc
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.geometry import MAX_COORDINATE, Rigid3
+from slamreloc.geometry import MAX_COORDINATE, Rigid3, unit_quaternion
 from slamreloc.io.images import check_image_size, decode_image, decode_rgb, encoded_header
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.types import Camera
 
 ERROR_METADATA_KEY = "slamreloc-error"  # trailing metadata: the ErrorKind's name
-QUATERNION_NORM_TOL = 1e-3  # as for COLMAP's images.txt
 DEPTH_REFERENCE_SIZE = (640, 480)  # a request's depth camera is held at this size (pixels)
+
+
+QUOTE_LIMIT = 80  # characters of client-supplied text a refusal's message repeats
+
+
+def quoted(text, limit: int = QUOTE_LIMIT) -> str:
+    """`text` (a map name, a field the client sent) as it may be echoed in a refusal's
+    message: repr-quoted and cut to about `limit` characters (a status detail travels in
+    gRPC's trailing metadata, which has a size bound of its own)."""
+    text = text if isinstance(text, str) else str(text)
+    if len(text) <= limit:
+        return repr(text)
+    return f"{text[:limit]!r}... ({len(text)} characters)"
+
+
+def short_message(text: str, limit: int = 1000) -> str:
+    """A refusal's whole message on one line and within `limit` bytes of UTF-8 (gRPC sends it
+    percent-encoded in a trailer, at most 3 bytes per byte: well within its 8 KiB bound)."""
+    text = " ".join(str(text).split())
+    data = text.encode("utf-8", "replace")
+    if len(data) <= limit:
+        return data.decode("utf-8")  # a lone surrogate, which gRPC could not send, is "?"
+    return f"{data[:limit].decode('utf-8', 'ignore')}... ({len(text)} characters)"
 
 
 class ServiceError(Exception):
     """A request the service refuses: `kind` is a `pb.ErrorKind` value."""
 
     def __init__(self, kind: int, message: str):
+        message = short_message(message)  # whatever it echoes, it fits a status trailer
         super().__init__(message)
         self.kind, self.message = kind, message
 
@@ -67,11 +90,11 @@ def rigid_from_msg(msg: pb.Transform, what: str) -> Rigid3:
         raise ServiceError(pb.BAD_POSE, f"{what}: non-finite values")
     if np.abs(t).max() > MAX_COORDINATE:
         raise ServiceError(pb.BAD_POSE, f"{what}: translation beyond {MAX_COORDINATE:g} m")
-    with np.errstate(over="ignore"):
-        norm = float(np.linalg.norm(q))
-    if abs(norm - 1.0) > QUATERNION_NORM_TOL:
-        raise ServiceError(pb.BAD_POSE, f"{what}: quaternion norm {norm:.6g}, not 1")
-    return Rigid3.from_qt(q / norm, t)
+    try:
+        q = unit_quaternion(q, what)  # the rule of every pose file too
+    except InputError as err:
+        raise ServiceError(pb.BAD_POSE, str(err)) from None
+    return Rigid3.from_qt(q, t)
 
 
 # ---- images and cameras --------------------------------------------------------------------
@@ -117,14 +140,14 @@ def camera_from_msg(msg: pb.Camera | None, width: int, height: int, default: Cam
     `default` scaled to the image."""
     kind = None if msg is None else msg.WhichOneof("model")
     try:
-        if kind is None:
-            return default.scaled_to(width, height)
+        if kind is None:  # (a camera of another aspect ratio is never stretched: for_image)
+            return default.for_image(width, height, f"{what}: the map's camera")
         if kind == "pinhole":
             p = msg.pinhole
             if (p.width, p.height) != (width, height):
                 raise InputError(f"{p.width}x{p.height}, the image is {width}x{height}")
             return Camera(p.width, p.height, p.fx, p.fy, p.cx, p.cy)
-        return Camera.parse(msg.colmap, what).scaled_to(width, height)
+        return Camera.parse(msg.colmap, what).for_image(width, height, what)
     except (InputError, ValueError, OverflowError, ZeroDivisionError) as err:
         text = str(err)  # Camera.parse names its source already
         raise ServiceError(pb.BAD_CAMERA, text if text.startswith(f"{what}:")

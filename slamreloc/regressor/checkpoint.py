@@ -50,10 +50,14 @@ def load_checkpoint(path: Path, fp: str) -> dict:
     """The checkpoint at `path`; InputError if it is unreadable or from other data/recipe."""
     if not path.is_file():
         raise InputError(f"{path}: no training checkpoint to resume from")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
-        raise InputError(f"{path}: unreadable training checkpoint ({type(err).__name__})") from None
+    from slamreloc.io.fileio import open_regular
+
+    with open_regular(path, "training checkpoint") as f:
+        try:
+            state = torch.load(f, map_location="cpu", weights_only=True)
+        except Exception as err:  # noqa: BLE001 - any unreadable file is the same user error
+            raise InputError(f"{path}: unreadable training checkpoint "
+                             f"({type(err).__name__})") from None
     if not isinstance(state, dict) or state.get("fingerprint") != fp:
         raise InputError(f"{path}: checkpoint is from other training data or settings; "
                          "remove it or run without `resume`")

@@ -18,13 +18,14 @@ import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 
 from slamreloc.errors import InputError
 from slamreloc.localize.localizer import RegressorLocalizer
 from slamreloc.map.format import DATABASE, META
 from slamreloc.proto import relocalizer_pb2 as pb
-from slamreloc.proto.messages import ServiceError
+from slamreloc.proto.messages import ServiceError, quoted
 from slamreloc.map.scene_map import SceneMap
 
 
@@ -43,26 +44,33 @@ class ServedMap:
     name: str
     path: Path
     scene_map: SceneMap
-    version: str  # sha256 of the map's metadata (which holds its files' digests), 12 hex
+    version: str  # sha256 of the metadata and of every file's contents as read, 12 hex
     stamp: tuple[int, int, int]
     loaded_at: float  # Unix seconds
     _pool: queue.SimpleQueue = field(default_factory=queue.SimpleQueue, repr=False)
 
     @staticmethod
     def load(name: str, path: Path) -> ServedMap:
-        """Read and check the map (and its surface, used by depth refinement); InputError for a
-        defect. A folder replaced while it is read fails its digests: read again, twice."""
+        """Read and check every file the map is served from - the regressor, the training
+        database, the surface (depth refinement), the provenance - each against its checksum
+        as it is read; InputError for a defect. The version is computed from the contents
+        actually read, so a folder replaced by one with the same metadata but other files has
+        another version (or fails its checks). A folder replaced while it is read fails its
+        digests: read again, twice."""
         for attempt in range(3):
             stamp = folder_stamp(path)
             try:
                 scene_map = SceneMap.load(path)
+                if scene_map.has_database:
+                    _ = scene_map.database
                 _ = scene_map.surface
+                _ = scene_map.provenance
             except InputError:
                 if attempt == 2 or folder_stamp(path) == stamp:
                     raise
                 continue
-            digest = hashlib.sha256(json.dumps(scene_map.meta, sort_keys=True).encode())
-            return ServedMap(name, path, scene_map, digest.hexdigest()[:12], stamp, time.time())
+            return ServedMap(name, path, scene_map, content_version(scene_map), stamp,
+                             time.time())
         raise AssertionError("unreachable")
 
     @contextmanager
@@ -78,23 +86,66 @@ class ServedMap:
         finally:
             self._pool.put(loc)
 
+    @cached_property
+    def size_bytes(self) -> int:
+        """The weights', metadata's and database's bytes when loaded (never a stat of the
+        folder at answer time: it may be mid-swap, or hold something else by then)."""
+        try:
+            m = self.scene_map
+            db = m.root / DATABASE
+            return m.size_bytes() + (db.stat().st_size if db.is_file() else 0)
+        except OSError:
+            return 0
+
     def info(self) -> pb.MapInfo:
         m = self.scene_map
-        db = m.root / DATABASE
         return pb.MapInfo(
             name=self.name, path=str(self.path), version=self.version,
             feature=m.info.feature_name, camera=m.camera.colmap_string(),
             metric=m.info.metric, num_points=m.info.n_labelled,
-            size_bytes=m.size_bytes() + (db.stat().st_size if db.is_file() else 0),
+            size_bytes=self.size_bytes,
             loaded_at=self.loaded_at, has_surface=m.surface is not None)
 
 
-class MapRegistry:
-    """name -> ServedMap. `get` never blocks on a reload."""
+def content_version(scene_map: SceneMap) -> str:
+    """12 hex digits of a SHA-256 over the map's metadata and the digests of its files'
+    contents as they were read."""
+    h = hashlib.sha256(json.dumps(scene_map.meta, sort_keys=True).encode())
+    for name, digest in sorted(scene_map.digests.items()):
+        h.update(f"\n{name}:{digest}".encode())
+    return h.hexdigest()[:12]
 
-    def __init__(self, maps: dict[str, Path]):
+
+class _Load:
+    """One load of a map folder on a thread of its own; `done` is set when it ends."""
+
+    def __init__(self, name: str, path: Path):
+        self.done = threading.Event()
+        self.result: ServedMap | None = None
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._run, args=(name, path), daemon=True,
+                                       name=f"map-load-{name[:40]}")
+        self.thread.start()
+
+    def _run(self, name: str, path: Path) -> None:
+        try:
+            self.result = ServedMap.load(name, path)
+        except BaseException as err:  # noqa: BLE001 - handed to the waiting request
+            self.error = err
+        finally:
+            self.done.set()
+
+
+class MapRegistry:
+    """name -> ServedMap. `get` never blocks on a reload; a reload never blocks for longer
+    than `load_timeout_s` (then it is refused, OVERLOADED, and the map already loaded keeps
+    serving), and at most one load of each map runs at a time."""
+
+    def __init__(self, maps: dict[str, Path], load_timeout_s: float = 300.0):
         self._maps = {name: ServedMap.load(name, Path(path)) for name, path in maps.items()}
-        self._reload_lock = threading.Lock()
+        self.load_timeout_s = load_timeout_s
+        self._reload_lock = threading.Lock()  # held only to look up and to swap, never to load
+        self._loading: dict[str, _Load] = {}
         self._stop = threading.Event()
 
     @property
@@ -107,8 +158,8 @@ class MapRegistry:
         if not name and len(maps) == 1:
             return next(iter(maps.values()))
         if name not in maps:
-            known = ", ".join(sorted(maps))
-            raise ServiceError(pb.UNKNOWN_MAP, f"no map named {name!r} (served: {known})"
+            known = ", ".join(quoted(n) for n in sorted(maps))
+            raise ServiceError(pb.UNKNOWN_MAP, f"no map named {quoted(name)} (served: {known})"
                                if name else f"name a map (served: {known})")
         return maps[name]
 
@@ -117,33 +168,70 @@ class MapRegistry:
 
     def reload(self, name: str, force: bool = True) -> tuple[ServedMap, bool]:
         """Load the map's folder again and swap it in; (the map now served, whether its content
-        changed). force=False: only when the folder's stamp changed."""
+        changed since this call began). force=False: only when the folder's stamp changed.
+        At most one load of a map runs at a time: a reload while one runs waits for that one.
+        ServiceError OVERLOADED when the load outlasts `load_timeout_s` (it is left to finish
+        on its own: the next reload takes its result if it is still running then); INTERNAL
+        for a folder that fails its checks. The map already loaded serves meanwhile, and on
+        either refusal."""
         with self._reload_lock:
             old = self.get(name)
-            if not force and folder_stamp(old.path) in (old.stamp, (0, 0, 0)):
-                return old, False
-            try:
-                new = ServedMap.load(old.name, old.path)
-            except InputError as err:
-                raise ServiceError(pb.INTERNAL, f"map {old.name!r} not reloaded, still serving "
-                                   f"version {old.version}: {err}") from None
-            if new.version == old.version:
-                new = replace(old, stamp=new.stamp)  # same content: keep the loaded map
-            self._maps = {**self._maps, old.name: new}  # one assignment: readers see old or new
-            return new, new.version != old.version
+            load = self._loading.get(old.name)
+            if load is not None and load.done.is_set():  # finished with no one waiting: stale
+                del self._loading[old.name]
+                load = None
+            if load is None:
+                if not force and folder_stamp(old.path) in (old.stamp, (0, 0, 0)):
+                    return old, False
+                load = self._loading[old.name] = _Load(old.name, old.path)
+        if not load.done.wait(self.load_timeout_s):
+            raise ServiceError(pb.OVERLOADED, f"map {quoted(old.name)} not reloaded: reading "
+                               f"its folder takes over {self.load_timeout_s:g} s; still serving "
+                               f"version {old.version}")
+        with self._reload_lock:
+            if self._loading.get(old.name) is load:  # the first waiter swaps it in
+                del self._loading[old.name]
+                if load.error is None:
+                    current, new = self._maps.get(old.name, old), load.result
+                    if new.version == current.version:  # same content: keep the loaded map
+                        new = replace(current, stamp=new.stamp)
+                    self._maps = {**self._maps, old.name: new}  # one assignment: readers see
+                    # the old map or the new one
+            if isinstance(load.error, InputError):
+                raise ServiceError(pb.INTERNAL, f"map {quoted(old.name)} not reloaded, still "
+                                   f"serving version {self.get(old.name).version}: "
+                                   f"{load.error}") from None
+            if load.error is not None:
+                raise load.error
+            now = self.get(old.name)
+            return now, now.version != old.version
 
     def watch(self, interval_s: float, on_reload=None) -> threading.Thread:
         """Reload any map whose folder was replaced, checking every `interval_s` seconds;
-        `on_reload(ServedMap)` after each swap. Stops with `close`."""
+        `on_reload(ServedMap)` after each swap. Stops with `close`. A map that fails to load
+        is reported once per version of its folder, and retried when the folder changes."""
+        failed: dict[str, tuple[int, int, int]] = {}
 
         def run():
             while not self._stop.wait(interval_s):
                 for name in self.names:
                     try:
+                        served = self.get(name)
+                        stamp = folder_stamp(served.path)
+                        if failed.get(name) == stamp:
+                            continue
                         served, changed = self.reload(name, force=False)
                     except ServiceError as err:
+                        if err.kind != pb.OVERLOADED:  # a load still running: try again later
+                            failed[name] = stamp
                         warnings.warn(err.message, stacklevel=1)
                         continue
+                    except Exception as err:  # noqa: BLE001 - the watch carries on
+                        failed[name] = stamp
+                        warnings.warn(f"map {quoted(name)}: {type(err).__name__}: {err}",
+                                      stacklevel=1)
+                        continue
+                    failed.pop(name, None)
                     if changed and on_reload is not None:
                         on_reload(served)
 

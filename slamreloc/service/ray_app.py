@@ -56,7 +56,7 @@ from slamreloc import __version__
 from slamreloc.errors import InputError
 from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
-from slamreloc.proto.messages import ERROR_METADATA_KEY, ServiceError
+from slamreloc.proto.messages import ERROR_METADATA_KEY, ServiceError, quoted
 
 if TYPE_CHECKING:
     from ray.serve.deployment import Application
@@ -105,6 +105,13 @@ class MapReplica:
             return 0, localize(self._registry.get(self._name), msg).SerializeToString()
         except ServiceError as err:
             return int(err.kind), err.message.encode()
+        except Exception as err:  # an allocation that failed is TOO_LARGE
+            from slamreloc.errors import OutOfMemory, is_out_of_memory
+
+            if not (isinstance(err, OutOfMemory) or is_out_of_memory(err)):
+                raise
+            text = str(err) if isinstance(err, OutOfMemory) else f"out of memory: {err}"
+            return int(pb.TOO_LARGE), ServiceError(pb.TOO_LARGE, text).message.encode()
 
     def info(self) -> bytes:
         """This replica's MapInfo (protobuf bytes)."""
@@ -150,7 +157,7 @@ class Router:
             return next(iter(self._maps.values()))
         if name not in self._maps:
             known = ", ".join(sorted(self._maps))
-            raise ServiceError(pb.UNKNOWN_MAP, f"no map named {name!r} (served: {known})"
+            raise ServiceError(pb.UNKNOWN_MAP, f"no map named {quoted(name)} (served: {known})"
                                if name else f"name a map (served: {known})")
         return self._maps[name]
 
@@ -267,7 +274,9 @@ def build_app(args: dict[str, Any]) -> Application:
                          f"unknown: {sorted(unknown)}")
     token = None
     if args.get("token_file"):
-        token = Path(args["token_file"]).read_text().strip() or None
+        from slamreloc.io.fileio import read_text
+
+        token = read_text(args["token_file"], "token (`token_file`)", 1 << 16).strip() or None
     return application({str(k): Path(v) for k, v in args["maps"].items()},
                        int(args.get("replicas", 1)),
                        replica_cpus=float(args.get("replica_cpus", REPLICA_CPUS)), token=token,

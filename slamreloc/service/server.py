@@ -31,10 +31,10 @@ import grpc
 from google.protobuf.message import DecodeError
 
 from slamreloc import __version__
-from slamreloc.errors import InputError
+from slamreloc.errors import InputError, OutOfMemory, is_out_of_memory
 from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
-from slamreloc.proto.messages import ERROR_METADATA_KEY, ServiceError
+from slamreloc.proto.messages import ERROR_METADATA_KEY, ServiceError, quoted
 from slamreloc.service.localize import localize
 from slamreloc.service.maps import MapRegistry
 from slamreloc.service.sessions import Session
@@ -54,6 +54,7 @@ class ServeConfig:
     tls_key: Path | None = None
     max_request_bytes: int = 32 << 20
     watch_s: float = 2.0  # reload maps whose folder was replaced; 0: only on ReloadMap
+    load_timeout_s: float = 300.0  # a reload reading a map folder longer is refused (OVERLOADED)
 
     def check(self) -> None:
         """InputError for a configuration that must not run (a non-local bind without a token,
@@ -70,6 +71,8 @@ class ServeConfig:
         if not 0 <= self.watch_s < float("inf"):  # NaN too
             raise InputError(f"`watch_s` {self.watch_s}: seconds between checks, 0 (only "
                              "ReloadMap) or more")
+        if not 0 < self.load_timeout_s < float("inf"):
+            raise InputError(f"`load_timeout_s` {self.load_timeout_s}: seconds, more than 0")
         if (self.tls_cert is None) != (self.tls_key is None):
             raise InputError("`tls_cert` and `tls_key` go together")
         if self.token is not None and len(self.token) < 16:
@@ -129,8 +132,7 @@ class RelocalizerService:
             except ServiceError as err:
                 self._refuse(context, err)
             except Exception as err:  # noqa: BLE001 - answer, log, and keep serving
-                _log(f"internal error: {type(err).__name__}: {err}\n{traceback.format_exc()}")
-                self._refuse(context, ServiceError(pb.INTERNAL, f"{type(err).__name__}: {err}"))
+                self._refuse(context, unexpected(err))
 
         return method
 
@@ -152,7 +154,7 @@ class RelocalizerService:
     def reload_map(self, request: pb.ReloadMapRequest) -> pb.ReloadMapResponse:
         served, changed = self.registry.reload(request.map)
         if changed:
-            _log(f"map {served.name!r} reloaded: version {served.version}")
+            _log(f"map {quoted(served.name)} reloaded: version {served.version}")
         return pb.ReloadMapResponse(map=served.info(), changed=changed)
 
     def session(self, requests, context: grpc.ServicerContext):
@@ -196,11 +198,11 @@ class RelocalizerService:
                     kind=err.kind, message=err.message,
                     frame=session.n_frames)).SerializeToString()
             except Exception as err:  # noqa: BLE001
-                _log(f"session error: {type(err).__name__}: {err}\n{traceback.format_exc()}")
+                refusal = unexpected(err)
                 if session is None:
-                    self._refuse(context, ServiceError(pb.INTERNAL, str(err)))
+                    self._refuse(context, refusal)
                 yield pb.SessionUpdate(error=pb.SessionError(
-                    kind=pb.INTERNAL, message=f"{type(err).__name__}: {err}",
+                    kind=refusal.kind, message=refusal.message,
                     frame=session.n_frames)).SerializeToString()
         if session is not None and context.is_active():
             with self.compute:
@@ -219,6 +221,79 @@ class RelocalizerService:
             "ReloadMap": unary(pb.ReloadMapRequest, self.reload_map),
             "Session": grpc.stream_stream_rpc_method_handler(self.session),
         })
+
+
+def unexpected(err: Exception) -> ServiceError:
+    """The refusal for an exception no check raised: TOO_LARGE for an allocation that failed
+    (an input whose work did not fit in memory), else INTERNAL, logged with its traceback."""
+    if isinstance(err, OutOfMemory) or is_out_of_memory(err):
+        _log(f"out of memory: {type(err).__name__}: {' '.join(str(err).split())[:300]}")
+        return ServiceError(pb.TOO_LARGE, f"out of memory: {err}" if not
+                            isinstance(err, OutOfMemory) else str(err))
+    _log(f"internal error: {type(err).__name__}: {err}\n{traceback.format_exc()}")
+    return ServiceError(pb.INTERNAL, f"{type(err).__name__}: {err}")
+
+
+def read_tls_pair(cert: Path, key: Path) -> tuple[bytes, bytes]:
+    """(key, certificate chain) PEM bytes, each checked to parse as what it should be;
+    InputError naming the file (and its setting) that is not."""
+    from slamreloc.io.fileio import read_bytes
+
+    out = []
+    for path, option, what in ((key, "tls_key", "private key"),
+                               (cert, "tls_cert", "certificate")):
+        data = read_bytes(path, f"TLS {what} (`{option}`)", 1 << 20)
+        problem = pem_problem(data, what)
+        if problem:
+            raise InputError(f"{path}: `{option}` is not a PEM {what} ({problem})")
+        out.append(data)
+    problem = pair_problem(out[0], out[1])
+    if problem:
+        raise InputError(f"{key}: `tls_key` does not belong to the certificate in {cert} "
+                         f"(`tls_cert`): {problem}")
+    return out[0], out[1]
+
+
+def pair_problem(key: bytes, cert: bytes) -> str | None:
+    """Why the PEM private key is not the key of the (first) PEM certificate, or None
+    (also None without the `cryptography` package to tell)."""
+    try:
+        from cryptography import x509
+        from cryptography.hazmat.primitives import serialization
+    except ImportError:
+        return None
+    try:
+        public = serialization.load_pem_private_key(key, password=None).public_key()
+        leaf = x509.load_pem_x509_certificates(cert)[0].public_key()
+        fmt = (serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo)
+        if public.public_bytes(*fmt) != leaf.public_bytes(*fmt):
+            return "their public keys differ"
+    except Exception:  # noqa: BLE001 - parsed above; an exotic key type: let gRPC say
+        return None
+    return None
+
+
+def pem_problem(data: bytes, what: str) -> str | None:
+    """Why `data` is not a PEM `what` ("private key" or "certificate"), or None."""
+    marker = b"PRIVATE KEY-----" if what == "private key" else b"-----BEGIN CERTIFICATE-----"
+    if marker not in data:
+        return "no " + ("'PRIVATE KEY'" if what == "private key" else "'BEGIN CERTIFICATE'") \
+            + " block"
+    try:
+        from cryptography import x509
+        from cryptography.hazmat.primitives.serialization import load_pem_private_key
+    except ImportError:
+        return None
+    try:
+        if what == "private key":
+            load_pem_private_key(data, password=None)
+        else:
+            x509.load_pem_x509_certificates(data)
+    except (ValueError, TypeError) as err:  # cryptography's parse errors
+        return " ".join(str(err).split())[:200] or type(err).__name__
+    except Exception as err:  # noqa: BLE001 - an unsupported algorithm, a Rust-side error
+        return f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"
+    return None
 
 
 def parse_message(cls, body: bytes):
@@ -282,19 +357,29 @@ def split_threads(workers: int) -> tuple[int, int] | None:
 def start_server(maps: dict[str, Path], config: ServeConfig = ServeConfig()) -> RunningServer:
     """Load `maps` (name -> folder), bind, start serving; returns at once."""
     config.check()
-    registry = MapRegistry(maps)
+    tls = (read_tls_pair(Path(config.tls_cert), Path(config.tls_key))
+           if config.tls_cert is not None else None)  # before the maps are read
+    registry = MapRegistry(maps, config.load_timeout_s)
     service = RelocalizerService(registry, config)
     options = [("grpc.max_receive_message_length", config.max_request_bytes),
                ("grpc.max_send_message_length", config.max_request_bytes),
                ("grpc.so_reuseport", 0)]
-    pool = futures.ThreadPoolExecutor(config.workers + config.max_sessions + 4,
-                                      thread_name_prefix="slamreloc-serve")
+    # a thread per localization, per session, per map (a ReloadMap waits for its map's one
+    # load), and four for everything else (Health, ListMaps, refusals)
+    pool = futures.ThreadPoolExecutor(
+        config.workers + config.max_sessions + len(registry.names) + 4,
+        thread_name_prefix="slamreloc-serve")
     server = grpc.server(pool, handlers=[service.handler()], options=options)
     address = f"{config.host}:{config.port}"
-    if config.tls_cert is not None:
-        creds = grpc.ssl_server_credentials([(Path(config.tls_key).read_bytes(),
-                                              Path(config.tls_cert).read_bytes())])
-        port = server.add_secure_port(address, creds)
+    if tls is not None:
+        try:
+            creds = grpc.ssl_server_credentials([tls])
+            port = server.add_secure_port(address, creds)
+        except RuntimeError as err:  # gRPC's "Failed to bind"
+            raise InputError(f"cannot listen on {address} with TLS (in use, not an address of "
+                             f"this machine, or a TLS pair gRPC refuses: `tls_cert` "
+                             f"{config.tls_cert}, `tls_key` {config.tls_key}; gRPC: "
+                             f"{' '.join(str(err).split())[:200]})") from None
     else:
         port = server.add_insecure_port(address)
     if port == 0:
@@ -303,7 +388,7 @@ def start_server(maps: dict[str, Path], config: ServeConfig = ServeConfig()) -> 
     threads_before = split_threads(config.workers)
     server.start()
     if config.watch_s > 0:
-        registry.watch(config.watch_s, lambda m: _log(f"map {m.name!r} replaced on disk: "
+        registry.watch(config.watch_s, lambda m: _log(f"map {quoted(m.name)} replaced on disk: "
                                                       f"now version {m.version}"))
     return RunningServer(server, service, registry, config.host, port, threads_before)
 

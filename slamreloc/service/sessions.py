@@ -22,6 +22,7 @@ from slamreloc.proto.messages import (
     depth_camera_from_msg,
     depth_from_msg,
     image_from_msg,
+    quoted,
     rigid_from_msg,
     transform_msg,
 )
@@ -47,7 +48,7 @@ class Session:
     def __init__(self, served: ServedMap, request: pb.SessionOpen):
         odometry = request.odometry or CLIENT_ODOMETRY
         if odometry not in (CLIENT_ODOMETRY, *SERVER_ODOMETRY):
-            raise ServiceError(pb.BAD_REQUEST, f"odometry {odometry!r}: one of "
+            raise ServiceError(pb.BAD_REQUEST, f"odometry {quoted(odometry)}: one of "
                                f"{', '.join((CLIENT_ODOMETRY, *SERVER_ODOMETRY))}")
         # the camera of the frames' depth where it is not registered to the images, else None
         self.depth_camera = (depth_camera_from_msg(request.depth_camera, "depth_camera")

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from slamreloc.errors import InputError
+from slamreloc.io.fileio import read_bytes
 from slamreloc.synthetic.render import RenderScene, render_frame
 from slamreloc.synthetic.room import build_room
 from slamreloc.synthetic.trajectories import SEQUENCES, make_trajectories
@@ -71,8 +72,8 @@ def _existing(out_dir: Path, config: SceneConfig) -> bool:
     if not out_dir.exists() or (out_dir.is_dir() and not any(out_dir.iterdir())):
         return False  # missing or empty: render into it
     try:
-        meta = json.loads((out_dir / "scene.json").read_text())
-    except (OSError, ValueError):
+        meta = json.loads(read_bytes(out_dir / "scene.json", "scene", 16 << 20))
+    except (OSError, ValueError, InputError):
         raise InputError(f"{out_dir}: exists and is not a synthetic scene "
                          "(no valid scene.json)") from None
     if meta != json.loads(json.dumps(scene_json(config))):
