@@ -168,3 +168,16 @@ def test_the_same_errors_name_the_fields_in_python():
         ServeConfig(port=70000).check()
     with pytest.raises(InputError, match="^`watch_s` nan: seconds between checks"):
         ServeConfig(watch_s=float("nan")).check()
+
+
+def test_demo_workdir_under_a_file_is_one_line(tmp_path):
+    """`demo --workdir` under a regular file: one line naming the option and the file, before
+    any stage runs (was "[Errno 17] File exists")."""
+    (tmp_path / "notes.txt").write_text("mine")
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    res = subprocess.run([sys.executable, "-m", "slamreloc.cli", "demo", "--no-viewer",
+                          "--workdir", str(tmp_path / "notes.txt" / "demo")], cwd=REPO, env=env,
+                         capture_output=True, text=True, timeout=120)
+    (line,) = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and "--workdir" in line and "is a file" in line, res.stderr
+    assert (tmp_path / "notes.txt").read_text() == "mine"

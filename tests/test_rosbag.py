@@ -410,3 +410,19 @@ def test_camera_of_a_bag_is_checked(scene, tmp_path):
     with pytest.raises(InputError, match=f"^{bag}: camera_info topic {INFO_TOPIC}: invalid "
                                          "camera: fx must be a finite number"):
         load_rosbag(bag)
+
+
+def test_a_bag_file_that_is_a_named_pipe_is_refused_not_waited_on(tmp_path):
+    """A ROS 2 bag folder whose storage file is a FIFO: one error naming it, at once (a
+    reader opening it would wait for a writer for ever)."""
+    import os
+
+    from slamreloc.datasets.rosbag import load_rosbag
+    from slamreloc.errors import InputError
+
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    os.mkfifo(bag / "bag_0.db3")
+    with pytest.raises(InputError, match="bag_0.db3: ROS bag file is not a regular file"):
+        load_rosbag(bag)

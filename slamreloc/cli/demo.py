@@ -13,7 +13,7 @@ from rich.console import Console
 from rich.table import Table
 
 from slamreloc.datasets import load_dataset
-from slamreloc.io.fileio import write_json
+from slamreloc.io.fileio import check_outputs, write_json
 from slamreloc.geometry import NAMES_SUFFIX
 from slamreloc.map.build import MapConfig, build_map
 from slamreloc.cli import jobs
@@ -91,6 +91,8 @@ def run_demo(workdir: Path, viewer: bool = True, port: int = 8080,
     """The stages `slamreloc demo --help` lists, each under a header saying what it does;
     ends with the result tables (readable at 80 columns) and the next commands to try."""
     workdir = Path(workdir)
+    # a folder (a previous demo's is reused), never under a file: one line before any work
+    check_outputs({"--workdir": workdir}, {}, folders=("--workdir",))
     workdir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     counts = scene_config.counts()

@@ -39,6 +39,7 @@ import numpy as np
 
 from slamreloc.datasets.base import Dataset
 from slamreloc.errors import InputError
+from slamreloc.io.fileio import open_regular
 from slamreloc.geometry import (MAX_COORDINATE, Rigid3, matrix_to_quat, nearest_stamps,
                                 unit_quaternion)
 from slamreloc.io.images import check_encoded_image, check_image_size
@@ -180,6 +181,10 @@ def _open_bag(path: Path) -> Iterator[_Bag]:
     if not is_rosbag(path):
         raise InputError(f"{path}: not a ROS bag (a .bag file, a ROS 2 bag folder with "
                          "metadata.yaml, or a .db3/.mcap file)")
+    # every file of the bag is a regular file: a named pipe or a device would block the reader
+    for part in [path] if not path.is_dir() else sorted(path.iterdir()):
+        if not part.is_dir():
+            open_regular(part, "ROS bag file").close()
     try:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
