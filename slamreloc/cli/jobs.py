@@ -229,7 +229,8 @@ def pseudo_label(map_dir: Path, dataset_dir: Path, out: Path, report: Path,
     check_is_map(map_dir)  # what the inputs are, then where the outputs may go
     check_outputs({"--report": report, "--out": out},
                   {"the map": map_dir, "the dataset": dataset_dir, "--truth": truth,
-                   "--poses": poses, **recorded_inputs(map_dir)}, folders={"--out": is_map})
+                   "--poses": poses, **recorded_inputs(map_dir)},
+                  folders={"--out": (is_map, "a slamreloc map")})
     old = SceneMap.load(map_dir)
     dataset = load_dataset(dataset_dir)
     new_map, result = update_map(old, dataset, out, split, config or PseudoLabelConfig(),

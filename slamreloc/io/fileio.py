@@ -88,6 +88,11 @@ def sha256_of(f: BinaryIO) -> str:
     return h.hexdigest()
 
 
+def _own_test(value) -> tuple:
+    """`check_outputs`' folder entry as (is_own or None or ..., the kind's name or None)."""
+    return value if isinstance(value, tuple) else (value, None)
+
+
 def check_outputs(outputs: dict[str, str | Path | None],
                   inputs: dict[str, str | Path | None],
                   folders: tuple[str, ...] | dict[str, Callable[[Path], bool] | None] = ()
@@ -100,7 +105,8 @@ def check_outputs(outputs: dict[str, str | Path | None],
     a regular file (a folder for the outputs named in `folders`): never a device, a pipe or a
     socket, which an atomic rename would replace, nor a non-empty folder that is not already
     that output's kind (`folders` as a dict: option -> `is_own(folder)`, True for a folder the
-    output may replace; None: only an empty folder; a tuple: any folder). The temporary path
+    output may replace, or `(is_own, "a slamreloc map")` to name that kind in the message;
+    None: only an empty folder; a tuple: any folder). The temporary path
     `atomic_file` writes beside a file output must not be anything but a regular file either.
     Symbolic links are followed."""
     ins = {what: Path(p).resolve() for what, p in inputs.items() if p is not None}
@@ -124,12 +130,12 @@ def check_outputs(outputs: dict[str, str | Path | None],
                 kind = "a folder" if target.is_dir() else (
                     "a file" if target.is_file() else "not a regular file")
                 raise InputError(f"{out}: {option} exists and is {kind}; refusing to replace it")
-            is_own = own.get(option, ...)
+            is_own, own_kind = _own_test(own.get(option, ...))
             if want_dir and is_own is not ... and any(target.iterdir()) and (
                     is_own is None or not is_own(target)):
-                raise InputError(f"{out}: {option} exists and is not empty, holding files that "
-                                 "are not its kind of output; refusing to replace them (give a "
-                                 "new or an empty folder)")
+                what = f"is not {own_kind}" if own_kind else "holds files that are not its output"
+                raise InputError(f"{out}: {option} exists, is not empty and {what}; refusing to "
+                                 "replace it (give a new or an empty folder)")
         if not want_dir:
             named = Path(out)  # as `atomic_file` names its temporary
             tmp = named.with_name(f".{named.stem}.tmp-{os.getpid()}{named.suffix}")

@@ -75,7 +75,7 @@ def build_map(dataset: Dataset, out: Path, split: str = "train", config: MapConf
 def _check_target(dataset: Dataset, out: Path) -> None:
     poses_file = None if dataset.poses_source == "dataset" else dataset.poses_source
     check_outputs({"the map": out}, {"the dataset": dataset.root, "`poses`": poses_file},
-                  folders={"the map": is_map})
+                  folders={"the map": (is_map, "a slamreloc map")})
 
 
 def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progress: bool,

@@ -212,7 +212,7 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
                    "`tum`'s names file": None if tum is None else names_sidecar(tum)},
                   {"the map": map_dir, "`dataset`": dataset_dir,
                    **MapMeta.read(map_dir).recorded_inputs()},
-                  folders={"`colmap`": is_colmap_model})
+                  folders={"`colmap`": (is_colmap_model, "a COLMAP model")})
     scene_map = SceneMap.load(map_dir, regressor=False)
     dataset = None
     if dataset_dir is not None:
