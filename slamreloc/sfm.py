@@ -323,7 +323,7 @@ def checked_image(path: Path) -> tuple[bytes, np.ndarray]:
     left for COLMAP to fail on or to read as a grey picture) and decoded in full. InputError
     naming the file otherwise."""
     from slamreloc.io.fileio import read_bytes
-    from slamreloc.io.images import decode_rgb
+    from slamreloc.io.images import decode_rgb, jpeg_has_scan_data
     from slamreloc.io.limits import limits
 
     data = read_bytes(path, "image", limits().max_image_bytes)
@@ -332,37 +332,6 @@ def checked_image(path: Path) -> tuple[bytes, np.ndarray]:
         raise InputError(f"{path}: not a readable image (JPEG without scan data: the picture "
                          "itself is missing)")
     return data, decode_rgb(data, path)
-
-
-def jpeg_has_scan_data(data: bytes) -> bool:
-    """Whether a JPEG's first scan (SOS) is followed by entropy-coded bytes: the markers are
-    walked from SOI by their lengths up to it."""
-    i, n = 2, len(data)
-    while i + 1 < n:
-        if data[i] != 0xFF:
-            return False  # not a marker where one must be: damaged
-        marker = data[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
-            continue
-        if marker in (0x01, 0xD8) or 0xD0 <= marker <= 0xD7:  # no length
-            i += 2
-            continue
-        if marker == 0xD9 or i + 4 > n:  # EOI (or the end) before any scan
-            return False
-        length = int.from_bytes(data[i + 2:i + 4], "big")
-        if length < 2:
-            return False
-        start = i + 2 + length
-        if marker != 0xDA:
-            i = start
-            continue
-        j = start  # the scan's data: up to the next marker that is not a stuffed 0xFF or RSTn
-        while j + 1 < n and not (data[j] == 0xFF and data[j + 1] != 0x00
-                                 and not 0xD0 <= data[j + 1] <= 0xD7):
-            j += 1
-        return j > start and j + 1 < n
-    return False
 
 
 def _is_image_file(path: Path) -> bool:

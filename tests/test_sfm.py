@@ -321,7 +321,8 @@ def test_a_jpeg_without_its_scan_data_is_refused_by_name(tmp_path, keep_header):
 @given(cut=st.floats(0, 1))
 def test_jpegs_cut_before_their_scan_data_are_refused(cut):
     from slamreloc.errors import InputError
-    from slamreloc.sfm import checked_image, jpeg_has_scan_data
+    from slamreloc.io.images import jpeg_has_scan_data
+    from slamreloc.sfm import checked_image
 
     import tempfile
 

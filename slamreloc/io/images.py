@@ -13,7 +13,7 @@ from __future__ import annotations
 import io
 import struct
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -74,19 +74,33 @@ def _png_header(data: bytes, source, what: str) -> ImageHeader:
     return ImageHeader(width, height, channels, bits, "PNG")
 
 
-def _jpeg_header(data: bytes, source, what: str) -> ImageHeader:
-    pos = 2
-    while pos + 4 <= len(data):
+def _jpeg_segments(data: bytes) -> Iterator[tuple[int, int, int | None]]:
+    """(marker, position, length field) of a JPEG's markers from SOI, walked by their lengths
+    (None for the markers without one); ends at a byte that is not a marker where one must be, a
+    length field cut off, or a length under 2 (after yielding that marker)."""
+    pos, n = 2, len(data)
+    while pos + 1 < n:
         if data[pos] != 0xFF:
-            break
+            return
         marker = data[pos + 1]
         if marker == 0xFF:  # fill byte
             pos += 1
             continue
         if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            yield marker, pos, None
             pos += 2
             continue
+        if pos + 4 > n:
+            return
         length = struct.unpack(">H", data[pos + 2:pos + 4])[0]
+        yield marker, pos, length
+        if length < 2:
+            return
+        pos += 2 + length
+
+
+def _jpeg_header(data: bytes, source, what: str) -> ImageHeader:
+    for marker, pos, _ in _jpeg_segments(data):
         if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
             if pos + 10 > len(data):
                 break
@@ -94,9 +108,6 @@ def _jpeg_header(data: bytes, source, what: str) -> ImageHeader:
             if channels not in (1, 3, 4):
                 break
             return ImageHeader(width, height, channels, bits, "JPEG")
-        if length < 2:
-            break
-        pos += 2 + length
     raise InputError(f"{source}: not a readable {what} (no JPEG frame header found)")
 
 
@@ -147,6 +158,23 @@ def check_image_size(width: int, height: int, source, what: str = "image") -> No
                          f"MP, over the {lim.max_image_pixels / 1e6:.1f} MP limit (raise it "
                          "with `limit` max_image_pixels=N or "
                          "SLAMRELOC_MAX_IMAGE_PIXELS)")
+
+
+def jpeg_has_scan_data(data: bytes) -> bool:
+    """Whether a JPEG's first scan (SOS) is followed by entropy-coded bytes (its markers
+    walked from SOI by their lengths up to it)."""
+    for marker, pos, length in _jpeg_segments(data):
+        if marker == 0xD9 or (length is not None and length < 2):  # EOI before a scan; bad
+            return False
+        if marker != 0xDA:
+            continue
+        start = j = pos + 2 + length  # the scan's data: up to the next marker that is not a
+        n = len(data)  # stuffed 0xFF or RSTn
+        while j + 1 < n and not (data[j] == 0xFF and data[j + 1] != 0x00
+                                 and not 0xD0 <= data[j + 1] <= 0xD7):
+            j += 1
+        return j > start and j + 1 < n
+    return False
 
 
 def check_encoded_image(data: bytes, source, what: str = "image") -> ImageHeader:
