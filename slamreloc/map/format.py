@@ -61,10 +61,15 @@ def sha256_file(path: Path, what: str = "map file") -> str:
     """SHA-256 of a regular file (InputError for a pipe, a device, a folder; see
     `open_regular`)."""
     with open_regular(path, what) as f:
-        try:
-            return sha256_of(f)
-        except OSError as err:
-            raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None
+        return _digest(f, path, what)
+
+
+def _digest(f: BinaryIO, path: Path, what: str) -> str:
+    """SHA-256 of an opened map file to its end; InputError naming it on a read error."""
+    try:
+        return sha256_of(f)
+    except OSError as err:
+        raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None
 
 
 def _mismatch(path: Path) -> InputError:
@@ -89,10 +94,7 @@ def read_npz(path: Path, what: str, expected: str | None = None,
     against `expected` when given, and recorded in `digests[path.name]` when given, so what
     is checked is what is read even if the folder is replaced meanwhile."""
     with open_regular(path, what) as f:
-        try:
-            digest = sha256_of(f)
-        except OSError as err:
-            raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None
+        digest = _digest(f, path, what)
         if expected is not None and digest != expected:
             raise _mismatch(path)
         if digests is not None:
