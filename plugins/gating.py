@@ -41,6 +41,10 @@ class Candidate:
     num_inliers: int
     confidence: float
     injected: bool = False  # the test harness replaced this result by a wrong pose
+    # a map the session builds: the keyframe the result's inliers mostly came from
+    # (`slamreloc.slam.live_map.Reference`, or None where none is known)
+    live: bool = False
+    reference: object | None = None
 
 
 def good_quality(c: Candidate, config: GateConfig) -> bool:

@@ -101,8 +101,7 @@ class RelocalizationPlugin:
             self.pending = self._age(self.pending, frame.index)
             return
         if fits_track(c, self.backend, self.config.gate):
-            self.backend.add_loop_closure(c.frame, c.world_from_cam)
-            self.stats.accept([c], "loop_closure")
+            self.stats.accept([c], self._close_loop(c))
             self._keyframes_since = 0
             self._reject(self.pending)
             return
@@ -119,6 +118,21 @@ class RelocalizationPlugin:
             self._reject(others)
         else:
             self.pending = self._age([*self.pending, c], c.frame)
+
+    def _close_loop(self, c: Candidate) -> str:
+        """Put a relocalization that fits the track into the graph; returns how: a prior in
+        the map's fixed frame (a prior map's, or a frame a live map took over from one), a
+        between-factor from the keyframe of the map being built that its inliers mostly came
+        from (a loop query only uses old keyframes: `LiveMap.localize_query`), or nothing (a
+        live map's result that names no keyframe: it confirms the track)."""
+        ref = c.reference
+        if not c.live or (ref is not None and ref.key is None):
+            self.backend.add_loop_closure(c.frame, c.world_from_cam)
+            return "loop_closure"
+        if ref is not None:
+            self.backend.add_keyframe_loop(c.frame, ref.key, ref.key_from_cam)
+            return "keyframe_loop"
+        return "confirmation"
 
     def _age(self, cands: list[Candidate], now: int) -> list[Candidate]:
         """Drop (and count as rejected) candidates too old to be confirmed."""
@@ -145,8 +159,12 @@ class RelocalizationPlugin:
         onto the map's surface where the frame has depth; None when PnP fails."""
         loc = self.localizer
         with self.backend.timer("relocalization"):
-            feats = loc.extractor.extract(frame.image, frame.camera)
-            result = loc.localize_features(feats, frame.camera)
+            feats = (loc.features(frame) if hasattr(loc, "features")
+                 else loc.extractor.extract(frame.image, frame.camera))
+            live = hasattr(loc, "localize_query")  # a map the session builds (LiveMap)
+            result = (loc.localize_query(feats, frame.camera, frame.index,
+                                         loop_only=self.backend.state == TrackState.TRACKING)
+                      if live else loc.localize_features(feats, frame.camera))
             est, world_from_cam = result.estimate, result.estimate.world_from_cam
             if est.success and self.surface is not None and frame.depth is not None:
                 world_from_cam = self._refine(frame, world_from_cam)
@@ -155,7 +173,8 @@ class RelocalizationPlugin:
             self.stats.n_failed += 1
             return None
         confidence = 1.0 if result.inlier_confidence is None else result.inlier_confidence
-        return Candidate(frame.index, world_from_cam, est.num_inliers, confidence)
+        return Candidate(frame.index, world_from_cam, est.num_inliers, confidence, live=live,
+                         reference=getattr(result, "reference", None))
 
     def _refine(self, frame: FrameData, world_from_cam: Rigid3) -> Rigid3:
         """The frame's depth fitted onto the map's surface from the PnP pose (world_from_cam,

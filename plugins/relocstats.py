@@ -13,6 +13,11 @@ class RelocStats:
     n_failed: int = 0  # PnP failed or inliers / confidence too low
     n_refined: int = 0  # PnP poses moved onto the map's surface by ICP (depth)
     n_loop_closures: int = 0  # accepted while tracking (fit the track)
+    # of those, against a keyframe of the map being built: between-factors in the graph
+    n_keyframe_loops: int = 0
+    # accepted while tracking against the track's own recent keyframes (a live map): they
+    # confirm the track and add nothing to the graph
+    n_confirmations: int = 0
     n_anchors: int = 0  # confirmed after tracking loss
     n_reanchors: int = 0  # confirmed against the track
     n_rejected: int = 0  # never confirmed
@@ -30,8 +35,11 @@ class RelocStats:
                            for c in cands]
 
     def accept(self, cands: list[Candidate], how: str) -> None:
-        if how == "loop_closure":
+        if how in ("loop_closure", "keyframe_loop"):
             self.n_loop_closures += 1
+            self.n_keyframe_loops += how == "keyframe_loop"
+        elif how == "confirmation":
+            self.n_confirmations += 1
         elif how == "anchor":
             self.n_anchors += 1
         else:
@@ -40,7 +48,9 @@ class RelocStats:
             self.n_injected += c.injected
             self.n_injected_accepted += c.injected
             self.accepted_frames.append(c.frame)
-        self._record(cands, "loop_closure" if how == "loop_closure" else "relocalization", True)
+        kind = {"keyframe_loop": "loop_closure", "confirmation": "confirmation"}.get(how, how)
+        self._record(cands, kind if kind in ("loop_closure", "confirmation")
+                     else "relocalization", True)
 
     def reject(self, cands: list[Candidate]) -> None:
         for c in cands:

@@ -125,18 +125,19 @@ def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = True) -> 
     return Sim3(scale, rot, mu_t - scale * rot @ mu_s)
 
 
-def align_poses(source: list[Rigid3], target: list[Rigid3]) -> Sim3:
+def align_poses(source: list[Rigid3], target: list[Rigid3], with_scale: bool = True) -> Sim3:
     """target_from_source between two sets of poses of the same cameras (world_from_cam in
     frames a and b): the rotation is the chordal mean of the cameras' rotation offsets
-    R_b R_a^T, the scale and translation the least-squares fit of the camera centres under
-    it. Unlike `umeyama` on centres alone, the rotation stays well determined for a nearly
-    planar or straight trajectory."""
+    R_b R_a^T, the scale (1 unless `with_scale`) and translation the least-squares fit of the
+    camera centres under it. Unlike `umeyama` on centres alone, the rotation stays well
+    determined for a nearly planar or straight trajectory."""
     rot = project_to_so3(sum(t.rotation @ s.rotation.T for s, t in zip(source, target)))
     a = np.array([p.translation for p in source])
     b = np.array([p.translation for p in target])
     mu_a, mu_b = a.mean(0), b.mean(0)
     spread = float(np.sum((a - mu_a) ** 2))
-    scale = float(np.sum((b - mu_b) * ((a - mu_a) @ rot.T)) / spread) if spread > 0 else 1.0
+    scale = (float(np.sum((b - mu_b) * ((a - mu_a) @ rot.T)) / spread)
+             if spread > 0 and with_scale else 1.0)
     return Sim3(scale, rot, mu_b - scale * rot @ mu_a)
 
 

@@ -79,11 +79,73 @@ def frame_depth(frame: Frame, dataset: Dataset) -> np.ndarray:
     if frame.depth_path is None:
         return np.zeros((cam.height, cam.width), np.float32)
     depth = read_depth(frame.depth_path, dataset.depth_units_per_metre)
-    if frame.depth_camera is None:  # registered: into the pinhole pixels that the keypoints
-        return cam.undistort_image(depth)  # are undistorted into
-    rgb_from_depth = frame.rgb_from_depth or Rigid3.identity()
-    return warp_depth(depth, camera_of_depth(cam, depth.shape, frame.depth_camera),
-                      rgb_from_depth, cam)
+    return depth_in_image(depth, cam, frame.depth_camera, frame.rgb_from_depth)
+
+
+def depth_in_image(depth: np.ndarray, camera: Camera, depth_camera: Camera | None,
+                   rgb_from_depth: Rigid3 | None) -> np.ndarray:
+    """Depth (metres, 0 = none) in the pinhole pixels of the RGB `camera`: registered depth
+    (`depth_camera` None) with the lens distortion undone, depth of its own camera (any pixel
+    size) warped with `rgb_from_depth` (identity where None)."""
+    if depth_camera is None:  # registered: into the pinhole pixels that the keypoints
+        return camera.undistort_image(depth)  # are undistorted into
+    return warp_depth(depth, camera_of_depth(camera, depth.shape, depth_camera),
+                      rgb_from_depth or Rigid3.identity(), camera)
+
+
+def keypoint_points(keypoints: np.ndarray, depth: np.ndarray, camera: Camera) -> np.ndarray:
+    """(N, 3) float64 points of keypoints (pinhole pixels of `camera`) in that camera's frame
+    (metres), from depth registered to it (metres along z, 0 = none); NaN rows where the
+    depth is missing or at a depth edge (3x3 neighbourhood spread > 3 % of the depth)."""
+    h, w = depth.shape
+    u = np.clip(np.round(keypoints[:, 0]).astype(int), 1, w - 2)
+    v = np.clip(np.round(keypoints[:, 1]).astype(int), 1, h - 2)
+    win = np.stack([depth[v + dv, u + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)], axis=1)
+    z = depth[v, u].astype(np.float64)
+    ok = (win.min(axis=1) > 0) & (win.max(axis=1) - win.min(axis=1) < 0.03 * z)
+    pts = np.column_stack([(keypoints[:, 0] - camera.cx) / camera.fx * z,
+                           (keypoints[:, 1] - camera.cy) / camera.fy * z, z])
+    pts[~ok] = np.nan
+    return pts
+
+
+def keypoint_points_from(keypoints: np.ndarray, depth: np.ndarray, camera: Camera,
+                         depth_camera: Camera | None, rgb_from_depth: Rigid3 | None,
+                         iterations: int = 3, max_px: float = 1.5) -> np.ndarray:
+    """`keypoint_points` for depth as a frame holds it (`FrameData`): registered depth
+    (`depth_camera` None) through `depth_in_image`; depth of its own camera without warping
+    the whole map: each keypoint's ray is intersected with the depth surface by fixed-point
+    iteration (the point on the ray at depth z, seen by the depth camera, reads a depth there,
+    which gives the next z), kept where the last step lands within `max_px` pixels of the
+    keypoint and the depth camera's 3x3 neighbourhood spreads less than 3 %. (N, 3) float64
+    metres in the RGB camera's frame; NaN rows where no depth is found."""
+    if depth_camera is None:
+        return keypoint_points(keypoints, depth_in_image(depth, camera, None, None), camera)
+    rgb_from_depth = rgb_from_depth or Rigid3.identity()
+    depth_from_rgb = rgb_from_depth.inverse()
+    cam_d = camera_of_depth(camera, depth.shape, depth_camera)
+    h, w = depth.shape
+    rays = np.column_stack([(keypoints[:, 0] - camera.cx) / camera.fx,
+                            (keypoints[:, 1] - camera.cy) / camera.fy, np.ones(len(keypoints))])
+    z = np.full(len(keypoints), 2.0)
+    ok = np.ones(len(keypoints), bool)
+    for _ in range(iterations):
+        uv = project(depth_from_rgb.transform(rays * z[:, None]), *cam_d.params())
+        u = np.clip(np.round(uv[:, 0]).astype(int), 1, w - 2)
+        v = np.clip(np.round(uv[:, 1]).astype(int), 1, h - 2)
+        zd = depth[v, u].astype(np.float64)
+        ok = ((zd > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1)
+              & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1))
+        q = rgb_from_depth.transform(np.column_stack([(u - cam_d.cx) / cam_d.fx * zd,
+                                                      (v - cam_d.cy) / cam_d.fy * zd, zd]))
+        z = np.where(ok & (q[:, 2] > 0.05), q[:, 2], z)
+    lands = project(q, camera.fx, camera.fy, camera.cx, camera.cy)
+    win = np.stack([depth[v + dv, u + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)], axis=1)
+    ok &= ((win.min(axis=1) > 0) & (win.max(axis=1) - win.min(axis=1) < 0.03 * zd)
+           & (np.linalg.norm(lands - keypoints, axis=1) <= max_px))
+    points = rays * z[:, None]
+    points[~ok] = np.nan
+    return points
 
 
 def registered_depths(dataset: Dataset, frames: list[Frame]) -> list[np.ndarray] | None:

@@ -309,12 +309,22 @@ def demo(
 def slam(
     dataset: Annotated[Path, typer.Argument(
         metavar="DATASET", help="RGB-D dataset (7-Scenes, TUM, synthetic, a ROS bag)")],
-    map_dir: Annotated[Path, typer.Option("--map", help="map folder to relocalize against")],
     report: Annotated[Path, typer.Option("--report", help="REPORT.json to write")],
+    map_dir: Annotated[Optional[Path], typer.Option(
+        "--map", help="map folder to relocalize against (with --out: the map to extend, "
+                      "which is kept as it is)")] = None,
+    out: Annotated[Optional[Path], typer.Option(
+        "--out", help="learn a map while tracking and write it to this folder (every "
+                      "--save-every seconds, at the end, on Ctrl-C); from nothing without --map")]
+    = None,
+    save_every: Annotated[float, typer.Option(
+        help="seconds between writes of the --out map (0: only at the end)")] = 30.0,
     split: Annotated[str, typer.Option(help="split, role or sequence names to track")] = "test",
     kidnap_every: Annotated[int, typer.Option(
         help="teleport the camera after every N processed frames (0: never)")] = 0,
     kidnap_skip: Annotated[int, typer.Option(help="frames dropped at each kidnapping")] = 20,
+    kidnap_from: Annotated[int, typer.Option(
+        help="processed frames before the first kidnapping (default: --kidnap-every)")] = -1,
     odometry: Annotated[str, typer.Option(
         help="auto | kiss-icp | open3d | a TUM trajectory file from another system | "
              "topic:/NAME, a pose topic of a ROS bag DATASET (auto: kiss-icp on unregistered "
@@ -325,11 +335,12 @@ def slam(
         metavar="FILE", help=POSES_HELP + "; the ground truth of the ATE")] = None,
 ) -> None:
     """Track a split with odometry, relocalize after tracking loss and at keyframes, optimise
-    the pose graph in the map frame; report ATE, recoveries and loop closures."""
+    the pose graph in the map frame; report ATE, recoveries and loop closures. With --out,
+    learn the map while tracking (from nothing, or extending --map) and save it."""
     from slamreloc.cli import jobs
 
     jobs.slam(dataset, map_dir, report, split, kidnap_every, kidnap_skip, odometry, trajectory,
-              poses=poses)
+              poses=poses, out=out, save_every_s=save_every, kidnap_from=kidnap_from)
 
 
 @app.command()

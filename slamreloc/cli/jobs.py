@@ -8,8 +8,10 @@ objects and configs and never names a command-line flag; the messages that do ar
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 from rich.table import Table
@@ -179,31 +181,47 @@ def _query_images(paths: list[Path]):
             yield Path(path).name, path, None
 
 
-def slam(dataset: Path, map_dir: Path, report: Path, split: str = "test",
+def slam(dataset: Path, map_dir: Path | None, report: Path, split: str = "test",
          kidnap_every: int = 0, kidnap_skip: int = 20, odometry: str = "auto",
          trajectory: Path | None = None, progress: bool = True,
          plugin_options: dict | None = None, plugins: list | None = None,
-         poses: Path | None = None) -> dict:
+         poses: Path | None = None, out: Path | None = None, save_every_s: float = 30.0,
+         live=None, kidnap_from: int = -1) -> dict:
     """`slamreloc slam`: run the backend, write the report and trajectory, print a table.
     plugin_options: keyword arguments of the relocalization plugin (benchmarks, tests);
     plugins: the backend's plugins instead of that one (benchmarks: a test-harness plugin);
-    poses: the ground truth from this pose file instead of the dataset's."""
+    poses: the ground truth from this pose file instead of the dataset's; out: learn a map
+    while tracking and write it there (from nothing without `map_dir`, else extending it);
+    live: its `LiveMapConfig`; kidnap_from: processed frames before the first kidnapping
+    (-1: `kidnap_every`)."""
     from slamreloc.slam.poses import final_trajectory
     from slamreloc.slam.run import TOPIC_PREFIX, SlamRunConfig, run_slam
 
     if kidnap_every < 0 or kidnap_skip < 0:
         raise InputError("--kidnap-every and --kidnap-skip must be >= 0")
-    check_is_map(map_dir)  # what the inputs are, then where the outputs may go
+    if kidnap_from < -1:
+        raise InputError(f"--kidnap-from must be >= 0, got {kidnap_from}")
+    if not math.isfinite(save_every_s) or save_every_s < 0:
+        raise InputError(f"--save-every must be a number of seconds >= 0, got {save_every_s}")
+    if map_dir is None and out is None:
+        raise InputError("--map or --out is needed: a map to relocalize in, or one to learn")
+    if map_dir is not None:
+        check_is_map(map_dir)  # what the inputs are, then where the outputs may go
     odometry_file = (odometry if odometry not in ("auto", "kiss-icp", "open3d")
                      and not odometry.startswith(TOPIC_PREFIX) else None)
     check_outputs({"--report": report, "--trajectory": trajectory,
-                   "--trajectory's names file": sidecar(trajectory)},
+                   "--trajectory's names file": sidecar(trajectory), "--out": out},
                   {"the dataset": dataset, "the map": map_dir, "--odometry": odometry_file,
-                   "--poses": poses, **recorded_inputs(map_dir)})
+                   "--poses": poses, **(recorded_inputs(map_dir) if map_dir else {})},
+                  folders={"--out": (is_map, "a slamreloc map")})
     config = SlamRunConfig(split=split, odometry=odometry, kidnap_every=kidnap_every,
                            kidnap_skip=kidnap_skip, progress=progress,
-                           plugin_options=plugin_options or {}, poses=poses)
-    result, backend, frames = run_slam(dataset, map_dir, config, plugins)
+                           kidnap_from=kidnap_every if kidnap_from < 0 else kidnap_from,
+                           plugin_options=plugin_options or {}, poses=poses,
+                           save_every_s=save_every_s)
+    if live is not None:
+        config = replace(config, live=live)
+    result, backend, frames = run_slam(dataset, map_dir, config, plugins, out)
     if trajectory is not None:
         world_from_cam = final_trajectory(backend)
         keep = [i for i, p in enumerate(world_from_cam) if p is not None]
@@ -271,3 +289,9 @@ def print_slam_summary(r: dict) -> None:
                   f"{r['n_loop_closures']} ({r['n_loop_closures_rejected']})",
                   "-" if r["backend_fps"] is None else f"{r['backend_fps']:.1f}")
     console.print(table)
+    live = r.get("live_map")
+    if live:
+        console.print(f"map learned: {live['n_keyframes']} keyframes, {live['n_rows']} rows, "
+                      f"{len(live['rounds'])} training rounds (learner busy "
+                      f"{100 * (live['learner_share'] or 0):.0f} % of the session); written "
+                      f"to {live['out']}")

@@ -114,7 +114,13 @@ def evaluate_map(scene_map: SceneMap, dataset: Dataset, split: str = "test",
     refine: `evaluate_frames`'s; the report's `refine` says "depth" when one is given."""
     frames = query_frames(dataset, split)
     localizer = localizer or config.localizer(scene_map)
+    own = session_alignment(scene_map, dataset, frames)
     results = evaluate_frames(localizer, frames, config.progress, refine)
+    if own is not None:  # scored in the dataset's frame; the estimates stay in the map's
+        scored = rescore(results, {f.name: f.world_from_cam for f in frames}, own[0])
+        results = [replace(r, translation_error_m=s.translation_error_m,
+                           rotation_error_deg=s.rotation_error_deg)
+                   for r, s in zip(results, scored)]
     summary = summarize(results, config.method)
     summary["refine"] = "depth" if refine is not None else None
     # the regressor's last refinement on the map's database points (localize.guided)
@@ -129,11 +135,33 @@ def evaluate_map(scene_map: SceneMap, dataset: Dataset, split: str = "test",
     summary["dataset"] = {"root": str(Path(dataset.root).resolve()), "split": split,
                           "poses": dataset.poses_source}
     summary["references"] = {r.label: r.score(results) for r in references}
+    summary["alignment"] = None if own is None else own[1]
     summary["per_query"] = [
         {"name": r.name, "translation_error_m": r.translation_error_m if r.world_from_cam else None,
          "rotation_error_deg": r.rotation_error_deg if r.world_from_cam else None,
          "num_inliers": r.num_inliers} for r in results]
     return Evaluation(summary, results, frames)
+
+
+def session_alignment(scene_map: SceneMap, dataset: Dataset, queries: list[Frame]
+                      ) -> tuple[Sim3, dict] | None:
+    """A map a SLAM session learned (`slam --out`, recorded poses "slam") is in that session's
+    frame, not the dataset's: (dataset_from_map, its record), the similarity fitted on the
+    map's keyframes that the dataset has poses of (never the queries), by which estimates are
+    scored against the dataset's poses; None for a map in its dataset's frame."""
+    recorded = scene_map.info.dataset
+    if recorded is None or recorded.poses != "slam":
+        return None
+    query_names = {f.name for f in queries}
+    truth = {f.name: f.world_from_cam for f in dataset.frames("all")
+             if f.world_from_cam is not None and f.name not in query_names}
+    db = scene_map.database
+    map_from_cam = {n: Rigid3.from_matrix(m, tol=1e-2, source=f"{scene_map.root}: frame {n}")
+                    for n, m in zip(db.frame_names, db.world_from_cam.reshape(-1, 4, 4))
+                    if n in truth}
+    ref_from_map, record = align_to_reference(map_from_cam, truth,
+                                              f"{dataset.root}: the map's keyframes")
+    return ref_from_map, {**record, "aligned": True, "on": "the map's keyframes"}
 
 
 @dataclass

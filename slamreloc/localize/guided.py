@@ -53,13 +53,17 @@ class GuidedMatcher:
         self.axes = world_from_cam[:, :3, 2]  # their optical axes (+z), world frame
         self.rows = rows_by_frame(database.frame_index, len(world_from_cam))
 
-    def nearby_rows(self, cam_from_world: Rigid3) -> np.ndarray:
+    def nearby_rows(self, cam_from_world: Rigid3, allowed: np.ndarray | None = None
+                    ) -> np.ndarray:
         """Database rows of the `n_frames` training cameras nearest to the pose's centre
-        among those looking within `max_angle_deg` of its direction."""
+        among those looking within `max_angle_deg` of its direction (and `allowed`, a mask
+        over the training cameras, where given)."""
         world_from_cam = cam_from_world.inverse()
         axis = world_from_cam.rotation[:, 2]
         distance = np.linalg.norm(self.centers - world_from_cam.translation, axis=1)
         distance[self.axes @ axis < np.cos(np.radians(self.config.max_angle_deg))] = np.inf
+        if allowed is not None:
+            distance[~allowed] = np.inf
         near = np.argsort(distance, kind="stable")[:self.config.n_frames]
         near = near[np.isfinite(distance[near])]
         if len(near) == 0:
@@ -71,9 +75,16 @@ class GuidedMatcher:
         """(points2d (K, 2) undistorted pixels, points3d (K, 3) world metres): the query
         keypoints matched to database rows near `cam_from_world`, one row per keypoint.
         `camera`'s pinhole intrinsics project (keypoints are undistorted)."""
+        keypoints, rows = self.matches(cam_from_world, feats, camera)
+        return keypoints, self.db.points[rows].astype(np.float64)
+
+    def matches(self, cam_from_world: Rigid3, feats: Features, camera: Camera,
+                allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(points2d (K, 2) undistorted pixels, database rows (K,)): `correspondences` with
+        the rows the keypoints matched; `allowed`: as `nearby_rows`."""
         cfg = self.config
-        empty = np.zeros((0, 2)), np.zeros((0, 3))
-        rows = self.nearby_rows(cam_from_world)
+        empty = np.zeros((0, 2)), np.zeros(0, np.int64)
+        rows = self.nearby_rows(cam_from_world, allowed)
         if len(rows) == 0 or len(feats) == 0:
             return empty
         points = self.db.points[rows].astype(np.float64)
@@ -105,4 +116,4 @@ class GuidedMatcher:
         s2 = np.where(other & valid, sims, -2.0).max(axis=1)
         d1, d2 = (np.sqrt(np.clip(2.0 - 2.0 * s, 0.0, None)) for s in (s1, s2))
         ok = (s2 <= -2.0) | (d1 < cfg.ratio * d2)
-        return keypoints[ok], points[best_row[ok]]
+        return keypoints[ok], rows[best_row[ok]]

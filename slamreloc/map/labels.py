@@ -20,6 +20,7 @@ from scipy.sparse.csgraph import connected_components
 from slamreloc.features.matcher import match_descriptors
 from slamreloc.geometry import Rigid3, reprojection_px
 from slamreloc.runtime.progress import track
+from slamreloc.rgbd import keypoint_points
 from slamreloc.types import Features, Frame
 
 # a labelled point lies at least this far in front of every camera that labels it (metres)
@@ -219,19 +220,8 @@ def refine_track_points(points: np.ndarray, kp_xy: np.ndarray, frame_of: np.ndar
 
 def depth_points(frame: Frame, keypoints: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """Back-project keypoints with registered depth (metres) to world; NaN where invalid or at
-    a depth edge (3x3 neighbourhood spread > 3 % of the depth)."""
-    h, w = depth.shape
-    u = np.clip(np.round(keypoints[:, 0]).astype(int), 1, w - 2)
-    v = np.clip(np.round(keypoints[:, 1]).astype(int), 1, h - 2)
-    win = np.stack([depth[v + dv, u + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)], axis=1)
-    z = depth[v, u].astype(np.float64)
-    ok = (win.min(axis=1) > 0) & (win.max(axis=1) - win.min(axis=1) < 0.03 * z)
-    c = frame.camera
-    pts_cam = np.column_stack([(keypoints[:, 0] - c.cx) / c.fx * z,
-                               (keypoints[:, 1] - c.cy) / c.fy * z, z])
-    pts = frame.world_from_cam.transform(pts_cam)
-    pts[~ok] = np.nan
-    return pts
+    a depth edge (`rgbd.keypoint_points`)."""
+    return frame.world_from_cam.transform(keypoint_points(keypoints, depth, frame.camera))
 
 
 def build_labels(frames: list[Frame], feats: list[Features], depths: list[np.ndarray] | None,

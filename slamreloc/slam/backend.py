@@ -89,15 +89,16 @@ class SlamBackend:
 
     # ---- per frame -------------------------------------------------------------------------
     def process(self, image, depth, camera, odometry_world_from_cam: Rigid3 | None = None,
-                timestamp: float | None = None, depth_camera: Camera | None = None
-                ) -> StepResult:
+                timestamp: float | None = None, depth_camera: Camera | None = None,
+                rgb_from_depth: Rigid3 | None = None, name: str | None = None) -> StepResult:
         """One frame: RGB uint8 (or None), depth in metres (or None), its Camera, and your own
         odometry pose (any fixed odometry frame) if the backend has no front end; timestamp in
         seconds. `depth_camera`: the camera that took the depth (in the depth map's pixel size)
-        where it is not registered to the image, else None (as `FrameData`)."""
+        where it is not registered to the image, else None, placed by `rgb_from_depth`; `name`:
+        the frame's name (as `FrameData`)."""
         index = len(self.frames)
         data = FrameData(index, float(index if timestamp is None else timestamp), image, depth,
-                         camera, depth_camera)
+                         camera, depth_camera, rgb_from_depth, name)
         self._events, self._data = [], data
         with self.timer("odometry"):
             step = self._odometry(data, odometry_world_from_cam)
@@ -204,6 +205,24 @@ class SlamBackend:
             self.graph.add_prior(self.frames[k].key,
                                  world_from_cam_i @ self.odometry_between(i, k), sigma_scale)
         self._emit(Event(EventKind.MAP_UPDATED, i, self.pose_of(i), {"keyframe": k}))
+
+    def add_keyframe_loop(self, i: int, key: int, key_from_cam_i: Rigid3,
+                          sigma_scale: float = 1.0) -> None:
+        """An accepted relocalization of frame i (tracked) against graph keyframe `key` of a
+        map this session builds: frame i seen from that keyframe (cam_key_from_cam_i,
+        metres), a robust between-factor from it to frame i's keyframe."""
+        k = self._nearest_keyframe(i)
+        if k is None:
+            raise ValueError(f"frame {i} is not on an anchored track")
+        with self.timer("graph"):
+            self.graph.add_between(key, self.frames[k].key,
+                                   key_from_cam_i @ self.odometry_between(i, k), sigma_scale)
+        self._emit(Event(EventKind.MAP_UPDATED, i, self.pose_of(i),
+                         {"keyframe": k, "loop_to_key": key}))
+
+    def keyframe_pose(self, key: int) -> Rigid3:
+        """The current map-frame world_from_cam of graph keyframe `key`."""
+        return self.graph.pose(key)
 
     # ---- internals -------------------------------------------------------------------------
     def _recent_motion(self, n: int = 10) -> tuple[float, float]:

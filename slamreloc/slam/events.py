@@ -36,7 +36,9 @@ class FrameData:
     (pixels), the timestamp (seconds), and depth (float32 metres along z, 0 = none; or None)
     in the pixels of `depth_camera`: the camera that took it (`Frame.depth_camera`; scaled to
     the depth map where its size differs) where it is not registered to the image; None:
-    registered (the image's `camera`, scaled to the depth map)."""
+    registered (the image's `camera`, scaled to the depth map). `rgb_from_depth`: that depth
+    camera's pose in the RGB camera's frame (`Frame.rgb_from_depth`, metres; None: identity);
+    `name`: the frame's name in its dataset (None: unnamed)."""
 
     index: int
     timestamp: float
@@ -44,6 +46,8 @@ class FrameData:
     depth: np.ndarray | None
     camera: Camera
     depth_camera: Camera | None = None
+    rgb_from_depth: Rigid3 | None = None
+    name: str | None = None
 
 
 @dataclass

@@ -26,7 +26,8 @@ class FrameInput:
     """One frame as `SlamBackend.process` takes it: RGB uint8 (or None), depth in metres in the
     depth camera's pixels (or None), the RGB camera, the timestamp (seconds), for a backend
     without an odometry front end the frame's pose in your odometry frame, and the depth's
-    own camera where it is not registered to the image (`Frame.depth_camera`)."""
+    own camera where it is not registered to the image (`Frame.depth_camera`, placed by
+    `Frame.rgb_from_depth`), and the frame's name."""
 
     camera: Camera
     timestamp: float
@@ -34,6 +35,8 @@ class FrameInput:
     depth: np.ndarray | None = None
     odometry_world_from_cam: Rigid3 | None = None
     depth_camera: Camera | None = None
+    rgb_from_depth: Rigid3 | None = None
+    name: str | None = None
 
 
 @dataclass(frozen=True)
@@ -55,7 +58,8 @@ def read_frames(dataset: Dataset, frames: Iterable[Frame], image: bool = True,
             frame.camera, frame.timestamp,
             read_image(frame.image_path) if image else None,
             read_depth(frame.depth_path, dataset.depth_units_per_metre) if depth else None,
-            depth_camera=frame.depth_camera)
+            depth_camera=frame.depth_camera, rgb_from_depth=frame.rgb_from_depth,
+            name=frame.name)
 
 
 def depth_camera_of(frames: Iterable[Frame]) -> Camera | None:
@@ -74,7 +78,8 @@ def feed(backend: SlamBackend, inputs: Iterable[FrameInput]) -> Iterator[FedFram
     for inp in inputs:
         t0 = time.perf_counter()
         result = backend.process(inp.image, inp.depth, inp.camera, inp.odometry_world_from_cam,
-                                 inp.timestamp, inp.depth_camera)
+                                 inp.timestamp, inp.depth_camera, inp.rgb_from_depth,
+                                 inp.name)
         yield FedFrame(result, time.perf_counter() - t0)
 
 

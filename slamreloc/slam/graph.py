@@ -1,6 +1,9 @@
 """Keyframe pose graph on gtsam ISAM2: nodes are map-frame `world_from_cam` poses of keyframes,
 odometry between-factors link consecutive keyframes of one track segment, relocalizations are
-robust (Cauchy) prior factors tying a keyframe to the map frame."""
+robust (Cauchy) prior factors tying a keyframe to the map frame, and loop closures found in a
+map the session is building are robust between-factors from the keyframe the query was
+relocalized against to the query's keyframe (a constraint between keyframes, so the loop holds
+wherever the graph moves them)."""
 
 from __future__ import annotations
 
@@ -46,7 +49,7 @@ class PoseGraph:
         params.relinearizeSkip = 1  # robust kernels re-weight with every relinearization
         self._isam = gtsam.ISAM2(params)
         self._batch: gtsam.Values | None = None  # the last optimize_batch, until the next update
-        self.n_odometry, self.n_priors = 0, 0
+        self.n_odometry, self.n_priors, self.n_loops = 0, 0, 0
 
     def _sigmas(self, rad: float, m: float) -> np.ndarray:
         return np.array([rad] * 3 + [m] * 3)
@@ -74,6 +77,20 @@ class PoseGraph:
         widens its sigmas (a less certain source)."""
         graph = gtsam.NonlinearFactorGraph()
         graph.add(self._prior(key, world_from_cam, sigma_scale))
+        self._update(graph, gtsam.Values())
+
+    def add_between(self, key_a: int, key_b: int, a_from_b: Rigid3,
+                    sigma_scale: float = 1.0) -> None:
+        """A loop closure: keyframe b seen from keyframe a (cam_a_from_cam_b, metres), robust,
+        with the relocalization sigmas times `sigma_scale`."""
+        c = self.config
+        base = gtsam.noiseModel.Diagonal.Sigmas(
+            sigma_scale * self._sigmas(c.reloc_sigma_rad, c.reloc_sigma_m))
+        robust = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Cauchy.Create(c.cauchy_k), base)
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.BetweenFactorPose3(key_a, key_b, _pose3(a_from_b), robust))
+        self.n_loops += 1
         self._update(graph, gtsam.Values())
 
     def _prior(self, key: int, world_from_cam: Rigid3, sigma_scale: float = 1.0):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slamreloc.geometry import pose_error
+from slamreloc.geometry import Rigid3, align_poses, pose_error
 from slamreloc.slam.events import EventKind
 from slamreloc.slam.metrics import ate_rmse
 from slamreloc.slam.poses import final_trajectory, odometry_only_trajectory
@@ -54,8 +54,33 @@ def anchor_stats(backend, truth) -> dict:
             "n_false_anchors": len(false) if errs else None}
 
 
-def build_report(backend, frames, jumps, plugins, config, t_backend_s: float) -> dict:
+def session_truth(backend, truth: list) -> tuple[list, Rigid3 | None]:
+    """The ground truth in the map frame of a session that made its own (a live map started
+    from nothing): truth moved by the rigid alignment of its keyframes onto their final poses
+    (`align_poses` without scale: rotation from the cameras' orientations, which stays
+    determined for a nearly straight path); (truth, map_from_truth), or (truth, None) with
+    fewer than 3 such keyframes."""
+    final = final_trajectory(backend)
+    pairs = [(final[f.index], truth[f.index]) for f in backend.frames
+             if f.key is not None and final[f.index] is not None and truth[f.index] is not None]
+    if len(pairs) < 3:
+        return truth, None
+    map_from_truth = align_poses([t for _, t in pairs], [p for p, _ in pairs],
+                                 with_scale=False).rigid
+    return [None if t is None else map_from_truth @ t for t in truth], map_from_truth
+
+
+def build_report(backend, frames, jumps, plugins, config, t_backend_s: float,
+                 own_frame: bool = False, map_from_truth: Rigid3 | None = None) -> dict:
+    """own_frame: the session made its map's frame (a live map started from nothing), so the
+    truth is first aligned onto it on the keyframes (`session_truth`); map_from_truth: the
+    truth's placement in a map's frame that is not the dataset's (a map a session learned),
+    fitted on that map's own frames."""
     truth = [f.world_from_cam for f in frames]
+    if own_frame:
+        truth, map_from_truth = session_truth(backend, truth)
+    elif map_from_truth is not None:
+        truth = [None if t is None else map_from_truth @ t for t in truth]
     final, odo = final_trajectory(backend), odometry_only_trajectory(backend)
     online = [f.online_world_from_cam for f in backend.frames]
     timing = backend.timer.summary()
@@ -69,6 +94,8 @@ def build_report(backend, frames, jumps, plugins, config, t_backend_s: float) ->
         "ate_rmse_m": rnd(_ate(final, truth)),
         "ate_rmse_aligned_m": rnd(_ate(final, truth, align=True)),
         "ate_rmse_odometry_only_m": rnd(_ate(odo, truth)),
+        "ate_rmse_odometry_only_aligned_m": rnd(_ate(odo, truth, align=True)),
+        "truth_aligned_on_keyframes": map_from_truth is not None,
         "ate_rmse_online_m": rnd(_ate(online, truth)),
         "n_frames_without_pose_online": sum(p is None for p in online),
         **kidnap_stats([e.frame for e in backend.event_log if e.kind in CONFIRMING], online,

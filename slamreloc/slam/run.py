@@ -1,19 +1,29 @@
 """`slamreloc slam`: track a dataset split with the backend and the relocalization plugin,
-optionally kidnapping the camera, and score the result (report + TUM trajectory)."""
+optionally kidnapping the camera, and score the result (report + TUM trajectory).
+
+With `out`, the session learns its map while it tracks (the live-mapping plugin and a
+`LiveMap`, slamreloc.slam.live_map): from nothing, or extending the map it is given (which it
+then starts lost in, and never writes); the map is written to `out` every
+`save_every_s` seconds, at the end, and on Ctrl-C or SIGTERM."""
 
 from __future__ import annotations
 
+import signal
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from slamreloc.datasets import load_dataset
-from slamreloc.errors import InputError
+from slamreloc.errors import InputError, Interrupted
+from slamreloc.geometry import Rigid3, align_poses
 from slamreloc.map.format import check_is_map
 from slamreloc.runtime.progress import track
 from slamreloc.slam.backend import BackendConfig, SlamBackend
 from slamreloc.slam.events import load_plugin
 from slamreloc.slam.feed import depth_camera_of, feed_all, read_frames
 from slamreloc.slam.kissicp import KissIcpConfig, KissIcpOdometry
+from slamreloc.slam.live_map import LiveMap, LiveMapConfig
 from slamreloc.slam.odometry import Odometry
 from slamreloc.slam.report import build_report
 from slamreloc.types import Camera
@@ -29,20 +39,26 @@ class SlamRunConfig:
     odometry: str = "auto"
     kidnap_every: int = 0  # 0: no kidnapping
     kidnap_skip: int = 20
+    kidnap_from: int = 0  # processed frames before the first kidnap's count starts
     backend: BackendConfig = field(default_factory=BackendConfig)
     plugin_options: dict = field(default_factory=dict)  # RelocalizationPlugin keyword args
     progress: bool = True
     poses: Path | None = None  # ground truth from this pose file, not the dataset's (--poses)
+    live: LiveMapConfig = field(default_factory=LiveMapConfig)  # the map learned with `out`
+    save_every_s: float = 30.0  # a learned map is written this often (0: only at the end)
 
 
-def kidnap_schedule(n_frames: int, every: int, skip: int) -> tuple[list[int], list[int]]:
+def kidnap_schedule(n_frames: int, every: int, skip: int, start: int = 0
+                    ) -> tuple[list[int], list[int]]:
     """(indices of the frames processed, positions in that list where a kidnap landed):
-    after every `every` processed frames the next `skip` frames are dropped."""
+    after every `every` processed frames the next `skip` frames are dropped; with `start`, the
+    first kidnap lands after `start` processed frames, the next ones `every` frames apart."""
     kept, jumps, i = [], [], 0
     while i < n_frames:
         kept.append(i)
         i += 1
-        if every > 0 and len(kept) % every == 0 and i + skip < n_frames:
+        after = len(kept) - start
+        if every > 0 and after >= 0 and after % every == 0 and i + skip < n_frames:
             i += skip
             jumps.append(len(kept))
     return kept, jumps
@@ -77,29 +93,127 @@ def make_odometry(name: str, depth_camera: Camera | None,
     return TrajectoryOdometry.from_file(name)
 
 
-def run_slam(dataset_dir: Path, map_dir: Path, config: SlamRunConfig = SlamRunConfig(),
-             plugins: list | None = None) -> tuple[dict, SlamBackend, list]:
-    """Returns (report, backend, processed frames)."""
-    check_is_map(map_dir)
+def _live_plugins(dataset, map_dir: Path | None, out: Path, config: SlamRunConfig) -> list:
+    """The live-mapping plugin and the relocalization plugin sharing one `LiveMap`."""
+    from slamreloc.map.meta import DatasetMeta
+    from slamreloc.map.scene_map import SceneMap
+
+    live = LiveMap(config.live, prior=None if map_dir is None else SceneMap.load(map_dir))
+    recorded = DatasetMeta(root=str(dataset.root.resolve()), kind=dataset.kind,
+                           split=config.split, metric=True, poses="slam")
+    return [load_plugin("live_mapping", live_map=live, out=out, dataset=recorded,
+                        save_every_s=config.save_every_s),
+            load_plugin("relocalization", localizer=live, **config.plugin_options)]
+
+
+def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = SlamRunConfig(),
+             plugins: list | None = None, out: Path | None = None
+             ) -> tuple[dict, SlamBackend, list]:
+    """Returns (report, backend, processed frames). `out`: learn the map while tracking and
+    write it there (from nothing where `map_dir` is None, else extending that map)."""
+    if map_dir is not None:
+        check_is_map(map_dir)
+    elif out is None:
+        raise InputError("`map` or `out` is needed: a map to relocalize in, or one to learn")
     dataset = load_dataset(dataset_dir, config.poses)
     frames = dataset.frames(config.split)
     if not frames:
         raise InputError(f"{dataset_dir}: split '{config.split}' has no frames")
     odometry = make_odometry(config.odometry, depth_camera_of(frames), dataset_dir)
     external = odometry.name == "trajectory"
-    if plugins is None:  # each frame's depth comes with its camera (FrameData.depth_camera)
+    if out is not None and external:
+        raise InputError("a learned map (`out`) needs depth: its rows are lifted from each "
+                         "keyframe's depth, which `odometry` from a trajectory does not read")
+    if plugins is None and out is not None:
+        plugins = _live_plugins(dataset, map_dir, out, config)
+    elif plugins is None:  # each frame's depth comes with its camera (FrameData.depth_camera)
         plugins = [load_plugin("relocalization", map_dir=map_dir, **config.plugin_options)]
     for plugin in plugins:  # before the run: images its features would not fit in memory for
         localizer = getattr(plugin, "localizer", None)
         if localizer is not None:
             localizer.extractor.check_frames(frames)
     backend = SlamBackend(odometry, plugins, config.backend)
-    kept, jumps = kidnap_schedule(len(frames), config.kidnap_every, config.kidnap_skip)
+    kept, jumps = kidnap_schedule(len(frames), config.kidnap_every, config.kidnap_skip,
+                                  config.kidnap_from)
     processed = [frames[i] for i in kept]
     inputs = read_frames(dataset, processed, image=True, depth=not external)
-    t_backend = feed_all(backend, track(inputs, "slam", total=len(processed),
-                                        enabled=config.progress))
-    backend.finish()
-    report = build_report(backend, processed, jumps, plugins, config, t_backend)
+    mapper = next((p for p in plugins if isinstance(getattr(p, "live_map", None), LiveMap)),
+                  None)
+    with _sigterm_interrupts(mapper is not None):
+        try:
+            t_backend = feed_all(backend, track(inputs, "slam", total=len(processed),
+                                                enabled=config.progress))
+            backend.finish()
+            if mapper is not None:
+                mapper.live_map.finish()
+                mapper.save()
+        except KeyboardInterrupt:
+            if mapper is None or mapper.out is None:
+                raise
+            written = mapper.save()
+            raise Interrupted(
+                f"{mapper.out}: the session was interrupted after {len(backend.frames)} frames; "
+                + ("the map as it stood is saved there" if written else
+                   "no map was written (no training round had ended)")) from None
+    prior = mapper.live_map.prior if mapper is not None else None
+    report = build_report(backend, processed, jumps, plugins, config, t_backend,
+                          own_frame=mapper is not None and prior is None,
+                          map_from_truth=learned_map_frame(prior, dataset))
     report["reference"] = dataset.poses_source  # the ATE's ground truth: "dataset" or --poses
+    if mapper is not None:
+        report["live_map"] = live_map_report(mapper, t_backend)
     return report, backend, processed
+
+
+def learned_map_frame(scene_map, dataset) -> Rigid3 | None:
+    """map_from_truth for a map a SLAM session learned (recorded poses "slam": its frame is
+    that session's): the rigid alignment of the dataset's poses onto the map's frames, by
+    name; None for any other map (or one whose frames the dataset does not name)."""
+    if scene_map is None or scene_map.info.dataset is None \
+            or scene_map.info.dataset.poses != "slam":
+        return None
+    truth = {f.name: f.world_from_cam for f in dataset.frames("all")
+             if f.world_from_cam is not None}
+    db = scene_map.database
+    pairs = [(truth[n], Rigid3.from_matrix(m, tol=1e-2, source=f"{scene_map.root}: frame {n}"))
+             for n, m in zip(db.frame_names, db.world_from_cam) if n in truth]
+    if len(pairs) < 3:
+        return None
+    return align_poses([t for t, _ in pairs], [m for _, m in pairs], with_scale=False).rigid
+
+
+@contextmanager
+def _sigterm_interrupts(enabled: bool):
+    """While a learned map is at stake, SIGTERM interrupts as Ctrl-C does (the map is then
+    written before the process ends); the previous handler is restored after."""
+    if not enabled or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def live_map_report(mapper, t_backend_s: float) -> dict:
+    """What the report says of a learned map: its rows and keyframes, each training round
+    (start and end in seconds since the session started, rows, from scratch or warm), the
+    learner's busy share of the session's wall time, and the writes."""
+    live = mapper.live_map
+    learner = live.learner
+    return {"out": str(mapper.out), "n_rows": live.store.n_rows,
+            "n_keyframes": sum(k.key is not None for k in live.store.keyframes),
+            "n_prior_frames": sum(k.key is None for k in live.store.keyframes),
+            "keyframe_rows_s": round(live.t_keyframes_s, 3),
+            "rounds": [{"started_s": round(r.started_s, 3), "ended_s": round(r.ended_s, 3),
+                        "n_rows": r.n_rows, "scratch": r.scratch,
+                        "final_loss_m": None if r.final_loss_m is None
+                        else round(r.final_loss_m, 4)} for r in learner.rounds],
+            "learner_busy_s": round(learner.busy_s, 3),
+            "learner_share": round(learner.busy_s / t_backend_s, 3) if t_backend_s else None,
+            "n_writes": mapper.n_saves}

@@ -1,0 +1,144 @@
+"""The background learner of a live map: training rounds of the scene-coordinate regressor on
+a thread of their own while the tracker keeps running.
+
+`submit(descriptors, points)` hands the learner the database as it stands (map frame, metres);
+when no round is running, one starts at once on a thread, else the newest submission waits for
+the running round to end (older ones are dropped: only the newest placement of the keyframes
+is worth learning). A round trains a copy of the published model, warm-started from its weights
+(a few epochs at a reduced rate), and publishes the copy when it ends: the swap is one
+reference assignment, so a reader has either the old model or the new one, never a half-trained
+one. A round starts from scratch (normalisation, prototypes and regions fitted anew, more
+epochs) when there is no model yet or the rows have grown by `regrow` times since the last
+scratch round, since a model's regions and output scaling are fitted to the part of the scene
+it was first trained on.
+"""
+
+from __future__ import annotations
+
+import copy
+import threading
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
+from slamreloc.regressor.train import TrainConfig, train_regressor
+
+
+@dataclass(frozen=True)
+class LearnerConfig:
+    """Epochs per round (warm-started and from scratch) and the growth that forces a scratch
+    round; `train`: the rest of the training settings (`TrainConfig`)."""
+
+    warm_epochs: int = 4
+    scratch_epochs: int = 12
+    warm_lr_scale: float = 0.5
+    regrow: float = 2.0
+    min_rows: int = 500  # fewer labelled rows: no round yet
+    train: TrainConfig = field(default_factory=lambda: TrainConfig(lr_halvings=2))
+    device: str = "cpu"
+
+
+@dataclass(frozen=True)
+class Round:
+    """One finished round: when it started and ended (seconds since the learner started), the
+    rows it trained on, whether it started from scratch, its final training distance (m)."""
+
+    started_s: float
+    ended_s: float
+    n_rows: int
+    scratch: bool
+    final_loss_m: float | None
+    version: int  # the model version it published
+
+
+class BackgroundLearner:
+    """Trains and publishes the regressor of a live map (see the module's docstring)."""
+
+    def __init__(self, model_config: RegressorConfig, config: LearnerConfig = LearnerConfig(),
+                 initial: SceneCoordinateRegressor | None = None,
+                 on_round: callable | None = None):
+        """initial: a trained model to start from (a prior map's: warm rounds from it);
+        on_round(round, model): called on the learner's thread after each published round."""
+        self.model_config, self.config = model_config, config
+        self.model: SceneCoordinateRegressor | None = initial  # the published model
+        self.version = 0 if initial is None else 1
+        self.trained_rows = 0  # rows of the published model's round
+        self._scratch_rows = 0 if initial is None else None  # rows at the last scratch round
+        self._pending: tuple[np.ndarray, np.ndarray] | None = None
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._t0 = time.perf_counter()
+        self.rounds: list[Round] = []
+        self.error: BaseException | None = None  # a round's failure, raised by `check`
+        self.on_round = on_round
+        self.busy_s = 0.0  # wall seconds spent in rounds
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def submit(self, descriptors: np.ndarray, points: np.ndarray) -> None:
+        """The database as it stands: (N, D) descriptors, (N, 3) map-frame points (metres)."""
+        self.check()
+        if len(points) < self.config.min_rows:
+            return
+        with self._lock:
+            self._pending = (descriptors, points)
+            if self.running:
+                return
+            self._thread = threading.Thread(target=self._run, name="slamreloc-learner",
+                                            daemon=True)
+            self._thread.start()
+
+    def check(self) -> None:
+        """Raise the failure of a round, if one failed."""
+        if self.error is not None:
+            raise self.error
+
+    def wait(self, timeout_s: float | None = None) -> None:
+        """Until the running round (and any waiting submission) has ended."""
+        thread = self._thread
+        if thread is not None:
+            thread.join(timeout_s)
+        self.check()
+
+    def _run(self) -> None:
+        try:
+            while True:
+                with self._lock:
+                    job, self._pending = self._pending, None
+                if job is None:
+                    return
+                self._round(*job)
+        except BaseException as e:  # noqa: BLE001 - handed to the tracker's thread by check()
+            self.error = e
+
+    def _round(self, descriptors: np.ndarray, points: np.ndarray) -> None:
+        c = self.config
+        start = time.perf_counter()
+        n = len(points)
+        scratch = self.model is None or (self._scratch_rows is not None
+                                         and n >= c.regrow * self._scratch_rows)
+        if scratch:
+            model = SceneCoordinateRegressor(self.model_config)
+            train = replace(c.train, epochs=c.scratch_epochs)
+        else:
+            model = copy.deepcopy(self.model).requires_grad_(True)
+            train = replace(c.train, epochs=c.warm_epochs, lr=c.train.lr * c.warm_lr_scale)
+        stats = train_regressor(model, descriptors.astype(np.float32), points, train, c.device,
+                                progress=False, fine_tune=not scratch)
+        model.eval().requires_grad_(False)  # published: read by the tracker, never trained
+        self.model = model  # the swap: readers hold either the old model or this one
+        self.version += 1
+        self.trained_rows = n
+        if scratch:
+            self._scratch_rows = n
+        end = time.perf_counter()
+        self.busy_s += end - start
+        r = Round(start - self._t0, end - self._t0, n, scratch, stats["final_loss_m"],
+                  self.version)
+        self.rounds.append(r)
+        if self.on_round is not None:
+            self.on_round(r, model)
+

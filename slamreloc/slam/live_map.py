@@ -1,0 +1,322 @@
+"""A map learned while the SLAM backend runs: the keyframes' labelled rows (keyframes.py), the
+regressor trained on them in the background (learner.py), relocalization against both, and
+writing it as a map every command takes.
+
+Relocalization of a frame (`localize_features`), against the map as it stands:
+1. the regressor, once a round has published one: regressed points -> PnP-RANSAC on the
+   confident half, then guided matching to the database rows near that pose and the final
+   refinement on their points (as `RegressorLocalizer`);
+2. the database, where there is no regressor yet or it finds too few inliers (a place mapped
+   since its last round): each descriptor's nearest database row (ratio test) -> PnP-RANSAC.
+Either way the result names the keyframe that holds most of its inliers and the pose relative
+to it (`Reference`): the backend turns a relocalization against an old keyframe into a loop
+closure between keyframes, so it holds wherever the graph later moves them.
+
+Frames: the map frame is the session's (its first keyframe's camera frame, or the prior map's
+frame in multi-session); poses are world_from_cam, points in metres.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from slamreloc.features import make_extractor
+from slamreloc.features.matcher import LOCALIZER_DB_CHUNK, match_descriptors
+from slamreloc.geometry import Rigid3, project
+from slamreloc.localize.guided import GuidedConfig, GuidedMatcher
+from slamreloc.localize.localizer import REGRESSOR_PNP, Localization
+from slamreloc.localize.pnp import PnPConfig, PoseEstimate, estimate_pose, refine_from
+from slamreloc.map.meta import CameraMeta, DatasetMeta, FeatureMeta, MapMeta, RegressorMeta
+from slamreloc.map.scene_map import SceneMap
+from slamreloc.map.write import save_map
+from slamreloc.regressor.model import RegressorConfig
+from slamreloc.rgbd import keypoint_points_from
+from slamreloc.slam.events import FrameData
+from slamreloc.slam.keyframes import KeyframeRows, KeyframeStore, LiveDatabase
+from slamreloc.slam.learner import BackgroundLearner, LearnerConfig
+from slamreloc.types import Camera, Features
+
+
+@dataclass(frozen=True)
+class LiveMapConfig:
+    """features / feature_options / arch: as `slamreloc map`'s (a prior map's are used where
+    the session extends one); max_rows_per_keyframe: the strongest keypoints with depth kept
+    per keyframe; train_every: keyframes between submissions to the learner; regressor_inliers:
+    a regressor pose with fewer PnP inliers falls back to the database; keep_fraction: share
+    of the most confident predictions RANSAC uses; ratio: the database matching's ratio test;
+    loop_min_frames: what a loop query leaves out (`localize_query`)."""
+
+    features: str = "sift"
+    feature_options: dict = field(default_factory=dict)
+    arch: str = "wide"
+    learner: LearnerConfig = field(default_factory=LearnerConfig)
+    max_rows_per_keyframe: int = 1000
+    train_every: int = 1
+    regressor_inliers: int = 40
+    # a loop query (`localize_query` while tracking) matches only keyframes at least this many
+    # frames older than the query or of another track segment, and prior maps' frames
+    loop_min_frames: int = 30
+    keep_fraction: float = 0.5
+    ratio: float = 0.9
+    guided: GuidedConfig = field(default_factory=GuidedConfig)
+
+
+@dataclass(frozen=True)
+class Reference:
+    """The keyframe a relocalization's inliers mostly came from: its graph `key` (None: a
+    prior map's fixed frame), its index among the session's frames (-1: a prior map's), and
+    the query seen from it (cam_key_from_cam, metres)."""
+
+    key: int | None
+    frame: int
+    key_from_cam: Rigid3
+    n_inliers: int
+
+
+@dataclass
+class LiveLocalization(Localization):
+    """`Localization` with the source of its correspondences (`regressor` | `database`) and
+    the keyframe they mostly came from."""
+
+    source: str = ""
+    reference: Reference | None = None
+
+
+class LiveMap:
+    """The map a session builds (see the module's docstring). `prior`: a map to extend
+    (multi-session): its rows become fixed frames and its regressor the learner's start."""
+
+    def __init__(self, config: LiveMapConfig = LiveMapConfig(), prior: SceneMap | None = None):
+        if prior is not None:
+            config = replace(config, features=prior.info.feature_name,
+                             feature_options=prior.info.feature_options,
+                             arch=prior.info.regressor.arch)
+        self.config, self.prior = config, prior
+        self.extractor = make_extractor(config.features, **config.feature_options)
+        if prior is not None:
+            model_config = prior.info.regressor.to_config()
+            self.store = KeyframeStore.from_database(prior.database)
+            self.camera: Camera | None = prior.camera
+        else:
+            model_config = RegressorConfig.preset(config.arch, self.extractor.dim)
+            self.store = KeyframeStore()
+            self.camera = None
+        self.learner = BackgroundLearner(
+            model_config, config.learner,
+            initial=None if prior is None else prior.regressor.eval().requires_grad_(False))
+        self.surface = None  # no fused surface: the relocalization plugin's ICP does not run
+        self.backend = None
+        self._db: LiveDatabase | None = None
+        self._db_desc: torch.Tensor | None = None
+        self._guided: GuidedMatcher | None = None
+        self._feats: tuple[int, Features] | None = None
+        self._since_submit = 0
+        self.t_keyframes_s = 0.0  # seconds spent extracting and lifting keyframe rows
+
+    # the relocalization plugin reads `localizer.map.surface` and `localizer.extractor`
+    @property
+    def map(self) -> LiveMap:
+        return self
+
+    def attach(self, backend) -> None:
+        """The backend whose pose graph places the keyframes."""
+        self.backend = backend
+
+    # ---- growing -------------------------------------------------------------------------
+    def features(self, frame: FrameData) -> Features:
+        """The frame's features (extracted once per frame: a keyframe that is also relocalized
+        is not extracted twice)."""
+        if self._feats is None or self._feats[0] != frame.index:
+            self._feats = (frame.index, self.extractor.extract(frame.image, frame.camera))
+        return self._feats[1]
+
+    def add_keyframe(self, frame: FrameData, key: int) -> int:
+        """The keyframe's rows (keypoints with valid depth, the strongest first); returns how
+        many. Frames without image or depth add none."""
+        if frame.image is None or frame.depth is None:
+            return 0
+        t0 = time.perf_counter()
+        self.camera = self.camera or frame.camera
+        feats = self.features(frame)
+        points = keypoint_points_from(feats.keypoints, frame.depth, frame.camera,
+                                      frame.depth_camera, frame.rgb_from_depth)
+        ok = np.flatnonzero(np.isfinite(points[:, 0]))
+        if len(feats.scores) == len(feats):
+            ok = ok[np.argsort(-feats.scores[ok], kind="stable")]
+        ok = np.sort(ok[:self.config.max_rows_per_keyframe])
+        self.store.add(KeyframeRows(key, frame.index, frame.name or f"frame{frame.index:06d}",
+                                    feats.keypoints[ok].astype(np.float32),
+                                    feats.descriptors[ok].astype(np.float16),
+                                    points[ok].astype(np.float32)))
+        self.t_keyframes_s += time.perf_counter() - t0
+        self._since_submit += 1
+        if self._since_submit >= self.config.train_every:
+            self.train()
+        return len(ok)
+
+    def train(self) -> None:
+        """Hand the learner the database as the graph places it now (a round starts at once
+        when none runs)."""
+        self._since_submit = 0
+        db = self.database().database
+        self.learner.submit(db.descriptors, db.points)
+
+    def _version(self) -> tuple:
+        g = self.backend.graph if self.backend is not None else None
+        return (self.store.n_keyframes,) + ((g.n_priors, g.n_loops) if g is not None else ())
+
+    def poses(self) -> dict[int, Rigid3]:
+        """Graph keyframes' current world_from_cam, by key."""
+        return self.backend.graph.poses() if self.backend is not None else {}
+
+    def database(self) -> LiveDatabase:
+        """Every row placed with the keyframes' current poses (recomputed when keyframes were
+        added or the graph took a relocalization or loop closure since the last call)."""
+        version = self._version()
+        if self._db is None or self._db.version != version:
+            self._db = self.store.database(self.poses(), version)
+            self._db_desc = torch.as_tensor(self._db.database.descriptors.astype(np.float32))
+            self._guided = (GuidedMatcher(self._db.database, self.config.guided)
+                            if len(self._db.database.points) else None)
+        return self._db
+
+    # ---- relocalizing --------------------------------------------------------------------
+    def localize_features(self, feats: Features, camera: Camera) -> LiveLocalization:
+        """The pose of a frame from its features (`extractor`'s), against the map as it
+        stands: the regressor, else the database (the module's docstring)."""
+        return self._localize(feats, camera, None)
+
+    def localize_query(self, feats: Features, camera: Camera, frame: int,
+                       loop_only: bool) -> LiveLocalization:
+        """`localize_features` for processed frame `frame`; `loop_only` (a tracked frame):
+        its correspondences come only from frames a loop can close on (prior maps' frames,
+        keyframes `loop_min_frames` older or of another track segment), since the track's
+        own recent keyframes always match and close no loop."""
+        return self._localize(feats, camera, self._loop_frames(frame) if loop_only else None)
+
+    def _loop_frames(self, frame: int) -> np.ndarray:
+        """Mask over the database's frames: those a loop query of `frame` may use."""
+        live = self.database()
+        frames = self.backend.frames
+        segment = frames[frame].segment
+        return np.array([f < 0 or frame - f >= self.config.loop_min_frames
+                         or frames[f].segment != segment for f in live.frames], bool)
+
+    def _localize(self, feats: Features, camera: Camera, allowed: np.ndarray | None
+                  ) -> LiveLocalization:
+        t0 = time.perf_counter()
+        live = self.database()
+        n = len(feats)
+        result = LiveLocalization(PoseEstimate(None, 0, n, np.zeros(n, bool)), {}, n)
+        if (len(live.database.points) < 4 or n < 4
+                or (allowed is not None and not allowed.any())):
+            return result
+        model = self.learner.model
+        if model is not None:
+            result = self._by_regressor(model, feats, camera, live, allowed)
+        if (not result.estimate.success or result.reference is None
+                or result.estimate.num_inliers < self.config.regressor_inliers):
+            result = self._by_database(feats, camera, live, allowed)
+        result.timings_ms = {"total": 1000 * (time.perf_counter() - t0)}
+        return result
+
+    def _by_regressor(self, model, feats, camera, live, allowed) -> LiveLocalization:
+        with torch.inference_mode():
+            points, confidence = model.predict(torch.as_tensor(feats.descriptors,
+                                                               dtype=torch.float32))
+        points = points.numpy().astype(np.float64)
+        conf = None if confidence is None else confidence.numpy()
+        keep = np.arange(len(points))
+        if conf is not None:
+            n_keep = max(round(self.config.keep_fraction * len(conf)), min(len(conf), 50))
+            keep = np.argsort(-conf, kind="stable")[:n_keep]
+        est = estimate_pose(feats.keypoints[keep], points[keep], camera.pinhole, REGRESSOR_PNP)
+        result = LiveLocalization(est, {}, len(feats), source="regressor")
+        if not est.success:
+            return result
+        if conf is not None:
+            result.inlier_confidence = float(np.median(conf[keep][est.inlier_mask]))
+        p2d, rows = self._guided.matches(est.cam_from_world, feats, camera, allowed)
+        refined = refine_from(est.cam_from_world, p2d, live.database.points[rows]
+                              .astype(np.float64), camera.pinhole, REGRESSOR_PNP,
+                              max_error_px=self.config.guided.radius_px)
+        if refined is not None:
+            result.estimate = replace(est, cam_from_world=refined)
+            result.n_guided = len(rows)
+            result.reference = self._reference(live, rows, refined, p2d, camera)
+        return result
+
+    def _by_database(self, feats, camera, live, allowed) -> LiveLocalization:
+        db = live.database
+        desc, index = self._db_desc, None
+        if allowed is not None:
+            index = np.flatnonzero(allowed[db.frame_index])
+            desc = desc[torch.as_tensor(index)]
+        m = match_descriptors(feats.descriptors, desc, self.config.ratio, mutual=False,
+                              db_points=db.points if index is None else db.points[index],
+                              same_point_m=0.05, db_chunk=LOCALIZER_DB_CHUNK)
+        if index is not None:
+            m[:, 1] = index[m[:, 1]]
+        est = estimate_pose(feats.keypoints[m[:, 0]], db.points[m[:, 1]].astype(np.float64),
+                            camera.pinhole, PnPConfig())
+        result = LiveLocalization(est, {}, len(feats), source="database")
+        if est.success:
+            rows = m[est.inlier_mask, 1]
+            result.reference = self._reference(live, rows, est.cam_from_world)
+        return result
+
+    def _reference(self, live: LiveDatabase, rows: np.ndarray, cam_from_world: Rigid3,
+                   p2d: np.ndarray | None = None, camera: Camera | None = None
+                   ) -> Reference | None:
+        """The keyframe holding most of the rows; with p2d, only rows reprojecting within the
+        guided radius of their keypoints count."""
+        if p2d is not None:
+            uv = project(cam_from_world.transform(live.database.points[rows].astype(np.float64)),
+                         *camera.pinhole.params())
+            rows = rows[np.linalg.norm(uv - p2d, axis=1) <= self.config.guided.radius_px]
+        if len(rows) == 0:
+            return None
+        counts = np.bincount(live.database.frame_index[rows])
+        f = int(np.argmax(counts))
+        world_from_key = Rigid3.from_matrix(live.database.world_from_cam[f], source="keyframe")
+        return Reference(live.keys[f], live.frames[f],
+                         world_from_key.inverse() @ cam_from_world.inverse(), int(counts[f]))
+
+    # ---- writing -------------------------------------------------------------------------
+    def finish(self, final_round: bool = True, timeout_s: float | None = None) -> None:
+        """End of the session: the last round on the keyframes' final placement, waited for."""
+        if final_round:
+            self.learner.wait(timeout_s)
+            self.train()
+        self.learner.wait(timeout_s)
+
+    def save(self, out: str | Path, dataset: DatasetMeta | None = None) -> Path | None:
+        """Write the map (atomically, `save_map`): the published regressor and every row placed
+        with the keyframes' current poses; None (nothing written) before the first round."""
+        model = self.learner.model
+        if model is None or self.camera is None:
+            return None
+        live = self.database()
+        db = live.database
+        learner = self.learner
+        n_new = sum(1 for k in live.keys if k is not None)
+        meta = MapMeta(
+            features=FeatureMeta(self.config.features, self.extractor.config_dict()),
+            regressor=RegressorMeta(self.config.arch, model.config.to_dict(),
+                                    model.num_parameters()),
+            train={**self.config.learner.train.to_dict(), "learned_live": True,
+                   "rounds": len(learner.rounds), "trained_rows": learner.trained_rows,
+                   "final_loss_m": learner.rounds[-1].final_loss_m if learner.rounds else None,
+                   "learner_busy_s": round(learner.busy_s, 3)},
+            labels={"n_labelled": int(len(db.points)), "n_keyframes": n_new,
+                    "n_prior_frames": len(live.keys) - n_new, "source": "keyframe depth",
+                    "median_reproj_error_px": None},
+            camera=CameraMeta.from_camera(self.camera),
+            dataset=dataset,
+            timings_s={"keyframes_s": round(self.t_keyframes_s, 3)})
+        return save_map(out, meta, model, db)

@@ -1,0 +1,151 @@
+"""SLAM that learns its own map (`slam --out`): a session with no prior map recovers its
+kidnaps in the map it is building and saves a map every command takes; loop closures between
+keyframes move the keyframes' labels with them; a second session anchors in the first's map
+and extends it; a learned map is written crash-safely."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from slamreloc.geometry import Rigid3, axis_angle_to_matrix, pose_error
+from slamreloc.slam.backend import BackendConfig, SlamBackend
+from slamreloc.slam.keyframes import KeyframeRows
+from slamreloc.slam.live_map import LiveMap, LiveMapConfig
+from slamreloc.types import Camera
+
+LIVE = ["--split", "kidnap", "--kidnap-every", "30", "--kidnap-skip", "10"]
+
+
+def cli(*args):
+    return subprocess.run([sys.executable, "-m", "slamreloc.cli", *map(str, args)],
+                          capture_output=True, text=True)
+
+
+@pytest.fixture(scope="module")
+def live_session(kidnap_scene, tmp_path_factory):
+    """`slam --out` with no map on the kidnap sequence: (report, map folder, workdir)."""
+    out = tmp_path_factory.mktemp("live")
+    res = cli("slam", kidnap_scene, *LIVE, "--out", out / "map", "--report", out / "r.json",
+              "--trajectory", out / "t.txt")
+    assert res.returncode == 0, res.stderr
+    return json.loads((out / "r.json").read_text()), out / "map", out
+
+
+def test_live_session_recovers_kidnaps_in_its_own_map(live_session):
+    r, _, _ = live_session
+    assert r["truth_aligned_on_keyframes"]
+    assert r["n_kidnaps"] == 2 and r["n_recovered"] == 2, r
+    assert r["median_frames_to_recover"] <= 3
+    assert r["recovered_median_error_m"] <= 0.05 and r["recovered_median_error_deg"] <= 2
+    assert r["n_false_anchors"] == 0
+    assert r["ate_rmse_aligned_m"] <= 0.4 * r["ate_rmse_odometry_only_aligned_m"]
+    live = r["live_map"]
+    assert live["n_keyframes"] > 10 and live["n_prior_frames"] == 0
+    assert live["rounds"] and live["rounds"][0]["scratch"]
+    assert live["n_writes"] >= 1
+
+
+def test_learned_map_is_a_map_every_command_takes(live_session, kidnap_scene):
+    """evaluate and export read the saved map; its frame is the session's, so evaluate scores
+    against the dataset's poses after a similarity fitted on its keyframes (without it every
+    error would be the offset between the two frames). How accurate a learned map is, against
+    one mapped offline, is measured on RedKitchen (benchmarks/live_map_benchmark.py)."""
+    from slamreloc.map.scene_map import SceneMap
+
+    r, map_dir, work = live_session
+    m = SceneMap.load(map_dir)
+    assert m.info.train["learned_live"] and len(m.database.frame_names) == \
+        r["live_map"]["n_keyframes"]
+    res = cli("evaluate", map_dir, kidnap_scene, "--split", "seq-01,seq-02,seq-04",
+              "--report", work / "eval.json")
+    assert res.returncode == 0, res.stderr
+    ev = json.loads((work / "eval.json").read_text())
+    assert ev["alignment"]["n_frames"] == r["live_map"]["n_keyframes"]
+    assert ev["alignment"]["median_residual_m"] < 0.02, ev["alignment"]
+    assert ev["recall"]["5cm5deg"] > 0, ev["per_query"]
+    res = cli("export", map_dir, "--tum", work / "keyframes.txt")
+    assert res.returncode == 0, res.stderr
+    assert len((work / "keyframes.txt").read_text().split("\n")) > r["live_map"]["n_keyframes"]
+
+
+@settings(max_examples=6, deadline=None)
+@given(drift_deg=st.floats(0.5, 3.0), drift_m=st.floats(0.03, 0.10))
+def test_loop_closure_moves_labels_with_keyframes(drift_deg, drift_m):
+    """A 40-keyframe track whose odometry drifts: the last keyframe's rows sit where the
+    drifted pose puts them until loop closures against the first keyframe (three agreeing
+    relocalizations, as the gate asks) move the keyframe, and its rows with it, towards
+    where they are."""
+    camera = Camera(640, 480, 500.0, 500.0, 320.0, 240.0)
+    backend = SlamBackend(None, [], BackendConfig(keyframe_every=1))
+    live = LiveMap(LiveMapConfig())
+    live.attach(backend)
+    rng = np.random.default_rng(0)
+    n = 40
+    truth = [Rigid3(axis_angle_to_matrix(np.array([0, 0.01 * i, 0])),
+                    np.array([0.035 * i, 0, 0])) for i in range(n)]
+    world_points = rng.uniform(-1, 1, (50, 3)) + [0.7, 0, 3]
+    for i, t in enumerate(truth):
+        drift = Rigid3(axis_angle_to_matrix(np.radians([0, 0, drift_deg * i / (n - 1)])),
+                       np.array([drift_m * i / (n - 1), 0, 0]))  # grows along the track
+        backend.process(None, None, camera, drift @ t, float(i))
+        if i == 0:
+            backend.anchor(0, t)
+        rec = backend.frames[-1]
+        assert rec.key is not None
+        live.store.add(KeyframeRows(rec.key, i, f"f{i}", np.zeros((50, 2), np.float32),
+                                    np.zeros((50, 128), np.float16),
+                                    t.inverse().transform(world_points).astype(np.float32)))
+    last = backend.frames[-1]
+    error = (lambda pts: float(np.median(np.linalg.norm(pts - world_points, axis=1))))  # noqa
+    before = live.database().database.points[-50:]
+    before_m, _ = pose_error(backend.keyframe_pose(last.key), truth[-1])
+    for _ in range(3):
+        backend.add_keyframe_loop(n - 1, backend.frames[0].key,
+                                  truth[0].inverse() @ truth[-1])
+    backend.finish()
+    after = live.database().database.points[-50:]
+    placed = backend.keyframe_pose(last.key)
+    # the rows are where the corrected pose puts them ...
+    np.testing.assert_allclose(after, placed.transform(
+        truth[-1].inverse().transform(world_points)), atol=1e-4)
+    # ... which is nearer the truth than the drifted one
+    after_m, _ = pose_error(placed, truth[-1])
+    assert after_m <= 0.7 * before_m
+    assert error(after) <= 0.8 * error(before)
+
+
+def test_second_session_anchors_in_the_first_map_and_extends_it(live_session, kidnap_scene):
+    r1, map1, work = live_session
+    map2 = work / "map2"
+    before = {p.name: p.read_bytes() for p in map1.iterdir() if p.is_file()}
+    res = cli("slam", kidnap_scene, "--split", "kidnap", "--map", map1, "--out", map2,
+              "--report", work / "r2.json")
+    assert res.returncode == 0, res.stderr
+    r = json.loads((work / "r2.json").read_text())
+    anchors = [e["frame"] for e in r["events"] if e["type"] == "tracking_recovered"]
+    assert anchors and anchors[0] <= 3, r["events"][:5]
+    assert r["n_false_anchors"] == 0
+    assert r["live_map"]["n_prior_frames"] == r1["live_map"]["n_keyframes"]
+    assert r["live_map"]["n_keyframes"] > 0
+    assert {p.name: p.read_bytes() for p in map1.iterdir() if p.is_file()} == before
+
+
+def test_slam_needs_a_map_or_an_out(kidnap_scene, tmp_path):
+    res = cli("slam", kidnap_scene, "--report", tmp_path / "r.json")
+    assert res.returncode == 2
+    assert res.stderr.strip().count("\n") == 0 and "--map or --out" in res.stderr
+
+
+def test_out_refuses_a_foreign_folder(kidnap_scene, tmp_path):
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep me")
+    res = cli("slam", kidnap_scene, "--out", tmp_path / "mine", "--report", tmp_path / "r.json")
+    assert res.returncode == 2 and "--out" in res.stderr
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "keep me"
