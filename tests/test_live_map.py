@@ -149,3 +149,57 @@ def test_out_refuses_a_foreign_folder(kidnap_scene, tmp_path):
     res = cli("slam", kidnap_scene, "--out", tmp_path / "mine", "--report", tmp_path / "r.json")
     assert res.returncode == 2 and "--out" in res.stderr
     assert (tmp_path / "mine" / "notes.txt").read_text() == "keep me"
+
+
+def test_learner_rounds_scratch_then_bounded_warm_windows():
+    """The first round starts from scratch; later ones warm-start on the new rows plus replayed
+    old ones, at most `round_rows`; rows doubling forces a scratch round; the final round
+    trains every row; a published model is never trained further."""
+    from slamreloc.regressor.model import RegressorConfig
+    from slamreloc.regressor.train import TrainConfig
+    from slamreloc.slam.learner import BackgroundLearner, LearnerConfig
+
+    rng = np.random.default_rng(0)
+    desc = rng.standard_normal((5000, 32)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    pts = rng.uniform(-1, 1, (5000, 3)).astype(np.float32)
+    config = LearnerConfig(warm_epochs=1, scratch_epochs=1, final_epochs=1, round_rows=1000,
+                           min_rows=500, train=TrainConfig(batch_size=256))
+    learner = BackgroundLearner(RegressorConfig(in_dim=32, hidden=(64, 32)), config)
+    learner.submit(desc[:400], pts[:400])  # below min_rows: no round
+    learner.wait()
+    assert learner.model is None and not learner.rounds
+    learner.submit(desc[:2000], pts[:2000])
+    learner.wait()
+    first = learner.model
+    assert learner.rounds[-1].scratch and learner.rounds[-1].n_rows == 2000
+    assert not any(p.requires_grad for p in first.parameters())
+    weights = [p.clone() for p in first.parameters()]
+    learner.submit(desc[:2500], pts[:2500])
+    learner.wait()
+    assert not learner.rounds[-1].scratch and learner.rounds[-1].n_rows == 1000
+    assert learner.model is not first and learner.version == 2
+    assert all(torch_equal(a, b) for a, b in zip(weights, first.parameters()))
+    learner.submit(desc[:4000], pts[:4000])  # doubled since the last scratch round
+    learner.wait()
+    assert learner.rounds[-1].scratch and learner.rounds[-1].n_rows == 4000
+    learner.submit(desc, pts, final=True)
+    learner.wait()
+    assert not learner.rounds[-1].scratch and learner.rounds[-1].n_rows == 5000
+
+
+def test_learner_failure_reaches_the_tracker():
+    from slamreloc.regressor.model import RegressorConfig
+    from slamreloc.slam.learner import BackgroundLearner, LearnerConfig
+
+    learner = BackgroundLearner(RegressorConfig(in_dim=32, hidden=(16,)),
+                                LearnerConfig(min_rows=10))
+    learner.submit(np.zeros((100, 8), np.float32), np.zeros((100, 3), np.float32))
+    with pytest.raises(RuntimeError):
+        learner.wait()
+
+
+def torch_equal(a, b) -> bool:
+    import torch
+
+    return bool(torch.equal(a, b))

@@ -1,16 +1,23 @@
 """The background learner of a live map: training rounds of the scene-coordinate regressor on
 a thread of their own while the tracker keeps running.
 
-`submit(descriptors, points)` hands the learner the database as it stands (map frame, metres);
-when no round is running, one starts at once on a thread, else the newest submission waits for
-the running round to end (older ones are dropped: only the newest placement of the keyframes
-is worth learning). A round trains a copy of the published model, warm-started from its weights
-(a few epochs at a reduced rate), and publishes the copy when it ends: the swap is one
-reference assignment, so a reader has either the old model or the new one, never a half-trained
-one. A round starts from scratch (normalisation, prototypes and regions fitted anew, more
-epochs) when there is no model yet or the rows have grown by `regrow` times since the last
-scratch round, since a model's regions and output scaling are fitted to the part of the scene
-it was first trained on.
+`submit(descriptors, points)` hands the learner the database as it stands (map frame, metres;
+rows in the order they were added); when no round is running, one starts at once on a thread,
+else the newest submission waits for the running round to end (older ones are dropped: only
+the newest placement of the keyframes is worth learning). A round trains a copy of the
+published model and publishes the copy when it ends: the swap is one reference assignment, so
+a reader has either the old model or the new one, never a half-trained one.
+
+- A warm round starts from the published weights, at a reduced rate, on a bounded window: the
+  rows added since the last round plus a uniform sample of the older ones (replay), at most
+  `round_rows` in all, so its cost does not grow with the map and a new place is learned
+  within a round or two.
+- A scratch round (normalisation, prototypes and regions fitted anew, on every row, at most
+  `scratch_steps` optimisation steps) runs when there is no model yet or the rows have grown by
+  `regrow` times since the last one: a model's regions and output scaling are fitted to the
+  part of the scene it first saw.
+- The final round (`submit(..., final=True)`, at the end of a session) trains every row, warm,
+  for `final_epochs`, on the keyframes' final placement.
 """
 
 from __future__ import annotations
@@ -32,6 +39,9 @@ class LearnerConfig:
 
     warm_epochs: int = 4
     scratch_epochs: int = 12
+    scratch_steps: int = 1500  # at most this many optimisation steps in a scratch round
+    round_rows: int = 30000  # rows of a warm round: the new ones, then replayed old ones
+    final_epochs: int = 12
     warm_lr_scale: float = 0.5
     regrow: float = 2.0
     min_rows: int = 500  # fewer labelled rows: no round yet
@@ -56,16 +66,19 @@ class BackgroundLearner:
     """Trains and publishes the regressor of a live map (see the module's docstring)."""
 
     def __init__(self, model_config: RegressorConfig, config: LearnerConfig = LearnerConfig(),
-                 initial: SceneCoordinateRegressor | None = None,
+                 initial: SceneCoordinateRegressor | None = None, initial_rows: int = 0,
                  on_round: callable | None = None):
-        """initial: a trained model to start from (a prior map's: warm rounds from it);
-        on_round(round, model): called on the learner's thread after each published round."""
+        """initial: a trained model to start from (a prior map's: warm rounds from it), trained
+        on the first `initial_rows` rows the learner will be given; on_round(round, model):
+        called on the learner's thread after each published round."""
         self.model_config, self.config = model_config, config
         self.model: SceneCoordinateRegressor | None = initial  # the published model
         self.version = 0 if initial is None else 1
-        self.trained_rows = 0  # rows of the published model's round
+        self.trained_rows = 0  # rows in the database when the published model's round began
+        self._seen = initial_rows if initial is not None else 0  # rows trained on so far
         self._scratch_rows = 0 if initial is None else None  # rows at the last scratch round
-        self._pending: tuple[np.ndarray, np.ndarray] | None = None
+        self._pending: tuple[np.ndarray, np.ndarray, bool] | None = None
+        self._rng = np.random.default_rng(config.train.seed)
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._t0 = time.perf_counter()
@@ -78,13 +91,14 @@ class BackgroundLearner:
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
-    def submit(self, descriptors: np.ndarray, points: np.ndarray) -> None:
-        """The database as it stands: (N, D) descriptors, (N, 3) map-frame points (metres)."""
+    def submit(self, descriptors: np.ndarray, points: np.ndarray, final: bool = False) -> None:
+        """The database as it stands: (N, D) descriptors, (N, 3) map-frame points (metres),
+        in the order the rows were added; `final`: the session's last round."""
         self.check()
         if len(points) < self.config.min_rows:
             return
         with self._lock:
-            self._pending = (descriptors, points)
+            self._pending = (descriptors, points, final)
             if self.running:
                 return
             self._thread = threading.Thread(target=self._run, name="slamreloc-learner",
@@ -114,31 +128,48 @@ class BackgroundLearner:
         except BaseException as e:  # noqa: BLE001 - handed to the tracker's thread by check()
             self.error = e
 
-    def _round(self, descriptors: np.ndarray, points: np.ndarray) -> None:
+    def _round(self, descriptors: np.ndarray, points: np.ndarray, final: bool) -> None:
         c = self.config
         start = time.perf_counter()
         n = len(points)
-        scratch = self.model is None or (self._scratch_rows is not None
+        scratch = self.model is None or (not final and self._scratch_rows is not None
                                          and n >= c.regrow * self._scratch_rows)
+        rows = np.arange(n)
         if scratch:
             model = SceneCoordinateRegressor(self.model_config)
-            train = replace(c.train, epochs=c.scratch_epochs)
+            steps_per_epoch = max(1, n // c.train.batch_size)
+            epochs = max(1, min(c.scratch_epochs, c.scratch_steps // steps_per_epoch))
+            train = replace(c.train, epochs=epochs)
         else:
             model = copy.deepcopy(self.model).requires_grad_(True)
-            train = replace(c.train, epochs=c.warm_epochs, lr=c.train.lr * c.warm_lr_scale)
-        stats = train_regressor(model, descriptors.astype(np.float32), points, train, c.device,
-                                progress=False, fine_tune=not scratch)
+            train = replace(c.train, epochs=c.final_epochs if final else c.warm_epochs,
+                            lr=c.train.lr * c.warm_lr_scale)
+            if not final:
+                rows = self._window(n)
+        stats = train_regressor(model, descriptors[rows].astype(np.float32), points[rows], train,
+                                c.device, progress=False, fine_tune=not scratch)
         model.eval().requires_grad_(False)  # published: read by the tracker, never trained
         self.model = model  # the swap: readers hold either the old model or this one
         self.version += 1
         self.trained_rows = n
+        self._seen = n
         if scratch:
             self._scratch_rows = n
         end = time.perf_counter()
         self.busy_s += end - start
-        r = Round(start - self._t0, end - self._t0, n, scratch, stats["final_loss_m"],
+        r = Round(start - self._t0, end - self._t0, len(rows), scratch, stats["final_loss_m"],
                   self.version)
         self.rounds.append(r)
         if self.on_round is not None:
             self.on_round(r, model)
+
+    def _window(self, n: int) -> np.ndarray:
+        """A warm round's rows: those added since the last round (the newest `round_rows` of
+        them), then a uniform sample of the older ones up to `round_rows` in all."""
+        budget = self.config.round_rows
+        new = np.arange(min(self._seen, n), n)[-budget:]
+        old = np.arange(0, n - len(new))
+        k = min(len(old), budget - len(new))
+        sample = self._rng.choice(old, size=k, replace=False) if k > 0 else old[:0]
+        return np.sort(np.concatenate([sample, new]))
 

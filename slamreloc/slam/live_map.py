@@ -108,7 +108,8 @@ class LiveMap:
             self.camera = None
         self.learner = BackgroundLearner(
             model_config, config.learner,
-            initial=None if prior is None else prior.regressor.eval().requires_grad_(False))
+            initial=None if prior is None else prior.regressor.eval().requires_grad_(False),
+            initial_rows=self.store.n_rows)
         self.surface = None  # no fused surface: the relocalization plugin's ICP does not run
         self.backend = None
         self._db: LiveDatabase | None = None
@@ -159,12 +160,12 @@ class LiveMap:
             self.train()
         return len(ok)
 
-    def train(self) -> None:
+    def train(self, final: bool = False) -> None:
         """Hand the learner the database as the graph places it now (a round starts at once
-        when none runs)."""
+        when none runs); `final`: the session's last round (`LearnerConfig.final_epochs`)."""
         self._since_submit = 0
         db = self.database().database
-        self.learner.submit(db.descriptors, db.points)
+        self.learner.submit(db.descriptors, db.points, final)
 
     def _version(self) -> tuple:
         g = self.backend.graph if self.backend is not None else None
@@ -292,7 +293,7 @@ class LiveMap:
         """End of the session: the last round on the keyframes' final placement, waited for."""
         if final_round:
             self.learner.wait(timeout_s)
-            self.train()
+            self.train(final=True)
         self.learner.wait(timeout_s)
 
     def save(self, out: str | Path, dataset: DatasetMeta | None = None) -> Path | None:

@@ -146,7 +146,11 @@ def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = Sl
             backend.finish()
             if mapper is not None:
                 mapper.live_map.finish()
-                mapper.save()
+                if mapper.save() is None:
+                    raise InputError(
+                        f"{mapper.out}: no map written: the session labelled "
+                        f"{mapper.live_map.store.n_rows} keypoints with depth, a map needs "
+                        f"{config.live.learner.min_rows} (`live`.learner.min_rows)")
         except KeyboardInterrupt:
             if mapper is None or mapper.out is None:
                 raise
