@@ -220,15 +220,34 @@ def tum_line(name: str, world_from_cam: Rigid3) -> str:
     return name + " " + " ".join(f"{v:.6f}" for v in vals)
 
 
+MAX_STAMP_S = 1e12  # seconds (31 700 years): larger values are ms, us or ns since an epoch
+
+
+def check_stamp(stamp: float, source: str) -> float:
+    """A timestamp (or frame index) in seconds: finite and within +-MAX_STAMP_S, else
+    InputError naming `source`. The one rule of trajectory and odometry files, the command
+    line and the service's frames."""
+    if not np.isfinite(stamp):
+        raise InputError(f"{source}: timestamp {stamp!r} is not finite")
+    if abs(stamp) > MAX_STAMP_S:
+        unit = next((u for u, scale in (("milliseconds", 1e3), ("microseconds", 1e6),
+                                        ("nanoseconds", 1e9))
+                     if abs(stamp) / scale <= 1e11), "another unit")  # Unix seconds < 1e11
+        raise InputError(f"{source}: timestamp {stamp:.17g} is beyond {MAX_STAMP_S:g} s: "
+                         f"timestamps are seconds (this looks like {unit})")
+    return stamp
+
+
 def parse_stamp(text: str, source: str) -> float:
-    """A timestamp (or frame index) field: a finite number, else InputError naming `source`."""
+    """A timestamp (or frame index) field: a number, in seconds (`check_stamp`), else
+    InputError naming `source`."""
     try:
         stamp = float(text)
     except ValueError:
         raise InputError(f"{source}: timestamp {text[:40]!r} is not a number") from None
     if not np.isfinite(stamp):
         raise InputError(f"{source}: timestamp {text[:40]!r} is not finite")
-    return stamp
+    return check_stamp(stamp, source)
 
 
 def parse_tum_line(line: str, source: str = "trajectory",
@@ -322,6 +341,14 @@ def write_tum_trajectory(path, stamps, world_from_cam: list[Rigid3], comments=()
     if names is not None:
         with atomic_file(names_sidecar(path)) as tmp:
             tmp.write_text("".join(f"{t} {n}\n" for t, n in zip(rows, names)))
+
+
+def distinct_stamps(stamps) -> list[float]:
+    """A trajectory's first column: the frames' timestamps (seconds), or their indices where
+    timestamps repeat (several sequences), so that every row, and its frame name in the
+    names sidecar, stays distinct."""
+    stamps = [float(t) for t in stamps]
+    return stamps if len(set(stamps)) == len(stamps) else [float(i) for i in range(len(stamps))]
 
 
 def nearest_stamps(stamps, queries, max_dt: float) -> np.ndarray:

@@ -10,34 +10,57 @@ import typer
 
 from slamreloc.cli.choices import Engine
 from slamreloc.errors import InputError
+from slamreloc.service import MAX_REPLICAS
 
 TOKEN_ENV = "SLAMRELOC_TOKEN"
 
 
 def map_names(maps: list[Path], names: list[str]) -> dict[str, Path]:
-    """name -> folder: the `--name`s in order, then the folders' own names."""
+    """name -> folder: the `--name`s in order, then the folders' own names; each a name the
+    wire takes (`map_name_problem`: printable, no spaces, bounded). The folders are checked
+    where they are loaded; one whose name cannot be known (a symbolic link loop) is refused
+    here, saying what is there (`map_folder_problem`)."""
+    from slamreloc.map.format import map_folder_problem
+    from slamreloc.proto.messages import map_name_problem, quoted
+
     if len(names) > len(maps):
-        raise InputError(f"{len(names)} --name for {len(maps)} maps")
+        raise InputError(f"{len(names)} `name` for {len(maps)} maps")
     out: dict[str, Path] = {}
     for i, path in enumerate(maps):
-        name = names[i] if i < len(names) else path.resolve().name
-        if not name or any(c.isspace() for c in name):
-            raise InputError(f"{path}: map name {name!r} is empty or has spaces (use --name)")
+        try:
+            name = names[i] if i < len(names) else path.resolve().name
+        except (OSError, RuntimeError):  # a symbolic link loop
+            raise InputError(f"{path}: {map_folder_problem(path)}") from None
+        problem = map_name_problem(name)
+        if problem:
+            raise InputError(f"{path}: map name {quoted(name, 40)} {problem} (`name`)")
         if name in out:
-            raise InputError(f"{path}: two maps named {name!r} (use --name)")
+            raise InputError(f"{path}: two maps named {quoted(name, 40)} (`name`)")
         out[name] = path
     return out
 
 
 def read_token(token_file: Path | None) -> str | None:
+    """The token from `token_file`, else $SLAMRELOC_TOKEN, else None; InputError naming its
+    source for one gRPC could not carry (`token_problem`)."""
+    from slamreloc.service.server import token_problem
+
     if token_file is not None:
         from slamreloc.io.fileio import read_text
 
         token = read_text(token_file, "token (`token_file`)", 1 << 16).strip()
-        if not token:
-            raise InputError(f"{token_file}: empty token file")
-        return token
-    return os.environ.get(TOKEN_ENV) or None
+        source = f"{token_file}: the token (`token_file`)"
+    else:
+        token = os.environ.get(TOKEN_ENV) or None
+        source = f"the token in ${TOKEN_ENV}"
+    if token is None:
+        return None
+    if not token:
+        raise InputError(f"{token_file}: empty token file")
+    problem = token_problem(token)
+    if problem:
+        raise InputError(f"{source} {problem}")
+    return token
 
 
 def require_ray() -> None:
@@ -78,8 +101,11 @@ def serve(
     # the options in their own units (the service's config takes bytes and seconds); NaN fails
     if not 1 / 16 <= max_request_mb <= 2047:
         raise InputError(f"--max-request-mb {max_request_mb}: 0.0625 to 2047")
-    if not 0 <= watch < float("inf"):
-        raise InputError(f"--watch {watch}: seconds between checks, 0 (only ReloadMap) or more")
+    from slamreloc.service.server import WATCH_RULE, check_seconds
+
+    check_seconds(watch, "watch", **WATCH_RULE)
+    if not 1 <= replicas <= MAX_REPLICAS:  # whatever the engine: a value is right or wrong
+        raise InputError(f"`replicas` {replicas}: 1 to {MAX_REPLICAS}")
     named = map_names(maps, list(name or []))
     token = read_token(token_file)
     if engine == Engine.ray:

@@ -24,6 +24,8 @@ refused with a message naming both versions.
 
 from __future__ import annotations
 
+import errno
+import stat
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -34,6 +36,7 @@ import numpy as np
 from slamreloc.errors import InputError
 from slamreloc.geometry import MAX_COORDINATE
 from slamreloc.io.fileio import open_regular, regular_size, sha256_of
+from slamreloc.types import MAX_INTRINSIC
 
 MAP_FORMAT = "slamreloc-map"
 FORMAT_VERSION = 2  # 1: regressor.pt (torch pickle); 2: regressor.npz + checksums
@@ -51,10 +54,48 @@ def is_map(path: str | Path) -> bool:
     return (Path(path) / META).is_file()
 
 
+def entry_kind(path: Path) -> str:
+    """What is at `path` (symbolic links followed), in words: "missing", "a folder", "a
+    regular file", "a named pipe", "a device", "a socket", "a symbolic link loop", "a
+    dangling symbolic link", or "unreadable (REASON)"."""
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        return "a dangling symbolic link" if path.is_symlink() else "missing"
+    except OSError as err:
+        return ("a symbolic link loop" if err.errno == errno.ELOOP
+                else f"unreadable ({err.strerror or err})")
+    return ("a folder" if stat.S_ISDIR(mode) else "a regular file" if stat.S_ISREG(mode)
+            else "a named pipe" if stat.S_ISFIFO(mode)
+            else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+            else "a socket" if stat.S_ISSOCK(mode) else "not a file")
+
+
+def map_folder_problem(path: str | Path) -> str | None:
+    """Why `path` is not a map folder, saying what is there instead ("not a slamreloc map (map
+    folder not found)", "...: a regular file is there, not a folder", "...: slamreloc_map.json
+    is not a regular file (a named pipe)"); None for a folder holding a regular metadata
+    file."""
+    path = Path(path)
+    kind = entry_kind(path)
+    if kind == "missing":
+        return "not a slamreloc map (map folder not found)"
+    if kind != "a folder":
+        return f"not a slamreloc map: {kind} is there, not a folder"
+    meta = entry_kind(path / META)
+    if meta == "missing":
+        return f"not a slamreloc map (no {META})"
+    if meta != "a regular file":
+        return f"not a slamreloc map: {META} is not a regular file ({meta})"
+    return None
+
+
 def check_is_map(path: str | Path) -> None:
-    """InputError unless `path` is a map folder (it holds the metadata file)."""
-    if not is_map(path):
-        raise InputError(f"{path}: not a slamreloc map (no {META})")
+    """InputError unless `path` is a map folder (it holds the metadata file), saying what is
+    there instead (`map_folder_problem`)."""
+    problem = map_folder_problem(path)
+    if problem:
+        raise InputError(f"{path}: {problem}")
 
 
 def sha256_file(path: Path, what: str = "map file") -> str:
@@ -156,6 +197,8 @@ def check_database(arrays: dict[str, np.ndarray], path: Path, dim: int,
     if len(pts) and np.abs(pts).max() > MAX_COORDINATE:
         raise InputError(f"{path}: 'points' beyond {MAX_COORDINATE:g} m")
     check(kps, "keypoints", (m, 2), "f")
+    if len(kps) and np.abs(kps).max() > MAX_INTRINSIC:  # the pixel bound of a camera
+        raise InputError(f"{path}: 'keypoints' beyond {MAX_INTRINSIC:g} pixels")
     check(idx, "frame_index", (m,), "iu")
     check(poses, "world_from_cam", (None, 4, 4), "f")
     if m == 0:

@@ -27,6 +27,7 @@ from slamreloc.map.format import (
     WEIGHTS,
     check_database,
     check_digest,
+    check_is_map,
     check_provenance,
     is_map,
     read_npz,
@@ -84,10 +85,7 @@ class SceneMap:
         database only)."""
         root = Path(path)
         clean_leftovers(root)
-        if not root.is_dir():
-            raise InputError(f"{root}: map folder not found")
-        if not is_map(root):
-            raise InputError(f"{root}: not a slamreloc map (no {META})")
+        check_is_map(root)  # says what is there instead: a file, a pipe, a link loop
         info = MapMeta.read(root)
         digests: dict[str, str] = {}
         if regressor:
@@ -114,7 +112,9 @@ class SceneMap:
     def database(self) -> MapDatabase:
         path = self.root / DATABASE
         if not path.exists() and not path.is_symlink():
-            raise InputError(f"{path}: map has no training database")
+            raise InputError(f"{path}: the map lists a training database (with its checksum) "
+                             "but the file is missing" if self.lists_database
+                             else f"{path}: map has no training database")
         expected = (self.info.files or {}).get(DATABASE) if self.format_version >= 2 else None
         if self.format_version >= 2 and expected is None:
             raise InputError(f"{path}: no checksum for it in {META}")
@@ -132,7 +132,10 @@ class SceneMap:
         if not path.exists() and not path.is_symlink():
             raise InputError(f"{path}: the map lists a surface but the file is missing")
         arrays = read_npz(path, "surface", self.info.files[SURFACE], self.digests)
-        return Surface.from_arrays(arrays, str(path))
+        surface = Surface.from_arrays(arrays, str(path))
+        if len(surface.points) == 0:  # would be served as a surface that never refines
+            raise InputError(f"{path}: the surface holds no points")
+        return surface
 
     @cached_property
     def provenance(self) -> MapProvenance | None:
@@ -160,6 +163,21 @@ class SceneMap:
 
     def database_bytes(self) -> int:
         return (self.root / DATABASE).stat().st_size
+
+    @property
+    def lists_database(self) -> bool:
+        """Whether the metadata lists a training database with its checksum (format 2): a
+        reader that must serve the map as written (`slamreloc serve`) refuses it missing."""
+        return self.format_version >= 2 and DATABASE in (self.info.files or {})
+
+    @property
+    def provenance_unverified(self) -> bool:
+        """Whether `provenance` is read without a checksum: the folder holds provenance.npz
+        but the metadata does not list it (a map updated before provenance was checksummed,
+        or a file dropped in later)."""
+        path = self.root / PROVENANCE
+        return (PROVENANCE not in (self.info.files or {})
+                and (path.exists() or path.is_symlink()))
 
     @property
     def has_database(self) -> bool:

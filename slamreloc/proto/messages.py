@@ -25,6 +25,21 @@ DEPTH_REFERENCE_SIZE = (640, 480)  # a request's depth camera is held at this si
 
 
 QUOTE_LIMIT = 80  # characters of client-supplied text a refusal's message repeats
+MAX_MAP_NAME = 128  # characters of a served map's name
+
+
+def map_name_problem(name: str) -> str | None:
+    """Why `name` cannot name a served map (None when it can): 1 to MAX_MAP_NAME printable
+    characters without spaces (no control, format or line characters: the name is printed in
+    the server's log and sent in every MapInfo)."""
+    if not name:
+        return "is empty"
+    if len(name) > MAX_MAP_NAME:
+        return f"has {len(name)} characters, more than {MAX_MAP_NAME}"
+    bad = next((c for c in name if not c.isprintable() or c.isspace()), None)
+    if bad is not None:
+        return f"holds {bad!a}: printable characters without spaces only"
+    return None
 
 
 def quoted(text, limit: int = QUOTE_LIMIT) -> str:
@@ -147,6 +162,9 @@ def camera_from_msg(msg: pb.Camera | None, width: int, height: int, default: Cam
             if (p.width, p.height) != (width, height):
                 raise InputError(f"{p.width}x{p.height}, the image is {width}x{height}")
             return Camera(p.width, p.height, p.fx, p.fy, p.cx, p.cy)
+        if msg.colmap.split()[:1] and msg.colmap.split()[0].isdigit():
+            raise InputError("a COLMAP camera string without its camera id, 'MODEL WIDTH "
+                             f"HEIGHT PARAMS...', got {quoted(msg.colmap[:60])}")
         return Camera.parse(msg.colmap, what).for_image(width, height, what)
     except (InputError, ValueError, OverflowError, ZeroDivisionError) as err:
         text = str(err)  # Camera.parse names its source already
@@ -169,12 +187,27 @@ def depth_camera_from_msg(msg: pb.PinholeCamera, what: str) -> Camera:
     `SessionOpen.depth_camera`; pinhole, pixels), checked and held at DEPTH_REFERENCE_SIZE
     (640x480): every use scales it to its depth map's size (`slamreloc.rgbd.camera_of_depth`),
     a camera that does not hold at that size is refused here, when it is given, and the
-    arithmetic, hence the poses, are those of earlier versions of the service."""
+    arithmetic, hence the poses, are those of earlier versions of the service. Its aspect
+    ratio is checked against each depth map by `check_depth_camera`."""
     try:
         cam = Camera(msg.width, msg.height, msg.fx, msg.fy, msg.cx, msg.cy)
         return cam.scaled_to(*DEPTH_REFERENCE_SIZE)
     except (InputError, ValueError, ZeroDivisionError) as err:
         raise ServiceError(pb.BAD_CAMERA, f"{what}: {err}") from None
+
+
+def check_depth_camera(msg: pb.PinholeCamera, depth: np.ndarray, what: str) -> None:
+    """BAD_CAMERA naming `what` unless the depth camera as given (`msg`, checked by
+    `depth_camera_from_msg`) has the depth map's aspect ratio: `Camera.for_image`, the one
+    rule wherever a camera meets an image (never stretched)."""
+    try:
+        Camera(msg.width, msg.height, msg.fx, msg.fy, msg.cx, msg.cy).for_image(
+            depth.shape[1], depth.shape[0], f"{what} for the depth map")
+    except InputError as err:
+        raise ServiceError(pb.BAD_CAMERA, str(err)) from None
+
+
+DEPTH_ITEM_BYTES = {pb.Depth.UINT16: 2, pb.Depth.FLOAT32_METRES: 4}  # raw encodings
 
 
 def depth_from_msg(msg: pb.Depth, registered_size: tuple[int, int] | None,
@@ -185,6 +218,9 @@ def depth_from_msg(msg: pb.Depth, registered_size: tuple[int, int] | None,
     try:
         if not (np.isfinite(units) and 1e-3 <= units <= 1e6):
             raise InputError(f"units_per_metre must be in [0.001, 1e6], got {units:g}")
+        if msg.encoding != pb.Depth.PNG16 and msg.encoding not in DEPTH_ITEM_BYTES:
+            raise InputError(f"unknown encoding {msg.encoding} (PNG16, UINT16 or "
+                             "FLOAT32_METRES)")
         if msg.encoding == pb.Depth.PNG16:
             header = encoded_header(msg.data, what, "depth")  # colour would become grey
             if header.channels != 1 or header.bits != 16:
@@ -197,18 +233,16 @@ def depth_from_msg(msg: pb.Depth, registered_size: tuple[int, int] | None,
             depth = raw.astype(np.float32) / units
         else:
             check_image_size(msg.width, msg.height, what, "depth")
-            item = 4 if msg.encoding == pb.Depth.FLOAT32_METRES else 2
+            item = DEPTH_ITEM_BYTES[msg.encoding]
             expected = msg.width * msg.height * item
             if len(msg.data) != expected:
                 raise InputError(f"{msg.width}x{msg.height} needs {expected} bytes, got "
                                  f"{len(msg.data)}")
             if msg.encoding == pb.Depth.FLOAT32_METRES:
                 depth = np.frombuffer(msg.data, "<f4").reshape(msg.height, msg.width).copy()
-            elif msg.encoding == pb.Depth.UINT16:
+            else:
                 depth = (np.frombuffer(msg.data, "<u2").reshape(msg.height, msg.width)
                          .astype(np.float32) / units)
-            else:
-                raise InputError(f"unknown encoding {msg.encoding}")
         depth[~np.isfinite(depth) | (depth < 0) | (depth > 1e3)] = 0.0
         if registered_size is not None and (depth.shape[1], depth.shape[0]) != registered_size:
             w, h = registered_size

@@ -11,6 +11,7 @@ from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
     ServiceError,
     camera_from_msg,
+    check_depth_camera,
     depth_camera_from_msg,
     depth_from_msg,
     image_from_msg,
@@ -25,6 +26,19 @@ ICP = IcpConfig()  # the depth refinement, as `slamreloc evaluate --depth`
 MIN_KEYPOINTS = 4  # PnP needs four correspondences
 
 
+def prior_limits(request: pb.LocalizeRequest) -> tuple[float, float]:
+    """(prior_max_m metres, prior_max_deg degrees): each checked whenever it is set, with or
+    without a prior (0: the default); BAD_POSE naming the field otherwise."""
+    out = []
+    for name, default in (("prior_max_m", PRIOR_MAX_M), ("prior_max_deg", PRIOR_MAX_DEG)):
+        value = getattr(request, name)
+        if value != 0 and not 0 < value < float("inf"):  # NaN fails
+            raise ServiceError(pb.BAD_POSE, f"{name} {value!r}: a positive finite number "
+                               "(0: the default)")
+        out.append(value or default)
+    return out[0], out[1]
+
+
 def localize(served: ServedMap, request: pb.LocalizeRequest) -> pb.LocalizeResponse:
     """Answer one request from `served`; ServiceError for a defective request."""
     t0 = time.perf_counter()
@@ -36,15 +50,15 @@ def localize(served: ServedMap, request: pb.LocalizeRequest) -> pb.LocalizeRespo
                                  scene_map.camera)
         prior = (rigid_from_msg(request.world_from_cam_prior, "world_from_cam_prior")
                  if request.HasField("world_from_cam_prior") else None)
-        limits = (request.prior_max_m or PRIOR_MAX_M, request.prior_max_deg or PRIOR_MAX_DEG)
-        if prior is not None and not all(0 < v < float("inf") for v in limits):
-            raise ServiceError(pb.BAD_POSE, "prior_max_m and prior_max_deg must be positive")
+        limits = prior_limits(request)
         depth = depth_camera = None  # depth_camera None: depth registered to the image
         if request.HasField("depth"):
             if request.depth.HasField("depth_camera"):
                 depth_camera = depth_camera_from_msg(request.depth.depth_camera,
                                                      "depth.depth_camera")
             depth = depth_from_msg(request.depth, (w, h) if depth_camera is None else None)
+            if depth_camera is not None:
+                check_depth_camera(request.depth.depth_camera, depth, "depth.depth_camera")
         t1 = time.perf_counter()
         result = loc.localize(image, camera)
     est = result.estimate

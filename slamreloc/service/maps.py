@@ -17,13 +17,14 @@ import time
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 
 from slamreloc.errors import InputError
 from slamreloc.localize.localizer import RegressorLocalizer
-from slamreloc.map.format import DATABASE, META
+from slamreloc.map.format import DATABASE, META, PROVENANCE
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import ServiceError, quoted
 from slamreloc.map.scene_map import SceneMap
@@ -37,6 +38,15 @@ def folder_stamp(path: Path) -> tuple[int, int, int]:
         return path.stat().st_ino, meta.st_mtime_ns, meta.st_size
     except OSError:
         return 0, 0, 0
+
+
+class LoadCancelled(Exception):
+    """A map load given up because the server stops."""
+
+
+# the event that cancels the map load running in this context (set by `_Load` on its thread)
+CANCEL_LOAD: ContextVar[threading.Event | None] = ContextVar("slamreloc_cancel_load",
+                                                             default=None)
 
 
 @dataclass(frozen=True)
@@ -53,17 +63,32 @@ class ServedMap:
     def load(name: str, path: Path) -> ServedMap:
         """Read and check every file the map is served from - the regressor, the training
         database, the surface (depth refinement), the provenance - each against its checksum
-        as it is read; InputError for a defect. The version is computed from the contents
-        actually read, so a folder replaced by one with the same metadata but other files has
-        another version (or fails its checks). A folder replaced while it is read fails its
-        digests: read again, twice."""
+        as it is read; InputError for a defect, including a file the metadata lists that is
+        missing (a training database too: a served map is served as written). The version is
+        computed from the contents actually read, so a folder replaced by one with the same
+        metadata but other files has another version (or fails its checks). A folder replaced
+        while it is read fails its digests: read again, twice. The registry's stop event set
+        (`CANCEL_LOAD`, the server stopping): `LoadCancelled` between files."""
+        cancelled = CANCEL_LOAD.get()
+
+        def step() -> None:
+            if cancelled is not None and cancelled.is_set():
+                raise LoadCancelled(f"map {quoted(name)}: load cancelled (the server stops)")
+
         for attempt in range(3):
+            step()
             stamp = folder_stamp(path)
             try:
                 scene_map = SceneMap.load(path)
-                if scene_map.has_database:
+                step()
+                if scene_map.has_database or scene_map.lists_database:
                     _ = scene_map.database
+                step()
                 _ = scene_map.surface
+                if scene_map.provenance_unverified:  # documented: read without a checksum
+                    warnings.warn(f"map {quoted(name)}: {path / PROVENANCE} is not listed in "
+                                  f"{META}: served without checking its checksum (rewrite the "
+                                  "map to list it)", stacklevel=1)
                 _ = scene_map.provenance
             except InputError:
                 if attempt == 2 or folder_stamp(path) == stamp:
@@ -117,17 +142,22 @@ def content_version(scene_map: SceneMap) -> str:
 
 
 class _Load:
-    """One load of a map folder on a thread of its own; `done` is set when it ends."""
+    """One load of a map folder on a thread of its own; `done` is set when it ends. The thread
+    is not a daemon: the interpreter never exits under it (torch torn down under a running
+    load aborts the process); `MapRegistry.close` cancels it between files and waits."""
 
-    def __init__(self, name: str, path: Path):
+    def __init__(self, name: str, path: Path, cancelled: threading.Event):
         self.done = threading.Event()
+        self.waited = True  # a caller waits for it (False once it gave up: the next may wait)
+        self.started = time.monotonic()
         self.result: ServedMap | None = None
         self.error: BaseException | None = None
-        self.thread = threading.Thread(target=self._run, args=(name, path), daemon=True,
+        self.thread = threading.Thread(target=self._run, args=(name, path, cancelled),
                                        name=f"map-load-{name[:40]}")
         self.thread.start()
 
-    def _run(self, name: str, path: Path) -> None:
+    def _run(self, name: str, path: Path, cancelled: threading.Event) -> None:
+        CANCEL_LOAD.set(cancelled)  # this thread's own context
         try:
             self.result = ServedMap.load(name, path)
         except BaseException as err:  # noqa: BLE001 - handed to the waiting request
@@ -139,7 +169,9 @@ class _Load:
 class MapRegistry:
     """name -> ServedMap. `get` never blocks on a reload; a reload never blocks for longer
     than `load_timeout_s` (then it is refused, OVERLOADED, and the map already loaded keeps
-    serving), and at most one load of each map runs at a time."""
+    serving); at most one load of each map runs at a time, one caller waits for it, and a
+    reload asked for meanwhile is refused at once (OVERLOADED): a caller never queues behind
+    another's."""
 
     def __init__(self, maps: dict[str, Path], load_timeout_s: float = 300.0):
         self._maps = {name: ServedMap.load(name, Path(path)) for name, path in maps.items()}
@@ -147,6 +179,7 @@ class MapRegistry:
         self._reload_lock = threading.Lock()  # held only to look up and to swap, never to load
         self._loading: dict[str, _Load] = {}
         self._stop = threading.Event()
+        self._watcher: threading.Thread | None = None
 
     @property
     def names(self) -> list[str]:
@@ -166,30 +199,45 @@ class MapRegistry:
     def all(self) -> list[ServedMap]:
         return list(self._maps.values())
 
+    def loading(self, name: str) -> bool:
+        """Whether a load of the map `name` is running."""
+        load = self._loading.get(name)
+        return load is not None and not load.done.is_set()
+
     def reload(self, name: str, force: bool = True) -> tuple[ServedMap, bool]:
         """Load the map's folder again and swap it in; (the map now served, whether its content
         changed since this call began). force=False: only when the folder's stamp changed.
-        At most one load of a map runs at a time: a reload while one runs waits for that one.
-        ServiceError OVERLOADED when the load outlasts `load_timeout_s` (it is left to finish
-        on its own: the next reload takes its result if it is still running then); INTERNAL
-        for a folder that fails its checks. The map already loaded serves meanwhile, and on
-        either refusal."""
+        ServiceError OVERLOADED at once while another caller waits for a load of the map (at
+        most one runs, and one caller waits for it), and when the load outlasts
+        `load_timeout_s` (it is left to finish on its own: the next reload waits for it and
+        takes its result if it still runs then); INTERNAL for a folder that fails its checks. The map already loaded serves meanwhile, and on any refusal."""
         with self._reload_lock:
+            if self._stop.is_set():
+                raise ServiceError(pb.OVERLOADED, "the server is stopping")
             old = self.get(name)
             load = self._loading.get(old.name)
-            if load is not None and load.done.is_set():  # finished with no one waiting: stale
+            if load is not None and not load.done.is_set():
+                if load.waited:  # one caller waits for a map's load, never more
+                    raise ServiceError(pb.OVERLOADED, f"map {quoted(old.name)} is still "
+                                       f"loading (for {time.monotonic() - load.started:.1f} "
+                                       f"s); still serving version {old.version}: try again "
+                                       "when it is done")
+                load.waited = True  # its caller gave up: this one takes its result
+            elif load is not None:  # finished with no one waiting: stale
                 del self._loading[old.name]
                 load = None
             if load is None:
                 if not force and folder_stamp(old.path) in (old.stamp, (0, 0, 0)):
                     return old, False
-                load = self._loading[old.name] = _Load(old.name, old.path)
+                load = self._loading[old.name] = _Load(old.name, old.path, self._stop)
         if not load.done.wait(self.load_timeout_s):
+            with self._reload_lock:
+                load.waited = False
             raise ServiceError(pb.OVERLOADED, f"map {quoted(old.name)} not reloaded: reading "
                                f"its folder takes over {self.load_timeout_s:g} s; still serving "
                                f"version {old.version}")
         with self._reload_lock:
-            if self._loading.get(old.name) is load:  # the first waiter swaps it in
+            if self._loading.get(old.name) is load:
                 del self._loading[old.name]
                 if load.error is None:
                     current, new = self._maps.get(old.name, old), load.result
@@ -197,34 +245,40 @@ class MapRegistry:
                         new = replace(current, stamp=new.stamp)
                     self._maps = {**self._maps, old.name: new}  # one assignment: readers see
                     # the old map or the new one
-            if isinstance(load.error, InputError):
-                raise ServiceError(pb.INTERNAL, f"map {quoted(old.name)} not reloaded, still "
-                                   f"serving version {self.get(old.name).version}: "
-                                   f"{load.error}") from None
-            if load.error is not None:
-                raise load.error
-            now = self.get(old.name)
-            return now, now.version != old.version
+        if isinstance(load.error, LoadCancelled):
+            raise ServiceError(pb.OVERLOADED, str(load.error)) from None
+        if isinstance(load.error, InputError):
+            raise ServiceError(pb.INTERNAL, f"map {quoted(old.name)} not reloaded, still "
+                               f"serving version {self.get(old.name).version}: "
+                               f"{load.error}") from None
+        if load.error is not None:
+            raise load.error
+        now = self.get(old.name)
+        return now, now.version != old.version
 
     def watch(self, interval_s: float, on_reload=None) -> threading.Thread:
         """Reload any map whose folder was replaced, checking every `interval_s` seconds;
         `on_reload(ServedMap)` after each swap. Stops with `close`. A map that fails to load
-        is reported once per version of its folder, and retried when the folder changes."""
+        is reported once per version of its folder, and retried when the folder changes; a
+        map whose load (a ReloadMap's) is running is looked at again next time."""
         failed: dict[str, tuple[int, int, int]] = {}
 
         def run():
             while not self._stop.wait(interval_s):
                 for name in self.names:
+                    if self._stop.is_set():
+                        return
                     try:
                         served = self.get(name)
                         stamp = folder_stamp(served.path)
-                        if failed.get(name) == stamp:
+                        if failed.get(name) == stamp or self.loading(name):
                             continue
                         served, changed = self.reload(name, force=False)
                     except ServiceError as err:
                         if err.kind != pb.OVERLOADED:  # a load still running: try again later
                             failed[name] = stamp
-                        warnings.warn(err.message, stacklevel=1)
+                        if not self._stop.is_set():
+                            warnings.warn(err.message, stacklevel=1)
                         continue
                     except Exception as err:  # noqa: BLE001 - the watch carries on
                         failed[name] = stamp
@@ -235,9 +289,17 @@ class MapRegistry:
                     if changed and on_reload is not None:
                         on_reload(served)
 
-        thread = threading.Thread(target=run, name="map-watch", daemon=True)
+        thread = self._watcher = threading.Thread(target=run, name="map-watch", daemon=True)
         thread.start()
         return thread
 
     def close(self) -> None:
+        """Stop the watch and every load: a load is cancelled between the files it reads and
+        waited for (a file being read is finished first), so no load thread outlives this."""
         self._stop.set()
+        with self._reload_lock:
+            loads = list(self._loading.values())
+        for load in loads:
+            load.thread.join()
+        if self._watcher is not None and self._watcher is not threading.current_thread():
+            self._watcher.join()

@@ -57,6 +57,8 @@ from slamreloc.errors import InputError
 from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import ERROR_METADATA_KEY, ServiceError, quoted
+from slamreloc.service import MAX_REPLICAS
+from slamreloc.service.server import WATCH_RULE, check_seconds, token_problem
 
 if TYPE_CHECKING:
     from ray.serve.deployment import Application
@@ -147,8 +149,9 @@ class Router:
         self._requests += 1
         if self._token is None:
             return
-        given = dict(context.invocation_metadata()).get("authorization", "")
-        if not hmac.compare_digest(str(given).encode(), f"Bearer {self._token}".encode()):
+        given = [v for k, v in context.invocation_metadata() if k == "authorization"]
+        if len(given) != 1 or not hmac.compare_digest(  # two values: refused, in any order
+                str(given[0]).encode(), f"Bearer {self._token}".encode()):
             raise ServiceError(pb.UNAUTHENTICATED, "missing or wrong token")
 
     def _handle(self, name: str) -> DeploymentHandle:
@@ -249,12 +252,13 @@ def application(maps: dict[str, Path], replicas: int = 1, *, replica_cpus: float
                 token: str | None = None, watch_s: float = WATCH_S) -> Application:
     """The Serve application: a `MapReplica` deployment per map (`replicas` each, `replica_cpus`
     Ray CPUs each) behind one `Router`."""
-    if not 1 <= replicas <= 256:
-        raise InputError(f"`replicas` {replicas}: 1 to 256")
+    if not 1 <= replicas <= MAX_REPLICAS:
+        raise InputError(f"`replicas` {replicas}: 1 to {MAX_REPLICAS}")
     if not 0 < replica_cpus <= 64:
         raise InputError(f"replica_cpus {replica_cpus}: more than 0, at most 64")
-    if token is not None and len(token) < 16:
-        raise InputError("the token must have at least 16 characters")
+    if token is not None and token_problem(token):
+        raise InputError(f"the token {token_problem(token)}")
+    check_seconds(watch_s, "watch_s", **WATCH_RULE)
     handles = {
         name: MapReplica.options(name=f"map-{name}", num_replicas=replicas,
                                  ray_actor_options={"num_cpus": replica_cpus})

@@ -1,8 +1,15 @@
 """The gRPC server of `slamreloc serve`: maps loaded once, requests on a thread pool.
 
 Concurrency: `workers` localizations run at once (a semaphore shared by `Localize` and session
-frames); with more than one, torch's threads are split between them. Each session holds one
-thread of the pool for its lifetime, and at most `max_sessions` are open.
+frames); with more than one, torch's threads are split between them. Every call that can wait
+holds a thread of the pool, so each kind is bounded and the pool is sized for all of them at
+once, which leaves threads for Health and ListMaps whatever the load: at most `max_queued`
+Localize calls wait for a worker (more are refused OVERLOADED at once), none waits past its
+own deadline or `queue_wait_s`, and one whose call ended meanwhile is dropped before it
+computes; a session holds a thread for its lifetime (at most `max_sessions` open, and as many
+opening, each within `open_timeout_s` of its SessionOpen, and cancelled after
+`session_idle_s` without a message); one ReloadMap per map waits for its load (another is
+refused OVERLOADED at once).
 
 Safety: the server binds 127.0.0.1 unless told otherwise, and a non-local address needs a token
 (`authorization: Bearer TOKEN` metadata, compared in constant time) or TLS with a token. Messages
@@ -15,15 +22,19 @@ carries on. Nothing on the wire is pickled: protobuf only.
 
 from __future__ import annotations
 
+import errno
 import hmac
 import ipaddress
 import os
 import signal
+import socket
 import sys
 import threading
 import time
 import traceback
+from collections.abc import Iterator
 from concurrent import futures
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,6 +54,10 @@ SERVICE_NAME = pb.DESCRIPTOR.services_by_name["Relocalizer"].full_name
 LOOPBACK_NAMES = ("localhost",)
 
 
+MIN_WATCH_S = 0.01  # the shortest `watch_s`: a check of every map folder per interval
+MIN_TOKEN = 16  # characters
+
+
 @dataclass(frozen=True)
 class ServeConfig:
     host: str = "127.0.0.1"
@@ -55,33 +70,72 @@ class ServeConfig:
     max_request_bytes: int = 32 << 20
     watch_s: float = 2.0  # reload maps whose folder was replaced; 0: only on ReloadMap
     load_timeout_s: float = 300.0  # a reload reading a map folder longer is refused (OVERLOADED)
+    max_queued: int = 16  # Localize calls waiting for a worker; more are refused (OVERLOADED)
+    queue_wait_s: float = 60.0  # the longest a call waits for a worker (less: its deadline)
+    open_timeout_s: float = 10.0  # a session stream must send its SessionOpen within this
+    session_idle_s: float = 600.0  # a session that sends nothing for this long is cancelled
 
     def check(self) -> None:
         """InputError for a configuration that must not run (a non-local bind without a token,
-        half a TLS pair, out-of-range numbers)."""
+        half a TLS pair, a token gRPC cannot carry, out-of-range numbers)."""
         if not 0 <= self.port <= 65535:
             raise InputError(f"`port` {self.port}: not a TCP port")
         if not 1 <= self.workers <= 256:
             raise InputError(f"`workers` {self.workers}: 1 to 256")
         if not 1 <= self.max_sessions <= 4096:
             raise InputError(f"`max_sessions` {self.max_sessions}: 1 to 4096")
+        if not 0 <= self.max_queued <= 4096:
+            raise InputError(f"`max_queued` {self.max_queued}: 0 to 4096")
         if not (1 << 16) <= self.max_request_bytes <= (2 << 30) - 1:
             raise InputError(f"`max_request_bytes` {self.max_request_bytes}: 65536 to "
                              f"{(2 << 30) - 1}")
-        if not 0 <= self.watch_s < float("inf"):  # NaN too
-            raise InputError(f"`watch_s` {self.watch_s}: seconds between checks, 0 (only "
-                             "ReloadMap) or more")
-        if not 0 < self.load_timeout_s < float("inf"):
-            raise InputError(f"`load_timeout_s` {self.load_timeout_s}: seconds, more than 0")
+        check_seconds(self.watch_s, "watch_s", **WATCH_RULE)
+        for setting in ("load_timeout_s", "queue_wait_s", "open_timeout_s", "session_idle_s"):
+            check_seconds(getattr(self, setting), setting, 0.001)
         if (self.tls_cert is None) != (self.tls_key is None):
             raise InputError("`tls_cert` and `tls_key` go together")
-        if self.token is not None and len(self.token) < 16:
-            raise InputError("the token must have at least 16 characters")
+        if self.token is not None:
+            problem = token_problem(self.token)
+            if problem:
+                raise InputError(f"the token (`token_file` or SLAMRELOC_TOKEN) {problem}")
+        if not self.host:
+            raise InputError("`host` is empty: an address or a host name to bind")
         if not is_loopback(self.host) and self.token is None:
             raise InputError(f"`host` {self.host} is not a loopback address: anyone who reaches "
                              "it could use the server; give a token (`token_file` or "
                              "SLAMRELOC_TOKEN), and TLS (`tls_cert`/`tls_key`) off a trusted "
                              "network")
+
+
+def check_seconds(seconds: float, setting: str, minimum: float, what: str = "seconds",
+                  zero: str | None = None) -> None:
+    """InputError naming `setting` (`what` its seconds are) unless `seconds` lies in
+    [minimum, threading.TIMEOUT_MAX] (the longest wait Python's threads take; NaN fails), or
+    is 0 where `zero` says what 0 means. The one rule for every interval and timeout of the
+    service, command line or config."""
+    if zero is not None and seconds == 0:
+        return
+    if not minimum <= seconds <= threading.TIMEOUT_MAX:
+        off = f"0 ({zero}) or " if zero is not None else ""
+        raise InputError(f"`{setting}` {seconds}: {what}, {off}{minimum:g} to "
+                         f"{threading.TIMEOUT_MAX:.4g}")
+
+
+WATCH_RULE = {"minimum": MIN_WATCH_S, "what": "seconds between checks of the map folders",
+              "zero": "only ReloadMap"}  # `check_seconds` of `watch_s` / --watch
+
+
+def token_problem(token: str) -> str | None:
+    """Why `token` cannot be the server's token (None when it can): at least MIN_TOKEN
+    characters of printable ASCII without spaces - what gRPC metadata carries, so a client
+    can send it at all."""
+    if len(token) < MIN_TOKEN:
+        return f"must have at least {MIN_TOKEN} characters"
+    bad = next((c for c in token if not 0x21 <= ord(c) <= 0x7E), None)
+    if bad is not None:
+        return (f"must be printable ASCII without spaces or line breaks (gRPC metadata carries "
+                f"nothing else), got {bad!a}")
+    return None
 
 
 def is_loopback(host: str) -> bool:
@@ -93,8 +147,90 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+def listen_address(host: str, port: int) -> str:
+    """gRPC's `host:port`, an IPv6 literal in brackets ("[::1]:50051")."""
+    bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    return f"[{bare}]:{port}" if ":" in bare else f"{bare}:{port}"
+
+
+def bind_problem(host: str, port: int) -> InputError | None:
+    """Why the server could not listen on host:port, found before gRPC tries (which logs and
+    raises): an InputError naming `host` (not resolvable, not an address of this machine) or
+    `port` (in use, not allowed); None when a socket binds to one of its addresses."""
+    bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    try:
+        infos = socket.getaddrinfo(bare, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (socket.gaierror, UnicodeError) as err:
+        reason = getattr(err, "strerror", None) or str(err)
+        return InputError(f"`host` {quoted(host)}: not an address, nor a name this machine "
+                          f"resolves ({reason})")
+    first: OSError | None = None
+    for family, kind, proto, _, address in infos:
+        try:
+            with socket.socket(family, kind, proto) as probe:
+                probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as gRPC does
+                probe.bind(address)
+                return None
+        except OSError as err:
+            first = first or err
+    where = listen_address(host, port)
+    code = first.errno if first is not None else None
+    if code == errno.EADDRINUSE:
+        return InputError(f"`port` {port}: cannot listen on {where}: the port is in use")
+    if code == errno.EACCES:
+        return InputError(f"`port` {port}: cannot listen on {where}: not allowed (a port below "
+                          "1024 needs privileges)")
+    if code == errno.EADDRNOTAVAIL:
+        return InputError(f"`host` {quoted(host)}: cannot listen on {where}: not an address of "
+                          "this machine")
+    reason = first.strerror if first is not None else "no address"
+    return InputError(f"`host` {quoted(host)} / `port` {port}: cannot listen on {where} "
+                      f"({reason})")
+
+
+_LOG_LOCK = threading.Lock()
+
+
 def _log(message: str) -> None:
-    print(f"slamreloc serve: {message}", file=sys.stderr, flush=True)
+    """One line of the server's log on stderr, in one write (threads never interleave)."""
+    with _LOG_LOCK:
+        sys.stderr.write(f"slamreloc serve: {message}\n")
+        sys.stderr.flush()
+
+
+class StreamDeadlines:
+    """Cancels the streams that sent nothing in time (a session's SessionOpen, its next
+    message): one thread for all of them, woken every `tick_s` seconds."""
+
+    def __init__(self, tick_s: float = 0.2):
+        self.tick_s = tick_s
+        self._due: dict[int, tuple[float, grpc.ServicerContext]] = {}
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="stream-deadlines", daemon=True)
+        self._thread.start()
+
+    def arm(self, key: int, seconds: float, context: grpc.ServicerContext) -> None:
+        """Cancel `context` unless `disarm(key)` comes within `seconds`."""
+        with self._lock:
+            self._due[key] = (time.monotonic() + seconds, context)
+
+    def disarm(self, key: int) -> None:
+        with self._lock:
+            self._due.pop(key, None)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.tick_s):
+            now = time.monotonic()
+            with self._lock:
+                late = [key for key, (due, _) in self._due.items() if due <= now]
+                contexts = [self._due.pop(key)[1] for key in late]
+            for context in contexts:
+                context.cancel()  # the stream's handler sees its requests end: it returns
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
 
 
 class RelocalizerService:
@@ -103,10 +239,20 @@ class RelocalizerService:
     def __init__(self, registry: MapRegistry, config: ServeConfig):
         self.registry, self.config = registry, config
         self.compute = threading.BoundedSemaphore(config.workers)
+        self.deadlines = StreamDeadlines()
         self.started = time.time()
         self._count_lock = threading.Lock()
-        self.sessions = 0
+        self.sessions = 0  # open (SessionOpen answered)
+        self.opening = 0  # streams waiting for or checking their SessionOpen
+        self.localizing = 0  # Localize calls running or waiting for a worker
         self.requests = 0
+
+    @staticmethod
+    def pool_size(config: ServeConfig, n_maps: int) -> int:
+        """Threads for every call that may wait at once - localizations and those queued for a
+        worker, open and opening sessions, one ReloadMap per map - and four more for the rest
+        (Health, ListMaps, refusals), which therefore never wait behind them."""
+        return (config.workers + config.max_queued + 2 * config.max_sessions + n_maps + 4)
 
     # ---- plumbing ------------------------------------------------------------------------
     def _refuse(self, context: grpc.ServicerContext, err: ServiceError):
@@ -114,10 +260,14 @@ class RelocalizerService:
         context.abort(err.grpc_code, err.message)
 
     def _authorized(self, context: grpc.ServicerContext) -> bool:
+        """Whether the call carries the token: exactly one `authorization` value (two are
+        refused whatever their order), compared in constant time."""
         if self.config.token is None:
             return True
-        given = dict(context.invocation_metadata()).get("authorization", "")
-        return hmac.compare_digest(given.encode(), f"Bearer {self.config.token}".encode())
+        given = [v for k, v in context.invocation_metadata() if k == "authorization"]
+        if len(given) != 1 or not isinstance(given[0], str):
+            return False
+        return hmac.compare_digest(given[0].encode(), f"Bearer {self.config.token}".encode())
 
     def _unary(self, parse, handle):
         """A unary method: count, authenticate, parse the bytes, answer or refuse."""
@@ -128,7 +278,7 @@ class RelocalizerService:
             try:
                 if not self._authorized(context):
                     raise ServiceError(pb.UNAUTHENTICATED, "missing or wrong token")
-                return handle(parse_message(parse, body))
+                return handle(parse_message(parse, body), context)
             except ServiceError as err:
                 self._refuse(context, err)
             except Exception as err:  # noqa: BLE001 - answer, log, and keep serving
@@ -136,59 +286,132 @@ class RelocalizerService:
 
         return method
 
+    @contextmanager
+    def _worker(self, context: grpc.ServicerContext, counted: bool) -> Iterator[None]:
+        """One of the `workers` slots for a localization. `counted` (Localize): at most
+        `workers + max_queued` such calls run or wait at once (OVERLOADED at once beyond;
+        sessions are bounded by `max_sessions`). The wait ends at the call's deadline or after
+        `queue_wait_s` (OVERLOADED), and a call that ended meanwhile (cancelled, past its
+        deadline) is dropped before it computes."""
+        if counted:
+            with self._count_lock:
+                if self.localizing >= self.config.workers + self.config.max_queued:
+                    raise ServiceError(pb.OVERLOADED, f"{self.localizing} localizations running "
+                                       f"or waiting for the {self.config.workers} worker(s), "
+                                       "the most this server takes")
+                self.localizing += 1
+        try:
+            self._acquire(context)
+            try:
+                if not context.is_active():
+                    raise ServiceError(pb.OVERLOADED, "dropped: the call ended while it waited")
+                yield
+            finally:
+                self.compute.release()
+        finally:
+            if counted:
+                with self._count_lock:
+                    self.localizing -= 1
+
+    def _acquire(self, context: grpc.ServicerContext) -> None:
+        """Take a worker slot, waiting at most until the call's deadline or `queue_wait_s`."""
+        wait = self.config.queue_wait_s
+        remaining = context.time_remaining()
+        if remaining is not None:
+            wait = min(wait, remaining)
+        until = time.monotonic() + wait
+        while True:
+            if not context.is_active():
+                raise ServiceError(pb.OVERLOADED, "dropped: the call ended (cancelled, or past "
+                                   "its deadline) before a worker was free")
+            left = until - time.monotonic()
+            if left <= 0:
+                raise ServiceError(pb.OVERLOADED, f"no worker free within {wait:.3g} s (all "
+                                   f"{self.config.workers} busy)")
+            if self.compute.acquire(timeout=min(left, 0.1)):  # 0.1: notice a cancel soon
+                return
+
     # ---- methods ---------------------------------------------------------------------------
-    def localize(self, request: pb.LocalizeRequest) -> pb.LocalizeResponse:
+    def localize(self, request: pb.LocalizeRequest, context) -> pb.LocalizeResponse:
         served = self.registry.get(request.map)
-        with self.compute:
+        with self._worker(context, counted=True):
             return localize(served, request)
 
-    def health(self, _: pb.HealthRequest) -> pb.HealthResponse:
+    def health(self, _: pb.HealthRequest, context=None) -> pb.HealthResponse:
         return pb.HealthResponse(serving=True, protocol=PROTOCOL, version=__version__,
                                  num_maps=len(self.registry.names), num_sessions=self.sessions,
                                  uptime_s=time.time() - self.started,
                                  num_requests=self.requests)
 
-    def list_maps(self, _: pb.ListMapsRequest) -> pb.ListMapsResponse:
+    def list_maps(self, _: pb.ListMapsRequest, context=None) -> pb.ListMapsResponse:
         return pb.ListMapsResponse(maps=[m.info() for m in self.registry.all()])
 
-    def reload_map(self, request: pb.ReloadMapRequest) -> pb.ReloadMapResponse:
+    def reload_map(self, request: pb.ReloadMapRequest, context=None) -> pb.ReloadMapResponse:
         served, changed = self.registry.reload(request.map)
         if changed:
             _log(f"map {quoted(served.name)} reloaded: version {served.version}")
         return pb.ReloadMapResponse(map=served.info(), changed=changed)
 
     def session(self, requests, context: grpc.ServicerContext):
-        """Session stream: SessionOpen first, then frames; ends with SessionClosed."""
+        """Session stream: SessionOpen first (within `open_timeout_s`), then frames; ends
+        with SessionClosed. Counted among the open sessions once SessionOpen is answered."""
         with self._count_lock:
             self.requests += 1
         if not self._authorized(context):
             self._refuse(context, ServiceError(pb.UNAUTHENTICATED, "missing or wrong token"))
         with self._count_lock:
-            if self.sessions >= self.config.max_sessions:
+            busy = max(self.sessions, self.opening)
+            if busy >= self.config.max_sessions:
                 self._refuse(context, ServiceError(
-                    pb.OVERLOADED, f"{self.sessions} sessions open, the most this server takes"))
-            self.sessions += 1
+                    pb.OVERLOADED, f"{self.sessions} sessions open and {self.opening} opening, "
+                    "the most this server takes"))
+            self.opening += 1
+        state = {"opened": False}
+        key = id(state)
+        self.deadlines.arm(key, self.config.open_timeout_s, context)
         try:
-            yield from self._session(requests, context)
+            yield from self._session(requests, context, key, state)
+        except grpc.RpcError:  # the stream was cancelled (by the client, or a deadline)
+            if context.is_active():
+                raise
         finally:
+            self.deadlines.disarm(key)
             with self._count_lock:
-                self.sessions -= 1
+                if state["opened"]:
+                    self.sessions -= 1
+                else:
+                    self.opening -= 1
 
-    def _session(self, requests, context):
+    def _opened(self, state: dict) -> None:
+        """Count a session as open (OVERLOADED when `max_sessions` already are)."""
+        with self._count_lock:
+            if self.sessions >= self.config.max_sessions:
+                raise ServiceError(pb.OVERLOADED, f"{self.sessions} sessions open, the most "
+                                   "this server takes")
+            self.opening -= 1
+            self.sessions += 1
+            state["opened"] = True
+
+    def _session(self, requests, context, key: int, state: dict):
         session = None
         for body in requests:
+            self.deadlines.disarm(key)  # a message: no deadline while it is processed
             try:
                 msg = parse_message(pb.SessionRequest, body)
                 kind = msg.WhichOneof("message")
                 if session is None:
                     if kind != "open":
-                        raise ServiceError(pb.BAD_REQUEST, "a session starts with SessionOpen")
-                    session = Session(self.registry.get(msg.open.map), msg.open)
+                        raise ServiceError(pb.BAD_REQUEST, "a session starts with SessionOpen, "
+                                           f"got {_session_message(kind)}")
+                    opening = Session(self.registry.get(msg.open.map), msg.open)
+                    self._opened(state)
+                    session = opening
                     yield pb.SessionUpdate(opened=session.opened()).SerializeToString()
                     continue
                 if kind != "frame":
-                    raise ServiceError(pb.BAD_REQUEST, "SessionOpen twice in one session")
-                with self.compute:
+                    raise ServiceError(pb.BAD_REQUEST, "a frame expected, got "
+                                       f"{_session_message(kind)}")
+                with self._worker(context, counted=False):
                     result = session.frame(msg.frame)
                 yield pb.SessionUpdate(frame=result).SerializeToString()
             except ServiceError as err:
@@ -204,9 +427,16 @@ class RelocalizerService:
                 yield pb.SessionUpdate(error=pb.SessionError(
                     kind=refusal.kind, message=refusal.message,
                     frame=session.n_frames)).SerializeToString()
+            finally:
+                self.deadlines.arm(key, self.config.session_idle_s if session is not None
+                                   else self.config.open_timeout_s, context)
+        self.deadlines.disarm(key)
         if session is not None and context.is_active():
-            with self.compute:
-                closed = session.close()
+            try:
+                with self._worker(context, counted=False):
+                    closed = session.close()
+            except ServiceError:  # the client left, or no worker came: no one to tell
+                return
             yield pb.SessionUpdate(closed=closed).SerializeToString()
 
     def handler(self) -> grpc.GenericRpcHandler:
@@ -221,6 +451,12 @@ class RelocalizerService:
             "ReloadMap": unary(pb.ReloadMapRequest, self.reload_map),
             "Session": grpc.stream_stream_rpc_method_handler(self.session),
         })
+
+
+def _session_message(kind: str | None) -> str:
+    """A SessionRequest's content, in words, for a refusal."""
+    return {"open": "a second SessionOpen", "frame": "a frame",
+            None: "an empty SessionRequest (neither open nor frame)"}.get(kind, str(kind))
 
 
 def unexpected(err: Exception) -> ServiceError:
@@ -251,7 +487,49 @@ def read_tls_pair(cert: Path, key: Path) -> tuple[bytes, bytes]:
     if problem:
         raise InputError(f"{key}: `tls_key` does not belong to the certificate in {cert} "
                          f"(`tls_cert`): {problem}")
+    problem = certificate_problem(out[1])
+    if problem:
+        raise InputError(f"{cert}: `tls_cert` cannot serve TLS: {problem}")
     return out[0], out[1]
+
+
+TLS_CURVES = ("secp256r1", "secp384r1")  # the ECDSA curves gRPC's TLS (BoringSSL) signs with
+MIN_RSA_BITS = 2048
+
+
+def certificate_problem(cert: bytes, now=None) -> str | None:
+    """Why no client could complete a TLS handshake with the (first) PEM certificate, or None
+    (also None without the `cryptography` package to tell): not yet valid or expired (at
+    `now`, a UTC datetime, default the present), an RSA key under MIN_RSA_BITS, an ECDSA key
+    on a curve other than TLS_CURVES, another key type (DSA, EdDSA)."""
+    try:
+        from datetime import datetime, timezone
+
+        from cryptography import x509
+        from cryptography.hazmat.primitives.asymmetric import ec, rsa
+    except ImportError:
+        return None
+    try:
+        leaf = x509.load_pem_x509_certificates(cert)[0]
+        key = leaf.public_key()
+    except Exception:  # noqa: BLE001 - parsed by pem_problem already
+        return None
+    now = now or datetime.now(timezone.utc)
+    if now < leaf.not_valid_before_utc:
+        return f"not valid before {leaf.not_valid_before_utc:%Y-%m-%d %H:%M} UTC"
+    if now > leaf.not_valid_after_utc:
+        return f"expired on {leaf.not_valid_after_utc:%Y-%m-%d %H:%M} UTC"
+    if isinstance(key, rsa.RSAPublicKey):
+        if key.key_size < MIN_RSA_BITS:
+            return f"an RSA key of {key.key_size} bits (at least {MIN_RSA_BITS})"
+        return None
+    if isinstance(key, ec.EllipticCurvePublicKey):
+        if key.curve.name not in TLS_CURVES:
+            return (f"an ECDSA key on curve {key.curve.name}, which TLS here does not sign with "
+                    f"({' or '.join(TLS_CURVES)})")
+        return None
+    return (f"its key is {type(key).__name__.replace('PublicKey', '').lstrip('_')}: TLS here takes "
+            f"RSA (at least {MIN_RSA_BITS} bits) or ECDSA ({' or '.join(TLS_CURVES)}) keys")
 
 
 def pair_problem(key: bytes, cert: bytes) -> str | None:
@@ -318,12 +596,14 @@ class RunningServer:
 
     @property
     def address(self) -> str:
-        return f"{self.host}:{self.port}"
+        return listen_address(self.host, self.port)
 
     def stop(self, grace_s: float | None = 1.0) -> None:
-        """Stop serving, and give the process back the thread counts it had before."""
+        """Stop serving - the watch and any map load too, waited for - and give the process
+        back the thread counts it had before."""
         self.registry.close()
         self.server.stop(grace_s).wait()
+        self.service.deadlines.close()
         if self.threads_before is not None:
             set_threads(*self.threads_before)
             self.threads_before = None
@@ -359,32 +639,32 @@ def start_server(maps: dict[str, Path], config: ServeConfig = ServeConfig()) -> 
     config.check()
     tls = (read_tls_pair(Path(config.tls_cert), Path(config.tls_key))
            if config.tls_cert is not None else None)  # before the maps are read
+    problem = bind_problem(config.host, config.port)  # before gRPC logs its own lines
+    if problem is not None:
+        raise problem
     registry = MapRegistry(maps, config.load_timeout_s)
     service = RelocalizerService(registry, config)
     options = [("grpc.max_receive_message_length", config.max_request_bytes),
                ("grpc.max_send_message_length", config.max_request_bytes),
                ("grpc.so_reuseport", 0)]
-    # a thread per localization, per session, per map (a ReloadMap waits for its map's one
-    # load), and four for everything else (Health, ListMaps, refusals)
-    pool = futures.ThreadPoolExecutor(
-        config.workers + config.max_sessions + len(registry.names) + 4,
-        thread_name_prefix="slamreloc-serve")
+    pool = futures.ThreadPoolExecutor(RelocalizerService.pool_size(config, len(registry.names)),
+                                      thread_name_prefix="slamreloc-serve")
     server = grpc.server(pool, handlers=[service.handler()], options=options)
-    address = f"{config.host}:{config.port}"
-    if tls is not None:
-        try:
-            creds = grpc.ssl_server_credentials([tls])
-            port = server.add_secure_port(address, creds)
-        except RuntimeError as err:  # gRPC's "Failed to bind"
-            raise InputError(f"cannot listen on {address} with TLS (in use, not an address of "
-                             f"this machine, or a TLS pair gRPC refuses: `tls_cert` "
-                             f"{config.tls_cert}, `tls_key` {config.tls_key}; gRPC: "
-                             f"{' '.join(str(err).split())[:200]})") from None
+    address = listen_address(config.host, config.port)
+    try:
+        port = (server.add_secure_port(address, grpc.ssl_server_credentials([tls]))
+                if tls is not None else server.add_insecure_port(address))
+    except RuntimeError as err:  # gRPC's "Failed to bind": taken since bind_problem looked
+        port, reason = 0, " ".join(str(err).split())[:200]
     else:
-        port = server.add_insecure_port(address)
+        reason = "in use, or not an address of this machine"
+    if tls is not None:
+        reason += f"; or a TLS pair gRPC refuses: `tls_cert` {config.tls_cert}"
     if port == 0:
-        raise InputError(f"cannot listen on {address} (in use, or not an address of this "
-                         "machine)")
+        registry.close()
+        service.deadlines.close()
+        raise InputError(f"`port` {config.port} / `host` {quoted(config.host)}: cannot listen "
+                         f"on {address} ({reason})")
     threads_before = split_threads(config.workers)
     server.start()
     if config.watch_s > 0:

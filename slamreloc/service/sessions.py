@@ -15,10 +15,13 @@ import math
 import time
 import uuid
 
+from slamreloc.errors import InputError
+from slamreloc.geometry import check_stamp
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
     ServiceError,
     camera_from_msg,
+    check_depth_camera,
     depth_camera_from_msg,
     depth_from_msg,
     image_from_msg,
@@ -53,6 +56,8 @@ class Session:
         # the camera of the frames' depth where it is not registered to the images, else None
         self.depth_camera = (depth_camera_from_msg(request.depth_camera, "depth_camera")
                              if request.HasField("depth_camera") else None)
+        self._depth_camera_msg = pb.PinholeCamera()
+        self._depth_camera_msg.CopyFrom(request.depth_camera)
         units = request.depth_units_per_metre
         if units and not (math.isfinite(units) and 1e-3 <= units <= 1e6):
             raise ServiceError(pb.BAD_DEPTH, "depth_units_per_metre must be in [0.001, 1e6] "
@@ -91,6 +96,8 @@ class Session:
                                    "in SessionOpen.depth_camera")
             depth = depth_from_msg(msg.depth, (w, h) if self.depth_camera is None else None,
                                    self.depth_units, "frame.depth")
+            if self.depth_camera is not None:
+                check_depth_camera(self._depth_camera_msg, depth, "SessionOpen.depth_camera")
         elif not self.client_odometry:
             raise ServiceError(pb.BAD_DEPTH, f"frame.depth: {self.odometry_name} odometry "
                                "needs depth in every frame")
@@ -100,9 +107,10 @@ class Session:
                 raise ServiceError(pb.BAD_POSE, "frame.odometry_world_from_cam: required with "
                                    "client odometry")
             odom = rigid_from_msg(msg.odometry_world_from_cam, "frame.odometry_world_from_cam")
-        if msg.timestamp != msg.timestamp or abs(msg.timestamp) > 1e12:
-            raise ServiceError(pb.BAD_REQUEST, f"frame.timestamp: {msg.timestamp!r} is not a "
-                               "time in seconds")
+        try:
+            check_stamp(msg.timestamp, "frame.timestamp")  # the rule of trajectory files too
+        except InputError as err:
+            raise ServiceError(pb.BAD_REQUEST, str(err)) from None
         t0 = time.perf_counter()
         step = self.backend.process(image, depth, camera, odom, msg.timestamp,
                                     self.depth_camera)

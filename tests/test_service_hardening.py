@@ -1,0 +1,557 @@
+"""Hardening of `slamreloc serve` by class (an attack round's findings): shutdown with a map
+load in flight, start-up refusals in one line (bind, map folders, intervals, TLS, tokens, map
+names, replicas), a server that keeps answering Health and ListMaps whatever some calls do
+(queue bounds, dead calls dropped, silent sessions, concurrent reloads), map files served as
+written, one rule per value kind (depth cameras' aspect, timestamps, camera strings, prior
+limits) and clear refusals. Everything runs on a tiny map (no scene rendering), and the slow
+work is simulated: each test takes seconds."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import threading
+import time
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import cv2
+import grpc
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from slamreloc.errors import InputError
+from slamreloc.geometry import MAX_STAMP_S, read_tum_trajectory
+from slamreloc.map.format import DATABASE, META, PROVENANCE, SURFACE, sha256_file
+from slamreloc.proto import relocalizer_pb2 as pb
+from slamreloc.proto.messages import ERROR_METADATA_KEY, map_name_problem
+from slamreloc.service import server as server_module
+from slamreloc.service.maps import MapRegistry, ServedMap
+from slamreloc.service.server import (
+    MIN_WATCH_S,
+    SERVICE_NAME,
+    ServeConfig,
+    certificate_problem,
+    start_server,
+    token_problem,
+)
+from slamreloc.types import Camera
+from tests.fuzzing import fuzz_settings, no_hang, run_cli
+from tests.test_fuzz_inputs import _tiny_map
+from tests.test_hardening import copy_map, make_special
+
+TOKEN = "a-token-of-sixteen-chars"
+W, H = 64, 48  # the tiny map's camera
+
+
+@pytest.fixture(scope="module")
+def tiny_map(tmp_path_factory) -> Path:
+    return _tiny_map(tmp_path_factory.mktemp("service_hardening") / "map")
+
+
+@pytest.fixture
+def map_copy(tiny_map, tmp_path) -> Path:
+    return copy_map(tiny_map, tmp_path / "m")
+
+
+def _call(address: str, method: str, msg, timeout: float = 20.0, metadata=None):
+    """(status name, slamreloc-error kind, details or response bytes, seconds)."""
+    with grpc.insecure_channel(address) as channel:
+        f = channel.unary_unary(f"/{SERVICE_NAME}/{method}")
+        t0 = time.monotonic()
+        try:
+            body = f(msg.SerializeToString(), timeout=timeout, metadata=metadata)
+            return "OK", None, body, time.monotonic() - t0
+        except grpc.RpcError as err:
+            kind = dict(err.trailing_metadata() or ()).get(ERROR_METADATA_KEY)
+            return err.code().name, kind, err.details(), time.monotonic() - t0
+
+
+def _session(address: str, msgs, timeout: float = 60.0) -> list[pb.SessionUpdate]:
+    with grpc.insecure_channel(address) as channel:
+        f = channel.stream_stream(f"/{SERVICE_NAME}/Session")
+        out = []
+        for body in f(iter([m.SerializeToString() for m in msgs]), timeout=timeout):
+            update = pb.SessionUpdate()
+            update.ParseFromString(body)
+            out.append(update)
+        return out
+
+
+def _one_line_exit_2(argv: list[str], *needles: str) -> str:
+    code, err = run_cli(argv, hang_s=60)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("error: "), (code, err)
+    for needle in needles:
+        assert needle in lines[0], (needle, err)
+    return lines[0]
+
+
+def _image(w: int = W, h: int = H) -> bytes:
+    rng = np.random.default_rng(0)
+    return cv2.imencode(".png", rng.integers(0, 255, (h, w, 3), np.uint8))[1].tobytes()
+
+
+def _relist(root: Path, name: str) -> None:
+    """Write `root/name`'s checksum into the metadata (a file replaced on purpose)."""
+    meta = json.loads((root / META).read_text())
+    meta["files"][name] = sha256_file(root / name)
+    (root / META).write_text(json.dumps(meta))
+
+
+# ---- #1 shutdown with a map load in flight --------------------------------------------------
+def test_close_cancels_and_waits_for_a_running_load(map_copy, monkeypatch):
+    registry = MapRegistry({"m": map_copy}, load_timeout_s=30)
+    real_load = ServedMap.load
+    started = threading.Event()
+
+    def slow_load(name, path):
+        started.set()
+        time.sleep(0.5)  # a load reading its files when the server stops
+        return real_load(name, path)
+
+    monkeypatch.setattr(ServedMap, "load", staticmethod(slow_load))
+    errors = []
+    reloader = threading.Thread(target=lambda: _catch(errors, registry.reload, "m"))
+    reloader.start()
+    assert started.wait(10)
+    loads = [t for t in threading.enumerate() if t.name.startswith("map-load-")]
+    assert loads and not any(t.daemon for t in loads)  # the interpreter never exits under one
+    with no_hang(20):
+        registry.close()
+    assert not any(t.is_alive() for t in loads)
+    reloader.join(10)
+    assert errors and errors[0].kind == pb.OVERLOADED and "cancelled" in errors[0].message
+
+
+def _catch(errors: list, fn, *args) -> None:
+    try:
+        fn(*args)
+    except Exception as err:  # noqa: BLE001 - handed to the test
+        errors.append(err)
+
+
+def test_running_server_stop_joins_the_watch(map_copy):
+    running = start_server({"m": map_copy}, ServeConfig(port=0, watch_s=MIN_WATCH_S))
+    for _ in range(5):
+        os.utime(map_copy / META)  # the watch reloads
+        time.sleep(0.03)
+    with no_hang(30):
+        running.stop()
+    assert not [t for t in threading.enumerate()
+                if t.is_alive() and (t.name.startswith("map-load-") or t.name == "map-watch")]
+
+
+# ---- #2/#3 bind failures -------------------------------------------------------------------
+def test_port_in_use_is_one_line_naming_port(tiny_map):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        _one_line_exit_2(["serve", str(tiny_map), "--port", str(port), "--watch", "0"],
+                         f"--port {port}", "in use")
+
+
+def test_unresolvable_host_is_one_line_naming_host(tiny_map, tmp_path):
+    (tmp_path / "tok").write_text(TOKEN)
+    _one_line_exit_2(["serve", str(tiny_map), "--host", "no.such.host.invalid", "--port", "0",
+                      "--token-file", str(tmp_path / "tok")], "--host", "resolve")
+
+
+def test_ipv6_literal_is_bracketed(tiny_map):
+    try:
+        with socket.socket(socket.AF_INET6) as probe:
+            probe.bind(("::1", 0))
+    except OSError:
+        pytest.skip("no IPv6 loopback here")
+    running = start_server({"m": tiny_map}, ServeConfig(host="::1", port=0, watch_s=0))
+    try:
+        assert running.address.startswith("[::1]:")
+        assert _call(running.address, "Health", pb.HealthRequest())[0] == "OK"
+    finally:
+        running.stop()
+
+
+# ---- #4/#19 what a map path is ---------------------------------------------------------------
+@pytest.mark.parametrize("kind, words", [("loop", "symbolic link loop"), ("fifo", "named pipe"),
+                                         ("file", "regular file")])
+def test_map_path_that_is_not_a_folder_is_named(tmp_path, kind, words):
+    path = tmp_path / "m"
+    if kind == "loop":
+        path.symlink_to(path)
+    elif kind == "fifo":
+        os.mkfifo(path)
+    else:
+        path.write_text("x")
+    _one_line_exit_2(["serve", str(path), "--port", "0", "--watch", "0"], words)
+
+
+@pytest.mark.parametrize("kind, words", [("fifo", "a named pipe"), ("folder", "a folder"),
+                                         ("dev_zero", "a device")])
+def test_metadata_that_is_not_a_file_is_named(map_copy, kind, words):
+    make_special(map_copy / META, kind)
+    with no_hang(30):
+        _one_line_exit_2(["serve", str(map_copy), "--port", "0", "--watch", "0"],
+                         f"{META} is not a regular file ({words})")
+
+
+def test_reload_of_a_folder_replaced_by_a_file_names_it(map_copy):
+    running = start_server({"m": map_copy}, ServeConfig(port=0, watch_s=0))
+    try:
+        copy_map(map_copy, map_copy.with_name("keep"))
+        import shutil
+
+        shutil.rmtree(map_copy)
+        map_copy.write_text("not a folder")
+        status, kind, details, _ = _call(running.address, "ReloadMap",
+                                         pb.ReloadMapRequest(map="m"))
+        assert (status, kind) == ("INTERNAL", "INTERNAL") and "regular file" in details
+        assert _call(running.address, "ListMaps", pb.ListMapsRequest())[0] == "OK"
+    finally:
+        running.stop()
+
+
+# ---- #5/#10 intervals ----------------------------------------------------------------------
+@fuzz_settings(25)
+@given(st.one_of(st.floats(min_value=threading.TIMEOUT_MAX * 1.01, allow_infinity=True),
+                 st.floats(min_value=1e-320, max_value=MIN_WATCH_S * 0.99),
+                 st.floats(max_value=-1e-9), st.just(float("nan"))))
+def test_watch_out_of_range_is_refused(seconds):
+    with pytest.raises(InputError, match="`watch_s` .*: seconds between checks"):
+        ServeConfig(watch_s=seconds).check()
+
+
+@pytest.mark.parametrize("value", ["1e10", "1e300", "1e-300", "0.000001", "nan", "-1"])
+def test_watch_flag_out_of_range_is_one_line(tiny_map, value):
+    _one_line_exit_2(["serve", str(tiny_map), "--port", "0", "--watch", value], "--watch")
+
+
+# ---- #6-#9 starvation ------------------------------------------------------------------------
+@pytest.fixture
+def slow_server(tiny_map, monkeypatch):
+    """A server whose localizations take 0.4 s each (counted), 1 worker, 2 queued."""
+    ran = []
+
+    def slow_localize(served, request):
+        ran.append(time.monotonic())
+        time.sleep(0.4)
+        return pb.LocalizeResponse(map_version=served.version)
+
+    monkeypatch.setattr(server_module, "localize", slow_localize)
+    running = start_server({"m": tiny_map}, ServeConfig(
+        port=0, watch_s=0, workers=1, max_queued=2, max_sessions=2, open_timeout_s=1.0))
+    yield running, ran
+    running.stop()
+
+
+def test_health_never_waits_and_the_queue_is_bounded(slow_server):
+    running, _ = slow_server
+    request = pb.LocalizeRequest(image=pb.Image(encoded=_image()))
+    results: list = []
+    threads = [threading.Thread(target=lambda: results.append(
+        _call(running.address, "Localize", request)[:2])) for _ in range(10)]
+    for t in threads:
+        t.start()
+    time.sleep(0.2)
+    for method, msg in (("Health", pb.HealthRequest()), ("ListMaps", pb.ListMapsRequest())):
+        status, _, _, seconds = _call(running.address, method, msg)
+        assert status == "OK" and seconds < 1.0, (method, seconds)
+    for t in threads:
+        t.join(30)
+    assert results.count(("OK", None)) <= 3 + 2  # 1 worker + 2 queued, then the queue drains
+    assert ("RESOURCE_EXHAUSTED", "OVERLOADED") in results
+
+
+def test_calls_that_ended_are_dropped_before_computing(slow_server):
+    running, ran = slow_server
+    request = pb.LocalizeRequest(image=pb.Image(encoded=_image()))
+    busy = threading.Thread(target=lambda: _call(running.address, "Localize", request))
+    busy.start()
+    time.sleep(0.05)
+    for _ in range(2):  # they wait behind `busy` (0.4 s), and their deadline passes meanwhile
+        assert _call(running.address, "Localize", request, timeout=0.1)[0] in (
+            "DEADLINE_EXCEEDED", "RESOURCE_EXHAUSTED")  # whichever side's clock ends first
+    busy.join(10)
+    time.sleep(0.6)
+    assert len(ran) == 1  # only `busy` computed
+    assert _call(running.address, "Localize", request)[0] == "OK"
+
+
+def test_silent_sessions_are_cancelled_and_not_counted(slow_server):
+    running, _ = slow_server
+    with grpc.insecure_channel(running.address) as channel:
+        stream = channel.stream_stream(f"/{SERVICE_NAME}/Session")
+        silent = [stream(iter(threading.Event().wait, True), timeout=30) for _ in range(2)]
+        time.sleep(0.3)
+        health = pb.HealthResponse()
+        health.ParseFromString(_call(running.address, "Health", pb.HealthRequest())[2])
+        assert health.num_sessions == 0  # opening, not open
+        with pytest.raises(grpc.RpcError) as refused:
+            _session(running.address, [pb.SessionRequest(open=pb.SessionOpen())], 10)
+        assert refused.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        for call in silent:  # cancelled after open_timeout_s
+            with pytest.raises(grpc.RpcError) as ended:
+                next(call)
+            assert ended.value.code() == grpc.StatusCode.CANCELLED
+    updates = _session(running.address, [pb.SessionRequest(open=pb.SessionOpen())], 30)
+    assert [u.WhichOneof("message") for u in updates] == ["opened", "closed"]
+
+
+def test_second_reload_of_a_loading_map_is_overloaded_at_once(tiny_map, monkeypatch):
+    running = start_server({"m": tiny_map}, ServeConfig(port=0, watch_s=0))
+    release = threading.Event()
+    real_load = ServedMap.load
+
+    def held_load(name, path):
+        release.wait(20)
+        return real_load(name, path)
+
+    monkeypatch.setattr(ServedMap, "load", staticmethod(held_load))
+    try:
+        first = threading.Thread(target=lambda: _call(running.address, "ReloadMap",
+                                                      pb.ReloadMapRequest(map="m")))
+        first.start()
+        time.sleep(0.3)
+        for _ in range(5):
+            status, kind, details, seconds = _call(running.address, "ReloadMap",
+                                                   pb.ReloadMapRequest(map="m"))
+            assert (status, kind) == ("RESOURCE_EXHAUSTED", "OVERLOADED") and seconds < 1.0
+            assert "still loading" in details
+        assert _call(running.address, "Health", pb.HealthRequest())[3] < 1.0
+        release.set()
+        first.join(30)
+    finally:
+        release.set()
+        running.stop()
+
+
+# ---- #11/#21/#28 map files served as written -------------------------------------------------
+def test_listed_database_missing_is_refused(map_copy):
+    (map_copy / DATABASE).unlink()
+    with pytest.raises(InputError, match="lists a training database .* missing"):
+        ServedMap.load("m", map_copy)
+
+
+def test_empty_surface_is_refused(map_copy):
+    np.savez(map_copy / SURFACE, points=np.zeros((0, 3), np.float32),
+             normals=np.zeros((0, 3), np.float16))
+    _relist(map_copy, SURFACE)
+    with pytest.raises(InputError, match="surface holds no points"):
+        ServedMap.load("m", map_copy)
+
+
+def test_database_keypoints_beyond_the_pixel_bound_are_refused(map_copy):
+    with np.load(map_copy / DATABASE) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays["keypoints"] = np.full_like(arrays["keypoints"], 1e30)
+    (map_copy / DATABASE).unlink()
+    np.savez(map_copy / DATABASE, **arrays)
+    _relist(map_copy, DATABASE)
+    with pytest.raises(InputError, match="'keypoints' beyond"):
+        ServedMap.load("m", map_copy)
+
+
+def test_unlisted_provenance_is_never_served_silently(map_copy):
+    n = len(ServedMap.load("m", map_copy).scene_map.database.points)
+    np.savez(map_copy / PROVENANCE, source=np.zeros(n, np.int8),
+             quality=np.ones(n, np.float32))
+    with pytest.warns(UserWarning, match="not listed .* without checking its checksum"):
+        ServedMap.load("m", map_copy)
+
+
+# ---- #12 depth camera aspect -----------------------------------------------------------------
+def _depth_png(w: int = W, h: int = H) -> bytes:
+    return cv2.imencode(".png", np.full((h, w), 1000, np.uint16))[1].tobytes()
+
+
+@pytest.fixture(scope="module")
+def server(tiny_map):
+    running = start_server({"m": tiny_map}, ServeConfig(port=0, watch_s=0))
+    yield running
+    running.stop()
+
+
+def test_depth_camera_of_another_aspect_is_bad_camera(server):
+    other = pb.PinholeCamera(width=100, height=1000, fx=50, fy=50, cx=50, cy=500)
+    request = pb.LocalizeRequest(image=pb.Image(encoded=_image()), depth=pb.Depth(
+        encoding=pb.Depth.PNG16, data=_depth_png(), depth_camera=other))
+    status, kind, details, _ = _call(server.address, "Localize", request)
+    assert (status, kind) == ("INVALID_ARGUMENT", "BAD_CAMERA") and "depth.depth_camera" in details
+    frame = pb.SessionFrame(image=pb.Image(encoded=_image()), depth=pb.Depth(
+        encoding=pb.Depth.PNG16, data=_depth_png()), odometry_world_from_cam=pb.Transform(qw=1))
+    updates = _session(server.address, [pb.SessionRequest(open=pb.SessionOpen(depth_camera=other)),
+                                        pb.SessionRequest(frame=frame)])
+    errors = [u.error for u in updates if u.WhichOneof("message") == "error"]
+    assert errors and errors[0].kind == pb.BAD_CAMERA and "depth_camera" in errors[0].message
+
+
+# ---- #14/#15/#23 TLS, token, authorization -----------------------------------------------------
+def _certificate(key, days: tuple[float, float] = (-1, 1)) -> bytes:
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.x509.oid import NameOID
+
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "localhost")])
+    now = datetime.now(timezone.utc)
+    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name)
+            .public_key(key.public_key()).serial_number(1)
+            .not_valid_before(now + timedelta(days=days[0]))
+            .not_valid_after(now + timedelta(days=days[1]))
+            .sign(key, hashes.SHA256()))
+    return cert.public_bytes(serialization.Encoding.PEM)
+
+
+def test_certificates_tls_cannot_serve_are_refused(tmp_path, tiny_map):
+    pytest.importorskip("cryptography")
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import ec, rsa
+
+    good = ec.generate_private_key(ec.SECP256R1())
+    assert certificate_problem(_certificate(good)) is None
+    assert "expired" in certificate_problem(_certificate(good, (-3, -1)))
+    assert "not valid before" in certificate_problem(_certificate(good, (1, 3)))
+    assert "1024 bits" in certificate_problem(_certificate(
+        rsa.generate_private_key(public_exponent=65537, key_size=1024)))
+    weak = ec.generate_private_key(ec.SECP521R1())
+    assert "secp521r1" in certificate_problem(_certificate(weak))
+    key_pem = weak.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                 serialization.NoEncryption())
+    (tmp_path / "key.pem").write_bytes(key_pem)
+    (tmp_path / "cert.pem").write_bytes(_certificate(weak))
+    _one_line_exit_2(["serve", str(tiny_map), "--port", "0", "--watch", "0", "--tls-cert",
+                      str(tmp_path / "cert.pem"), "--tls-key", str(tmp_path / "key.pem")],
+                     "--tls-cert", "secp521r1")
+
+
+@fuzz_settings(40)
+@given(st.text(min_size=16, max_size=40).filter(
+    lambda t: t.strip() == t and any(not 0x21 <= ord(c) <= 0x7E for c in t)))
+def test_tokens_grpc_cannot_carry_are_refused(token):
+    assert token_problem(token) is not None
+    with pytest.raises(InputError, match="printable ASCII"):
+        ServeConfig(token=token).check()
+
+
+@pytest.mark.parametrize("text", ["ünïcödé-token-of-more-than-16", "a-token\nof-sixteen-chars"])
+def test_token_file_gRPC_cannot_carry_is_one_line(tiny_map, tmp_path, text):
+    (tmp_path / "tok").write_text(text)
+    _one_line_exit_2(["serve", str(tiny_map), "--port", "0", "--watch", "0", "--token-file",
+                      str(tmp_path / "tok")], "--token-file", "printable ASCII")
+
+
+def test_two_authorization_values_are_unauthenticated(tiny_map):
+    running = start_server({"m": tiny_map}, ServeConfig(port=0, watch_s=0, token=TOKEN))
+    try:
+        good, bad = ("authorization", f"Bearer {TOKEN}"), ("authorization", "Bearer bad")
+        assert _call(running.address, "Health", pb.HealthRequest(), metadata=[good])[0] == "OK"
+        for metadata in ([bad, good], [good, bad], [good, good]):
+            status, kind, _, _ = _call(running.address, "Health", pb.HealthRequest(),
+                                       metadata=metadata)
+            assert (status, kind) == ("UNAUTHENTICATED", "UNAUTHENTICATED")
+    finally:
+        running.stop()
+
+
+# ---- #17/#25 names and replicas at start-up --------------------------------------------------
+@fuzz_settings(40)
+@given(st.text(min_size=1, max_size=20).filter(
+    lambda t: any(not c.isprintable() or c.isspace() for c in t)))
+def test_map_names_the_wire_could_not_show_are_refused(name):
+    assert map_name_problem(name) is not None
+
+
+@pytest.mark.parametrize("name", ["a\x1b[31mred", "a\u200bb", "x" * 1000, ""])
+def test_bad_map_name_is_one_line(tiny_map, name):
+    line = _one_line_exit_2(["serve", str(tiny_map), "--name", name, "--port", "0", "--watch",
+                             "0"], "--name")
+    assert "\x1b" not in line and len(line) < 400
+
+
+@pytest.mark.parametrize("value", ["-5", "0", "257"])
+def test_replicas_range_whatever_the_engine(tiny_map, value):
+    _one_line_exit_2(["serve", str(tiny_map), "--replicas", value, "--port", "0"], "--replicas")
+
+
+# ---- #18/#20/#22 clear refusals ----------------------------------------------------------------
+def test_empty_session_request_is_named(server):
+    updates = _session(server.address, [pb.SessionRequest(open=pb.SessionOpen()),
+                                        pb.SessionRequest()])
+    errors = [u.error for u in updates if u.WhichOneof("message") == "error"]
+    assert errors and "empty SessionRequest" in errors[0].message
+
+
+def test_unknown_depth_encoding_is_named_first(server):
+    request = pb.LocalizeRequest(image=pb.Image(encoded=_image()), depth=pb.Depth(
+        encoding=7, width=W, height=H, data=bytes(W * H * 4)))
+    _, kind, details, _ = _call(server.address, "Localize", request)
+    assert kind == "BAD_DEPTH" and "unknown encoding 7" in details
+
+
+@pytest.mark.parametrize("field, value", [("prior_max_m", -1.0), ("prior_max_deg", float("nan")),
+                                          ("prior_max_m", float("inf"))])
+def test_prior_limits_are_checked_without_a_prior(server, field, value):
+    request = pb.LocalizeRequest(image=pb.Image(encoded=_image()), **{field: value})
+    _, kind, details, _ = _call(server.address, "Localize", request)
+    assert kind == "BAD_POSE" and field in details
+
+
+# ---- #24 one write per log line ----------------------------------------------------------------
+def test_log_lines_are_one_write_each(monkeypatch):
+    writes: list[str] = []
+
+    class Recorder:
+        def write(self, text):
+            writes.append(text)
+            time.sleep(0.001)  # widen the window two threads could interleave in
+
+        def flush(self):
+            pass
+
+    monkeypatch.setattr(server_module.sys, "stderr", Recorder())
+    threads = [threading.Thread(target=lambda i=i: [server_module._log(f"t{i} line")
+                                                     for _ in range(20)]) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(writes) == 80 and all(w.endswith("line\n") and w.count("\n") == 1 for w in writes)
+
+
+# ---- #27 camera strings, #13 timestamps ----------------------------------------------------------
+@fuzz_settings(40)
+@given(st.sampled_from(["3_20", "３２０", "320\u0660", "0x140", "320_0", "1_0.5"]),
+       st.integers(0, 5))
+def test_camera_numbers_are_plain_ascii_decimals(word, at):
+    words = ["PINHOLE", "320", "240", "262", "262", "160", "120"]
+    words[1 + at] = word
+    with pytest.raises(InputError, match="plain decimal"):
+        Camera.parse(" ".join(words), "`camera`")
+
+
+def test_wire_camera_string_takes_no_id(server):
+    request = pb.LocalizeRequest(image=pb.Image(encoded=_image()),
+                                 camera=pb.Camera(colmap=f"1 PINHOLE {W} {H} 60 60 32 24"))
+    _, kind, details, _ = _call(server.address, "Localize", request)
+    assert kind == "BAD_CAMERA" and "camera id" in details
+
+
+@fuzz_settings(30)
+@given(st.floats(min_value=MAX_STAMP_S * 1.001, max_value=1e300))
+def test_one_timestamp_rule_for_files_and_wire(tmp_path_factory, stamp):
+    path = tmp_path_factory.mktemp("stamps") / "traj.txt"
+    path.write_text(f"{stamp!r} 0 0 0 0 0 0 1\n")
+    with pytest.raises(InputError, match="timestamps are seconds"):
+        read_tum_trajectory(path, numeric_stamps=True)
+
+
+def test_wire_timestamp_uses_the_file_rule(server):
+    frame = pb.SessionFrame(image=pb.Image(encoded=_image()), timestamp=1.7e18,
+                            odometry_world_from_cam=pb.Transform(qw=1))
+    updates = _session(server.address, [pb.SessionRequest(open=pb.SessionOpen()),
+                                        pb.SessionRequest(frame=frame)])
+    errors = [u.error for u in updates if u.WhichOneof("message") == "error"]
+    assert errors and errors[0].kind == pb.BAD_REQUEST
+    assert "timestamps are seconds" in errors[0].message and "nanoseconds" in errors[0].message
