@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from slamreloc.errors import InputError
+from slamreloc.io.numbers import number_problem
 
 # COLMAP model name -> its parameter names; "f" means fx = fy
 PARAMS: dict[str, tuple[str, ...]] = {
@@ -89,11 +90,15 @@ def split_camera_string(text: str, source: str) -> tuple[str, int, int, list[flo
     if len(words) < 3 or words[0].upper() not in PARAMS:
         raise InputError(f"{source}: expected 'MODEL WIDTH HEIGHT PARAMS...' with MODEL one of "
                          f"{', '.join(MODELS)}, got {text[:60]!r}")
-    try:
-        return words[0].upper(), int(words[1]), int(words[2]), [float(w) for w in words[3:]]
-    except ValueError:
-        raise InputError(f"{source}: width and height must be whole numbers and parameters "
-                         f"numbers, got {text[:60]!r}") from None
+    # one rule for numbers in text (slamreloc.io.numbers)
+    if number_problem(words[1], integer=True) or number_problem(words[2], integer=True):
+        raise InputError(f"{source}: width and height must be whole numbers (plain decimal "
+                         f"digits), got {text[:60]!r}")
+    for word in words[3:]:
+        if number_problem(word) is not None:
+            raise InputError(f"{source}: {word[:40]!r} is not a plain decimal number "
+                             f"(digits 0-9, a point, an exponent), in {text[:60]!r}")
+    return words[0].upper(), int(words[1]), int(words[2]), [float(w) for w in words[3:]]
 
 
 def colmap_head(model: str, fx: float, fy: float, cx: float, cy: float) -> list[float]:

@@ -15,6 +15,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import atomic_file
+from slamreloc.io.numbers import number_problem, parse_number
 
 RIGID_TOL = 1e-3  # max |R^T R - I| and |det R - 1| accepted for a pose read from a file
 MAX_COORDINATE = 1e9  # metres: beyond any map, and squares stay far from overflow
@@ -241,13 +242,10 @@ def check_stamp(stamp: float, source: str) -> float:
 def parse_stamp(text: str, source: str) -> float:
     """A timestamp (or frame index) field: a number, in seconds (`check_stamp`), else
     InputError naming `source`."""
-    try:
-        stamp = float(text)
-    except ValueError:
-        raise InputError(f"{source}: timestamp {text[:40]!r} is not a number") from None
-    if not np.isfinite(stamp):
-        raise InputError(f"{source}: timestamp {text[:40]!r} is not finite")
-    return check_stamp(stamp, source)
+    problem = number_problem(text)  # one rule for numbers in text (slamreloc.io.numbers)
+    if problem:
+        raise InputError(f"{source}: timestamp {text[:40]!r} is {problem}")
+    return check_stamp(float(text), source)
 
 
 def parse_tum_line(line: str, source: str = "trajectory",
@@ -261,10 +259,7 @@ def parse_tum_line(line: str, source: str = "trajectory",
         raise InputError(f"{source}: expected 8 fields 'name tx ty tz qx qy qz qw', got {len(parts)}")
     if numeric_stamp:
         parse_stamp(parts[0], source)
-    try:
-        vals = np.array([float(p) for p in parts[1:]])
-    except ValueError as err:
-        raise InputError(f"{source}: non-numeric pose value ({err})") from None
+    vals = np.array([parse_number(p, source, "a pose value") for p in parts[1:]])
     if not np.all(np.isfinite(vals[:3])):
         raise InputError(f"{source}: invalid pose values in line {line.strip()[:120]!r}")
     if np.abs(vals[:3]).max() > MAX_COORDINATE:

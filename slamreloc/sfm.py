@@ -40,10 +40,9 @@ import numpy as np
 from slamreloc.camera_models import MODELS, PARAMS, colmap_head
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import check_outputs, write_json
-from slamreloc.io.images import check_encoded_image
+from slamreloc.io.video import is_video, video_frames
 from slamreloc.runtime.progress import console, make_progress
 from slamreloc.types import Camera
-from slamreloc.io.video import is_video, video_frames
 
 SFM_JSON = "sfm.json"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
@@ -323,15 +322,11 @@ def checked_image(path: Path) -> tuple[bytes, np.ndarray]:
     left for COLMAP to fail on or to read as a grey picture) and decoded in full. InputError
     naming the file otherwise."""
     from slamreloc.io.fileio import read_bytes
-    from slamreloc.io.images import decode_rgb, jpeg_has_scan_data
+    from slamreloc.io.images import decode_rgb
     from slamreloc.io.limits import limits
 
     data = read_bytes(path, "image", limits().max_image_bytes)
-    check_encoded_image(data, path)
-    if data[:2] == b"\xff\xd8" and not jpeg_has_scan_data(data):
-        raise InputError(f"{path}: not a readable image (JPEG without scan data: the picture "
-                         "itself is missing)")
-    return data, decode_rgb(data, path)
+    return data, decode_rgb(data, path)  # `check_encoded_image`'s rules, every reader's
 
 
 def _is_image_file(path: Path) -> bool:
@@ -407,7 +402,12 @@ def _collect_folder(root: Path, images_dir: Path, config: SfmConfig,
                              else "selecting images", progress):
             data, rgb = checked_image(path)
             name = path.relative_to(root).as_posix()
-            sizes.setdefault((rgb.shape[1], rgb.shape[0]), name)
+            size = (rgb.shape[1], rgb.shape[0])
+            if sizes and size not in sizes:  # one camera for the folder, as for a dataset
+                (w, h), first = next(iter(sizes.items()))
+                raise InputError(f"{path}: image is {size[0]}x{size[1]}, the folder's images "
+                                 f"are {w}x{h} ({first}); SfM gives a folder one camera")
+            sizes.setdefault(size, name)
             (images_dir / name).parent.mkdir(parents=True, exist_ok=True)
             (images_dir / name).write_bytes(data)
             yield path, rgb
@@ -528,10 +528,18 @@ def run_sfm(source: Path, out: Path, config: SfmConfig = SfmConfig(),
     if not source.exists():
         raise InputError(f"{source}: not found (a folder of images, a video or a dataset)")
     check_outputs({"`out`": out}, {"the input": source}, folders={"`out`": None})
-    if config.scale_from_depth and (is_video(source) or source.is_dir()
-                                    and not _looks_like_dataset(source)):
-        raise InputError(f"{source}: `scale_from_depth` needs depth, and a video or a folder "
-                         "of images has none (give `scale` M instead)")
+    if is_video(source) or source.is_dir() and not _looks_like_dataset(source):
+        # a video or a folder of images: no depth, no camera, no splits
+        if config.scale_from_depth:
+            raise InputError(f"{source}: `scale_from_depth` needs depth, and a video or a "
+                             "folder of images has none (give `scale` M instead)")
+        if config.fix_intrinsics and len(config.camera.split()) < 2:
+            raise InputError(f"{source}: `fix_intrinsics` needs intrinsics to keep: a `camera` "
+                             "string (\"PINHOLE W H fx fy cx cy\"); a video or a folder of "
+                             "images has no camera")
+        if config.split != SfmConfig.split:
+            raise InputError(f"{source}: `split` chooses a dataset's frames; a video or a "
+                             "folder of images has none (leave it out)")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(f"{out}: exists and is not empty; choose a new folder")
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -104,7 +104,7 @@ def test_images_txt_garbage_names_file_and_line(source, tmp_path):
     first = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
     lines[first] = lines[first].replace(" 1 seq-01", " one seq-01")
     path.write_text("\n".join(lines) + "\n")
-    with pytest.raises(InputError, match=f"{path}:{first + 1}: CAMERA_ID is not an integer"):
+    with pytest.raises(InputError, match=f"{path}:{first + 1}: CAMERA_ID is not a whole number"):
         load_dataset(root)
 
 

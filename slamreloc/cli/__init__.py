@@ -4,12 +4,71 @@ each importing its pipeline only when it runs. Bad input: one line on stderr, ex
 from __future__ import annotations
 
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from slamreloc.cli.commands import _flags, app, with_flags
 from slamreloc.errors import Interrupted, SlamrelocError, is_out_of_memory
 from slamreloc.runtime.progress import stop_bars
 
 __all__ = ["_flags", "app", "main", "with_flags"]
+
+
+@contextmanager
+def sigterm_as_ctrl_c() -> Iterator[None]:
+    """While the block runs, SIGTERM (`kill`, `timeout`, a service manager) ends a command as
+    Ctrl-C does: one `interrupted` line, exit status 130, its cleanup run (a training
+    checkpoint saved, temporary files removed). pycolmap's logging library installs, when
+    imported, a handler that prints a native stack trace for SIGTERM: it is imported first, so
+    ours replaces it; the handler found before is restored after (a command that serves until
+    stopped installs its own inside)."""
+    import signal
+    import threading
+
+    import pycolmap  # noqa: F401 - for its signal handler, replaced here
+
+    def interrupt(signum, frame) -> None:
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _run_app() -> int | None:
+    """Run the typer app; a command line it cannot parse (an unknown option, a missing or
+    malformed value) is one `error:` line naming the option and exit status 2, as bad input
+    is (not typer's framed panel); a bare `slamreloc` still shows the help. Returns an exit
+    status the command asked for (`typer.Exit`), else None."""
+    import typer
+
+    try:
+        from typer._click.exceptions import NoArgsIsHelpError
+    except ImportError:  # typer before it vendored click
+        from click.exceptions import NoArgsIsHelpError
+
+    try:
+        return app(standalone_mode=False)
+    except NoArgsIsHelpError as err:  # as typer shows it
+        from typer import rich_utils
+
+        rich_utils.rich_format_error(err)
+        return err.exit_code
+    except typer.TyperException as err:
+        if not hasattr(err, "format_message"):
+            raise
+        where = getattr(getattr(err, "ctx", None), "command_path", None) or "slamreloc"
+        message = " ".join(err.format_message().split()).rstrip(".")
+        print(f"error: {message} (see {where} --help)", file=sys.stderr)
+        return 2
+    except typer.Abort:
+        print("error: aborted", file=sys.stderr)
+        return 1
 
 
 def main() -> None:
@@ -19,9 +78,12 @@ def main() -> None:
         lambda message, *args, **kwargs: f"warning: {with_flags(str(message))}\n")
     try:
         try:
-            app()
+            with sigterm_as_ctrl_c():
+                status = _run_app()
         finally:
             stop_bars()  # a bar left up by a failure: erased before the error line
+        if isinstance(status, int) and status:
+            sys.exit(status)
     except Interrupted as err:
         print(f"interrupted: {with_flags(' '.join(str(err).split()))}", file=sys.stderr)
         sys.exit(130)

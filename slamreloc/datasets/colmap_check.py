@@ -19,8 +19,9 @@ from pathlib import Path
 
 from slamreloc.datasets.io import read_text
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import open_regular
 from slamreloc.geometry import MAX_COORDINATE, unit_quaternion
+from slamreloc.io.fileio import open_regular
+from slamreloc.io.numbers import parse_number, parse_whole
 
 MAX_NAME_BYTES = 4096
 MAX_TEXT_BYTES = 1 << 31
@@ -193,16 +194,14 @@ def _text_rows(path: Path) -> list[tuple[int, list[str]]]:
 
 
 def _number(path: Path, line: int, word: str, what: str, integer: bool = False,
-            finite: bool = True) -> float:
-    try:
-        value = int(word) if integer else float(word)
-    except ValueError:
-        raise InputError(f"{path}:{line}: {what} is not {'an integer' if integer else 'a number'}"
-                         f" ({word[:40]!r})") from None
-    if integer and not 0 <= value < 1 << 32:
+            low: int = 0) -> float:
+    """A field of a COLMAP text model (`slamreloc.io.numbers`: plain ASCII decimal, finite);
+    `integer`: a whole number in low..2^32-1 (an id; POINT3D_ID -1 is "none")."""
+    if not integer:
+        return parse_number(word, f"{path}:{line}", what)
+    value = parse_whole(word, f"{path}:{line}", what)
+    if not low <= value < 1 << 32:
         raise InputError(f"{path}:{line}: {what} out of range ({word[:40]})")
-    if finite and not math.isfinite(value):
-        raise InputError(f"{path}:{line}: {what} is not finite ({word[:40]})")
     return value
 
 
@@ -252,8 +251,11 @@ def _read_images_text(path: Path) -> dict[int, tuple[str, int]]:
         if len(points) % 3:
             raise InputError(f"{path}:{line + 1}: expected X Y POINT3D_ID triples, got "
                              f"{len(points)} values")
-        for w in points:
-            _number(path, line + 1, w, "a 2D point value", finite=False)
+        for k, w in enumerate(points):  # X Y POINT3D_ID (-1: no point)
+            if k % 3 == 2:
+                _number(path, line + 1, w, "a POINT3D_ID", integer=True, low=-1)
+            else:
+                _number(path, line + 1, w, "a 2D point coordinate")
         if image_id in out:
             raise InputError(f"{path}:{line}: image id {image_id} appears twice")
         out[image_id] = (words[9], cam_id)

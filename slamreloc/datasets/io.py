@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import read_bytes
 from slamreloc.geometry import Rigid3
+from slamreloc.io.fileio import read_bytes
 from slamreloc.io.images import check_frame_files, image_header, image_size, read_depth, read_image
+from slamreloc.io.numbers import number_problem
 from slamreloc.types import camera_problem
 
 __all__ = ["check_frame_files", "image_header", "image_size", "read_depth", "read_image",
@@ -30,14 +31,18 @@ def read_text(path: Path, what: str, limit: int = 1 << 30) -> str:
 def _read_matrix(path: Path, what: str, shape: tuple[int, int]) -> np.ndarray:
     path = Path(path)
     text = read_text(path, what, MAX_TEXT_BYTES)
-    rows = [line.split() for line in text.splitlines()
-            if line.strip() and not line.lstrip().startswith("#")]
+    lines = [(i, line.split()) for i, line in enumerate(text.splitlines(), 1)
+             if line.strip() and not line.lstrip().startswith("#")]
+    rows = [words for _, words in lines]
     if len({len(r) for r in rows}) > 1:
         raise InputError(f"{path}: {what} is not a numeric matrix (rows of different lengths)")
-    try:
-        m = np.array([[float(v) for v in row] for row in rows], dtype=np.float64)
-    except ValueError as err:
-        raise InputError(f"{path}: {what} is not a numeric matrix ({err})") from None
+    for i, words in lines:  # `slamreloc.io.numbers`: plain ASCII decimals, finite
+        problem = next((p for p in map(number_problem, words) if p), None)
+        if problem:
+            word = next(w for w in words if number_problem(w))
+            raise InputError(f"{path}:{i}: {what} is not a numeric matrix ({word[:40]!r} is "
+                             f"{problem})")
+    m = np.array([[float(v) for v in words] for _, words in lines], dtype=np.float64)
     m = m.reshape(len(rows), -1) if rows else np.zeros((0, 0))
     if m.shape != shape:
         raise InputError(f"{path}: {what} must be a {shape[0]}x{shape[1]} matrix, "

@@ -35,7 +35,15 @@ import numpy as np
 from slamreloc.datasets.base import Dataset
 from slamreloc.datasets.colmap import MODEL_DIRS, find_model, read_model_poses
 from slamreloc.errors import InputError
-from slamreloc.geometry import Rigid3, nearest_stamps, read_named_trajectory
+from slamreloc.geometry import (
+    Rigid3,
+    nearest_stamps,
+    read_named_trajectory,
+    read_names_sidecar,
+)
+from slamreloc.io.fileio import open_regular, read_text
+from slamreloc.io.limits import limits
+from slamreloc.io.numbers import number_problem
 from slamreloc.types import Frame
 
 MAX_DT = 0.02  # seconds: a pose without a name stands for the frame this close in time
@@ -88,6 +96,38 @@ class FrameKey:
         return FrameKey(frame.name, image, frame.timestamp, frame.sequence)
 
 
+def is_names_file(path: Path) -> bool:
+    """Whether `path` reads as a frame-names file (`stamp name` lines: the `names_sidecar`
+    that `evaluate --trajectory` and `export --tum` write beside a TUM file), which those
+    commands may replace; any other file there is the user's."""
+    try:
+        read_names_sidecar(path)
+    except InputError:
+        return False
+    return True
+
+
+# `check_outputs`' `files` entry of a TUM output's names sidecar
+NAMES_FILE = (is_names_file, "a frame-names file ('stamp name' lines)")
+
+
+def _refuse_repeated_names(path: Path) -> None:
+    """InputError `FILE:LINE: frame NAME has more than one pose` at the first frame name given
+    twice in a pose file, found by a pass over the lines' first words before the lines are
+    parsed (a 2 M line file with a repeat fails in a second, not after a minute). Numeric
+    first words (timestamps) are not names."""
+    text = read_text(path, "pose", limits().max_text_bytes)
+    first_line: dict[str, int] = {}
+    for i, line in enumerate(text.splitlines(), 1):
+        words = line.split(maxsplit=1)
+        if not words or words[0].startswith("#") or number_problem(words[0]) is None:
+            continue
+        seen = first_line.setdefault(words[0], i)
+        if seen != i:
+            raise InputError(f"{path}:{i}: frame {words[0][:80]!r} has more than one pose "
+                             f"(also on line {seen})")
+
+
 def strip_image_suffix(name: str) -> str:
     """`seq-01/frame-000000.color.png` -> `seq-01/frame-000000` (unchanged without one)."""
     return _IMAGE_SUFFIX.sub("", name)
@@ -103,8 +143,9 @@ def read_poses(path: str | Path) -> ReferencePoses:
         if not posed:
             raise InputError(f"{folder / f'images.{ext}'}: the model has no posed images")
         return ReferencePoses(path.resolve(), "colmap", posed)
-    if not path.is_file():
-        raise InputError(f"{path}: pose file not found")
+    with open_regular(path, "pose"):  # not found, or a pipe, a device, a socket: named so
+        pass
+    _refuse_repeated_names(path)
     traj = read_named_trajectory(path)
     if not traj.poses:
         raise InputError(f"{path}: no poses (expected lines 'name tx ty tz qx qy qz qw' or "

@@ -122,8 +122,13 @@ def _sequence(seq_dir: Path, camera: Camera, registered: bool) -> list[Frame]:
     """The sequence's frames; depth not `registered` is the Kinect's depth camera's."""
     frames = []
     rgb_from_depth = None if registered else sevenscenes_rgb_from_depth()
+    first: dict[str, Path] = {}  # frame stem -> its colour image
     for color in sorted(p for p in seq_dir.glob("frame-*.color.*") if _is_image(p)):
         stem = color.name.split(".")[0]
+        if stem in first:  # frame-000000.color.png and .color.jpg: which is the frame?
+            raise InputError(f"{color}: frame {seq_dir.name}/{stem} has two colour images "
+                             f"({first[stem].name} and {color.name}); keep one")
+        first[stem] = color
         depth = seq_dir / f"{stem}.depth.png"
         pose_path = seq_dir / f"{stem}.pose.txt"
         has_depth = depth.is_file()

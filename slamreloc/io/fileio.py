@@ -7,6 +7,7 @@ import hashlib
 import json
 import os
 import stat
+import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -89,26 +90,68 @@ def sha256_of(f: BinaryIO) -> str:
 
 
 def _own_test(value) -> tuple:
-    """`check_outputs`' folder entry as (is_own or None or ..., the kind's name or None)."""
+    """`check_outputs`' folder or file entry as (is_own or None or ..., the kind's name or
+    None)."""
     return value if isinstance(value, tuple) else (value, None)
+
+
+def _kind(mode: int) -> str:
+    """What a file mode is, in words ("a folder", "a named pipe", ...)."""
+    return ("a folder" if stat.S_ISDIR(mode) else "a file" if stat.S_ISREG(mode)
+            else "a named pipe" if stat.S_ISFIFO(mode)
+            else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+            else "a socket" if stat.S_ISSOCK(mode) else "something else")
+
+
+def _stat(path: Path) -> os.stat_result | None:
+    """`os.stat` of `path` (symbolic links followed, the kernel's own links under /proc
+    included: `/dev/stdout` is the pipe or terminal it stands for); None where nothing is,
+    a dangling link included."""
+    try:
+        return os.stat(path)
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    except OSError:  # a link loop, a name too long, no permission to look: not writable
+        return os.lstat(path) if os.path.lexists(path) else None
+
+
+def _check_writable(out: Path, option: str) -> None:
+    """InputError naming `option` unless a file can be created where `out` goes: a probe
+    created in the nearest existing folder of its path and removed
+    (a read-only or pseudo file system, /proc or /sys, refuses it there, not after the work)."""
+    folder = next((p for p in (out.parent, *out.parent.parents) if os.path.isdir(p)), None)
+    if folder is None:
+        return
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{out.name}.probe-", dir=folder)
+        os.close(fd)
+        os.unlink(name)
+    except OSError as err:
+        raise InputError(f"{out}: {option} cannot be written there ({folder}: "
+                         f"{err.strerror or err})") from None
 
 
 def check_outputs(outputs: dict[str, str | Path | None],
                   inputs: dict[str, str | Path | None],
-                  folders: tuple[str, ...] | dict[str, Callable[[Path], bool] | None] = ()
-                  ) -> None:
+                  folders: tuple[str, ...] | dict[str, Callable[[Path], bool] | None] = (),
+                  files: dict[str, Callable[[Path], bool] | tuple] | None = None) -> None:
     """A command never writes where it only reads, nor over something that is not its own kind
     of output. InputError, before any work, unless each output path (keyed by how the user
     named it, e.g. "--report") is apart from every input (keyed by what it is, e.g. "the map":
     not the same file, not inside an input folder, not a folder holding one), apart from the
-    other outputs, under folders only (no parent is a file, a pipe or a device), and absent or
-    a regular file (a folder for the outputs named in `folders`): never a device, a pipe or a
-    socket, which an atomic rename would replace, nor a non-empty folder that is not already
-    that output's kind (`folders` as a dict: option -> `is_own(folder)`, True for a folder the
-    output may replace, or `(is_own, "a slamreloc map")` to name that kind in the message;
-    None: only an empty folder; a tuple: any folder). The temporary path
-    `atomic_file` writes beside a file output must not be anything but a regular file either.
-    Symbolic links are followed."""
+    other outputs (not the same path, not inside another output, not holding one), under
+    folders only (no parent is a file, a pipe or a device), writable there (a probe file is
+    created and removed: /proc, /sys, a read-only folder are refused now, not after the work),
+    and absent or a regular file (a folder for the outputs named in `folders`): never a device,
+    a pipe or a socket (`/proc/self/fd/1`), which an atomic rename would replace, nor a
+    non-empty folder that is not already that output's kind
+    (`folders` as a dict: option -> `is_own(folder)`, True for a folder the output may
+    replace, or `(is_own, "a slamreloc map")` to name that kind in the message; None: only an
+    empty folder; a tuple: any folder), nor (`files`: option -> `is_own(file)` or
+    `(is_own, "a frame-names file")`) an existing file that is not that option's kind. The
+    temporary path `atomic_file` writes beside a file output must not be anything but a
+    regular file either. An output that is itself a symbolic link is refused (the rename would
+    replace the link: `/dev/stdout` is one); links among its parent folders are followed."""
     ins = {what: Path(p).resolve() for what, p in inputs.items() if p is not None}
     own = folders if isinstance(folders, dict) else dict.fromkeys(folders, ...)
     seen: dict[Path, str] = {}
@@ -116,8 +159,14 @@ def check_outputs(outputs: dict[str, str | Path | None],
         if out is None:
             continue
         target = Path(out).resolve()
-        if target in seen:
-            raise InputError(f"{out}: {option} and {seen[target]} name the same path")
+        for other, option_other in seen.items():
+            if target == other:
+                raise InputError(f"{out}: {option} and {option_other} name the same path")
+            if target.is_relative_to(other) or other.is_relative_to(target):
+                inner, outer = ((option, option_other) if target.is_relative_to(other)
+                                else (option_other, option))
+                raise InputError(f"{out}: {inner} would lie inside {outer}; two outputs of one "
+                                 "command never overlap")
         seen[target] = option
         parent = next((p for p in target.parents if p.exists()), None)
         if parent is not None and not parent.is_dir():
@@ -125,10 +174,17 @@ def check_outputs(outputs: dict[str, str | Path | None],
             raise InputError(f"{out}: {option} cannot be written there: its parent {parent} is "
                              f"{kind}")
         want_dir = option in own
-        if target.exists():
-            if want_dir and not target.is_dir() or not want_dir and not target.is_file():
-                kind = "a folder" if target.is_dir() else (
-                    "a file" if target.is_file() else "not a regular file")
+        if os.path.islink(out):  # /dev/stdout, or a link to /proc/self/fd/1: never renamed over
+            link = os.readlink(out)
+            raise InputError(f"{out}: {option} is a symbolic link (to {link[:200]}); writing "
+                             "would replace the link, not what it points to: give a plain "
+                             "path")
+        st = _stat(Path(out))
+        if st is not None:
+            is_dir, is_file = stat.S_ISDIR(st.st_mode), stat.S_ISREG(st.st_mode)
+            if want_dir and not is_dir or not want_dir and not is_file:
+                kind = _kind(st.st_mode)
+                kind = kind if kind in ("a folder", "a file") else f"not a regular file ({kind})"
                 raise InputError(f"{out}: {option} exists and is {kind}; refusing to replace it")
             is_own, own_kind = _own_test(own.get(option, ...))
             if want_dir and is_own is not ... and any(target.iterdir()) and (
@@ -136,6 +192,11 @@ def check_outputs(outputs: dict[str, str | Path | None],
                 what = f"is not {own_kind}" if own_kind else "holds files that are not its output"
                 raise InputError(f"{out}: {option} exists, is not empty and {what}; refusing to "
                                  "replace it (give a new or an empty folder)")
+            is_own, own_kind = _own_test((files or {}).get(option, ...))
+            if not want_dir and is_own is not ... and not is_own(Path(out)):
+                raise InputError(f"{out}: {option} exists and is not "
+                                 f"{own_kind or 'this output'}; refusing to replace it (move "
+                                 "it or write elsewhere)")
         if not want_dir:
             named = Path(out)  # as `atomic_file` names its temporary
             tmp = named.with_name(f".{named.stem}.tmp-{os.getpid()}{named.suffix}")
@@ -152,6 +213,7 @@ def check_outputs(outputs: dict[str, str | Path | None],
             else:
                 continue
             raise InputError(f"{out}: {option} {problem}; write it elsewhere")
+        _check_writable(Path(out), option)
 
 
 @contextmanager

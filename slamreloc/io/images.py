@@ -11,11 +11,16 @@ error is an `InputError` naming the source (a file, or a request on the wire).
 from __future__ import annotations
 
 import io
+import os
 import struct
+import sys
+import tempfile
+import threading
 import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -24,6 +29,14 @@ from slamreloc.errors import InputError
 from slamreloc.io.fileio import open_regular, read_bytes, regular_size
 from slamreloc.io.limits import limits
 
+T = TypeVar("T")
+# libjpeg's warnings (jerror.h): those that mean the data is corrupt or cut short, and the
+# benign rest (all are kept off the user's terminal while a JPEG decodes)
+LIBJPEG_CORRUPT = ("Corrupt JPEG data", "Premature end of JPEG file",
+                   "Inconsistent progression sequence", "Invalid SOS parameters")
+LIBJPEG_WARNINGS = LIBJPEG_CORRUPT + ("Warning: ", "Unknown Adobe color transform code",
+                                      "Application transferred too many scanlines")
+_STDERR_LOCK = threading.Lock()
 INVALID_DEPTH = (0, 65535)  # raw uint16 values that mean "no measurement"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 JPEG_MAGIC = b"\xff\xd8"
@@ -74,10 +87,24 @@ def _png_header(data: bytes, source, what: str) -> ImageHeader:
     return ImageHeader(width, height, channels, bits, "PNG")
 
 
+def _jpeg_scan_end(data: bytes, start: int) -> int:
+    """Where the entropy-coded data that starts at `start` ends: the position of the next
+    marker that is not a stuffed 0xFF (FF 00) or a restart marker (RSTn), len(data) if none."""
+    n, j = len(data), start
+    while True:
+        j = data.find(b"\xff", j)
+        if j < 0 or j + 1 >= n:
+            return n
+        if data[j + 1] != 0x00 and not 0xD0 <= data[j + 1] <= 0xD7:
+            return j
+        j += 2
+
+
 def _jpeg_segments(data: bytes) -> Iterator[tuple[int, int, int | None]]:
     """(marker, position, length field) of a JPEG's markers from SOI, walked by their lengths
-    (None for the markers without one); ends at a byte that is not a marker where one must be, a
-    length field cut off, or a length under 2 (after yielding that marker)."""
+    (None for the markers without one) and past each scan's entropy-coded data (SOS); ends
+    after EOI, at a byte that is not a marker where one must be, a length field cut off, or a
+    length under 2 (after yielding that marker)."""
     pos, n = 2, len(data)
     while pos + 1 < n:
         if data[pos] != 0xFF:
@@ -86,8 +113,10 @@ def _jpeg_segments(data: bytes) -> Iterator[tuple[int, int, int | None]]:
         if marker == 0xFF:  # fill byte
             pos += 1
             continue
-        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+        if marker in (0xD8, 0xD9, 0x01) or 0xD0 <= marker <= 0xD7:
             yield marker, pos, None
+            if marker == 0xD9:  # EOI: what follows is not the image's
+                return
             pos += 2
             continue
         if pos + 4 > n:
@@ -97,10 +126,36 @@ def _jpeg_segments(data: bytes) -> Iterator[tuple[int, int, int | None]]:
         if length < 2:
             return
         pos += 2 + length
+        if marker == 0xDA:  # SOS: its entropy-coded data runs to the next marker
+            pos = _jpeg_scan_end(data, min(pos, n))
+
+
+def jpeg_structure_problem(data: bytes) -> str | None:
+    """Why a JPEG's bytes are not a complete stream (its markers walked from SOI by their
+    lengths and past each scan's data): a bad segment length, a scan without entropy-coded
+    data, or no end marker (EOI) after the scans; None for a complete one. Bytes after EOI
+    are not the image's and are ignored (as after a PNG's IEND)."""
+    scans = 0
+    for marker, pos, length in _jpeg_segments(data):
+        if length is not None and length < 2:
+            return f"JPEG corrupt: a segment length of {length} at byte {pos}"
+        if marker == 0xDA:
+            start = pos + 2 + length
+            if _jpeg_scan_end(data, min(start, len(data))) <= start:
+                return "JPEG without scan data: the picture itself is missing"
+            scans += 1
+            if scans > limits().max_jpeg_scans:
+                return (f"JPEG with more than {limits().max_jpeg_scans} scans, over the scan "
+                        "limit (max_jpeg_scans)")
+        elif marker == 0xD9:
+            return None if scans else "JPEG without scan data: the picture itself is missing"
+    return "JPEG truncated or corrupt: no end marker after its scans"
 
 
 def _jpeg_header(data: bytes, source, what: str) -> ImageHeader:
     for marker, pos, _ in _jpeg_segments(data):
+        if marker == 0xDA:  # a scan before any frame header
+            break
         if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
             if pos + 10 > len(data):
                 break
@@ -166,14 +221,10 @@ def jpeg_has_scan_data(data: bytes) -> bool:
     for marker, pos, length in _jpeg_segments(data):
         if marker == 0xD9 or (length is not None and length < 2):  # EOI before a scan; bad
             return False
-        if marker != 0xDA:
-            continue
-        start = j = pos + 2 + length  # the scan's data: up to the next marker that is not a
-        n = len(data)  # stuffed 0xFF or RSTn
-        while j + 1 < n and not (data[j] == 0xFF and data[j + 1] != 0x00
-                                 and not 0xD0 <= data[j + 1] <= 0xD7):
-            j += 1
-        return j > start and j + 1 < n
+        if marker == 0xDA:
+            start = pos + 2 + length
+            end = _jpeg_scan_end(data, min(start, len(data)))
+            return start < end < len(data)
     return False
 
 
@@ -189,13 +240,47 @@ def check_encoded_image(data: bytes, source, what: str = "image") -> ImageHeader
         for _ in _png_chunks(data, source, what, verify_crc=True):
             pass
     elif header.format == "JPEG":
-        if b"\xff\xd9" not in data[-64:]:
-            raise InputError(f"{source}: not a readable {what} (JPEG truncated: no end marker)")
-        scans = data.count(b"\xff\xda")  # SOS markers (entropy-coded data stuffs 0xFF as FF00)
-        if scans > lim.max_jpeg_scans:
-            raise InputError(f"{source}: JPEG with {scans} scans, over the "
-                             f"{lim.max_jpeg_scans} scan limit (max_jpeg_scans)")
+        problem = jpeg_structure_problem(data)
+        if problem:
+            raise InputError(f"{source}: not a readable {what} ({problem})")
     return header
+
+
+def _with_native_stderr(decode: Callable[[], T]) -> tuple[T, list[str]]:
+    """(`decode()`, the lines native code wrote to stderr meanwhile): libjpeg says that a JPEG
+    is corrupt or cut short only there (a warning, after which it returns a picture padded with
+    grey). File descriptor 2 goes to a memory file for the call, one call at a time (a lock);
+    what other threads wrote meanwhile, not a libjpeg warning, is written back to stderr."""
+    with _STDERR_LOCK:
+        try:
+            sys.stderr.flush()
+        except (OSError, ValueError):
+            pass
+        if hasattr(os, "memfd_create"):
+            capture = os.memfd_create("slamreloc-stderr")
+        else:
+            capture, name = tempfile.mkstemp()
+            os.unlink(name)
+        saved = os.dup(2)
+        try:
+            os.dup2(capture, 2)
+            try:
+                result = decode()
+            finally:
+                os.dup2(saved, 2)
+            os.lseek(capture, 0, os.SEEK_SET)
+            chunks = []
+            while chunk := os.read(capture, 1 << 16):
+                chunks.append(chunk)
+        finally:
+            os.close(saved)
+            os.close(capture)
+    lines = b"".join(chunks).decode("utf-8", "replace").splitlines()
+    ours = [line for line in lines if line.startswith(LIBJPEG_WARNINGS)]
+    others = [line for line in lines if not line.startswith(LIBJPEG_WARNINGS)]
+    if others:
+        os.write(2, ("\n".join(others) + "\n").encode())
+    return result, ours
 
 
 def decode_image(data: bytes, source, flags: int = cv2.IMREAD_COLOR, what: str = "image",
@@ -206,7 +291,19 @@ def decode_image(data: bytes, source, flags: int = cv2.IMREAD_COLOR, what: str =
     header = check_encoded_image(data, source, what)
     if fits is not None:
         fits(header.width, header.height, source)
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    # the pixels as stored: a JPEG's EXIF orientation is not applied (its header's size is
+    # the decoded one; a camera's intrinsics describe the sensor, not a rotated picture)
+    flags |= cv2.IMREAD_IGNORE_ORIENTATION
+    if header.format == "JPEG":
+        img, warnings = _with_native_stderr(lambda: cv2.imdecode(np.frombuffer(data, np.uint8),
+                                                                flags))
+        warning = next((w for w in warnings if w.startswith(LIBJPEG_CORRUPT)), None)
+        if warning is not None:
+            reason = warning.removeprefix("Corrupt JPEG data: ").rstrip(".")
+            raise InputError(f"{source}: not a readable {what} (JPEG corrupt or truncated: "
+                             f"{reason[:80]})")
+    else:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     if img is None or img.size == 0:
         raise InputError(f"{source}: not a readable {what} (empty or corrupt)")
     if (img.shape[1], img.shape[0]) != (header.width, header.height):

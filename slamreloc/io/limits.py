@@ -16,6 +16,7 @@ import os
 from dataclasses import dataclass, fields, replace
 
 from slamreloc.errors import InputError
+from slamreloc.io.numbers import number_problem
 
 ENV_PREFIX = "SLAMRELOC_"
 
@@ -48,10 +49,9 @@ def _from_environment() -> InputLimits:
         text = os.environ.get(name)
         if text is None:
             continue
-        try:
-            overrides[f.name] = int(float(text))
-        except ValueError:
-            raise InputError(f"environment variable {name}: not a number ({text!r})") from None
+        if number_problem(text.strip()):
+            raise InputError(f"environment variable {name}: not a number ({text[:40]!r})")
+        overrides[f.name] = int(float(text))
     return InputLimits(**overrides)
 
 
@@ -84,10 +84,10 @@ def parse_limits(items: list[str]) -> dict[str, int]:
         if not sep or name not in names:
             raise InputError(f"`limit` {item!r}: expected NAME=VALUE with NAME one of "
                              f"{', '.join(names)}")
-        try:
-            value = float(text)
-        except ValueError:
-            raise InputError(f"`limit` {item!r}: {text!r} is not a number") from None
+        if number_problem(text.strip()):
+            raise InputError(f"`limit` {item[:80]!r}: {text[:40]!r} is not a number (plain "
+                             "ASCII decimal)")
+        value = float(text)
         if not value.is_integer() or value <= 0:
             raise InputError(f"`limit` {item!r}: must be a positive whole number")
         out[name] = int(value)

@@ -205,6 +205,7 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
     if colmap is None and ply is None and tum is None:
         raise InputError("export: nothing to write (give `colmap` DIR, `ply` FILE or `tum` FILE)")
     check_is_map(map_dir)
+    from slamreloc.datasets.poses import NAMES_FILE
     from slamreloc.geometry import names_sidecar
     from slamreloc.map.meta import MapMeta
 
@@ -212,7 +213,8 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
                    "`tum`'s names file": None if tum is None else names_sidecar(tum)},
                   {"the map": map_dir, "`dataset`": dataset_dir,
                    **MapMeta.read(map_dir).recorded_inputs()},
-                  folders={"`colmap`": (is_colmap_model, "a COLMAP model")})
+                  folders={"`colmap`": (is_colmap_model, "a COLMAP model")},
+                  files={"`tum`'s names file": NAMES_FILE})
     scene_map = SceneMap.load(map_dir, regressor=False)
     dataset = None
     if dataset_dir is not None:

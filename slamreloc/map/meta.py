@@ -38,8 +38,8 @@ from slamreloc.camera_models import distortion_problem
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import read_bytes
 from slamreloc.io.jsonio import parse_json
-from slamreloc.map.format import (DATABASE, FORMAT_VERSION, LEGACY_WEIGHTS, MAP_FORMAT, META,
-                                  WEIGHTS)
+from slamreloc.map.format import DATABASE, FORMAT_VERSION, LEGACY_WEIGHTS, MAP_FORMAT, META, WEIGHTS
+from slamreloc.registry import PRECISIONS, PRESETS
 from slamreloc.regressor.model import RegressorConfig
 from slamreloc.regressor.train import TrainConfig
 from slamreloc.types import Camera, camera_problem
@@ -279,10 +279,18 @@ class MapMeta(_Record):
 
     @classmethod
     def read(cls, root: str | Path) -> MapMeta:
-        """MAP/slamreloc_map.json, parsed and checked."""
+        """MAP/slamreloc_map.json, parsed and checked (`from_json`), its frames named once
+        each."""
         path = Path(root) / META
-        return cls.from_json(parse_json(read_bytes(path, "map metadata", MAX_META_BYTES), path),
+        meta = cls.from_json(parse_json(read_bytes(path, "map metadata", MAX_META_BYTES), path),
                              path)
+        names = meta.frame_names or ()
+        if len(set(names)) != len(names):  # a map's database rows name their frames by these
+            seen: set[str] = set()
+            twice = next(n for n in names if n in seen or seen.add(n))
+            raise InputError(f"{path}: 'frame_names' holds {_short(twice)} twice (each names "
+                             "one of the map's frames)")
+        return meta
 
     @classmethod
     def from_json(cls, doc: Json, path: str | Path) -> MapMeta:
@@ -426,13 +434,22 @@ def _check_schema(meta: dict, version: int, path) -> None:
     feats = need(meta, "features", dict, "")
     _check_feature_options(feats, path)
     reg = need(meta, "regressor", dict, "")
-    need(reg, "arch", str, "regressor.")
+    if need(reg, "arch", str, "regressor.") not in PRESETS:
+        raise InputError(f"{path}: 'regressor.arch' must be one of {', '.join(PRESETS)}, got "
+                         f"{_short(reg['arch'])}")
     need(reg, "parameters", int, "regressor.")
     cfg = need(reg, "config", dict, "regressor.")
     _check_regressor_config(cfg, path)
     labels = need(meta, "labels", dict, "")
     if need(labels, "n_labelled", int, "labels.") < 0:
         raise InputError(f"{path}: 'labels.n_labelled' must not be negative")
+    _check_optional(labels, "median_reproj_error_px", "labels.", path,
+                    "a number of pixels >= 0 or null",
+                    lambda v: _is_number(v) and math.isfinite(v) and v >= 0)
+    train = meta.get("train")
+    if isinstance(train, dict):
+        _check_optional(train, "precision", "train.", path,
+                        f"one of {', '.join(PRECISIONS)}", lambda v: v in PRECISIONS)
     cam = need(meta, "camera", dict, "")
     for key in ("width", "height"):
         if not 0 < need(cam, key, int, "camera.") <= 1 << 16:
@@ -460,6 +477,15 @@ def _check_schema(meta: dict, version: int, path) -> None:
             digest = need(files, name, str, "files.")
             if len(digest) != 64 or any(c not in "0123456789abcdef" for c in digest):
                 raise InputError(f"{path}: 'files.{name}' must be a SHA-256 hex digest")
+
+
+def _check_optional(obj: dict, key: str, where: str, path, want: str,
+                    ok: Callable[[Any], bool]) -> None:
+    """InputError `'WHERE.KEY' must be WANT, got V` for a key that is present, not null and
+    not `ok`."""
+    val = obj.get(key)
+    if val is not None and not ok(val):
+        raise InputError(f"{path}: '{where}{key}' must be {want}, got {_short(val)}")
 
 
 def _check_feature_options(feats: dict, path) -> None:

@@ -84,6 +84,10 @@ def _read_legacy_weights(path: Path,
     return state
 
 
+# the model's scales (descriptor spread, output scale, cluster offset scale): > 0 as trained
+POSITIVE_BUFFERS = ("in_std", "out_scale", "offset_scale")
+
+
 def _build_regressor(cfg: RegressorConfig, state: dict[str, torch.Tensor],
                      path: Path) -> SceneCoordinateRegressor:
     """Check the weights against the config (on the meta device: no memory is allocated for
@@ -104,6 +108,9 @@ def _build_regressor(cfg: RegressorConfig, state: dict[str, torch.Tensor],
             raise InputError(f"{path}: {key} has dtype {tensor.dtype}, expected floats")
         if not bool(torch.isfinite(tensor).all()):
             raise InputError(f"{path}: {key} holds NaN or infinite values")
+        if key in POSITIVE_BUFFERS and not bool((tensor > 0).all()):
+            raise InputError(f"{path}: {key} holds values <= 0; it is a scale the regressor "
+                             "divides or multiplies by, positive when trained")
     model = SceneCoordinateRegressor(cfg)
     model.load_state_dict({k: v.float() for k, v in state.items()})
     return model.eval()
