@@ -30,6 +30,7 @@ from slamreloc.geometry import Rigid3
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
     ERROR_METADATA_KEY,
+    GRPC_CODES,
     camera_msg,
     rigid_from_msg,
     transform_msg,
@@ -165,10 +166,12 @@ class Client:
 
     def session(self, map: str = "", odometry: str = "client",
                 depth_camera: Camera | None = None,
-                depth_units_per_metre: float = 0.0) -> ClientSession:
+                depth_units_per_metre: float = 0.0, learn: bool = False) -> ClientSession:
         """Open a session; see `ClientSession`. depth_camera: the camera that took the frames'
-        depth where it is not registered to the images (`Frame.depth_camera`), else None."""
-        opening = pb.SessionOpen(map=map, odometry=odometry,
+        depth where it is not registered to the images (`Frame.depth_camera`), else None.
+        learn: no map; the session learns one from the frames' depth (`ClientSession.save`
+        writes it on the server)."""
+        opening = pb.SessionOpen(map=map, odometry=odometry, learn=learn,
                                  depth_units_per_metre=depth_units_per_metre)
         if depth_camera is not None:
             opening.depth_camera.CopyFrom(camera_msg(depth_camera.pinhole).pinhole)
@@ -250,6 +253,20 @@ class ClientSession:
             raise RemoteError(grpc.StatusCode.INVALID_ARGUMENT,
                               pb.ErrorKind.Name(update.error.kind), update.error.message)
         return update.frame
+
+    def save(self, name: str) -> pb.MapSaved:
+        """A learning session's map, saved on the server (in its `--learned-maps` folder) and
+        served as the map `name` from then on; saving again replaces it. The session carries
+        on. RemoteError where the server refuses (FAILED_PRECONDITION: no `--learned-maps`, no
+        training round yet, a name taken; BAD_REQUEST: not a plain map name)."""
+        self._requests.put(pb.SessionRequest(save=pb.SessionSave(name=name)))
+        update = self._next()
+        kind = update.WhichOneof("message")
+        if kind == "error":
+            raise RemoteError(GRPC_CODES.get(update.error.kind,
+                                             grpc.StatusCode.INVALID_ARGUMENT),
+                              pb.ErrorKind.Name(update.error.kind), update.error.message)
+        return update.saved
 
     def close(self) -> pb.SessionClosed:
         if self.closed is None:

@@ -74,7 +74,9 @@ def require_ray() -> None:
 
 
 def serve(
-    maps: Annotated[list[Path], typer.Argument(metavar="MAP...", help="map folders to serve")],
+    maps: Annotated[Optional[list[Path]], typer.Argument(
+        metavar="[MAP]...", help="map folders to serve (none: only with --learned-maps)")]
+    = None,
     name: Annotated[Optional[list[str]], typer.Option(
         help="a map's name, in the order of the maps (default: the folder's name)")] = None,
     host: Annotated[str, typer.Option(
@@ -95,6 +97,9 @@ def serve(
         help="grpc: this process; ray: deployments on Ray Serve (one per map, --replicas)")]
     = Engine.grpc,
     replicas: Annotated[int, typer.Option(help="--engine ray: replicas per map")] = 1,
+    learned_maps: Annotated[Optional[Path], typer.Option(
+        help="folder where learning sessions save their maps (SessionSave NAME: DIR/NAME, "
+             "then served as NAME); without it a save is refused")] = None,
 ) -> None:
     """Serve MAPs over gRPC (protocol slamreloc.v1): Localize, SLAM sessions, health, list and
     reload maps. Runs until Ctrl-C."""
@@ -106,6 +111,10 @@ def serve(
     check_seconds(watch, "watch", **WATCH_RULE)
     if not 1 <= replicas <= MAX_REPLICAS:  # whatever the engine: a value is right or wrong
         raise InputError(f"`replicas` {replicas}: 1 to {MAX_REPLICAS}")
+    maps = list(maps or [])
+    if not maps and learned_maps is None:
+        raise InputError("no MAP to serve: give map folders, or --learned-maps DIR for a server "
+                         "whose sessions learn their maps")
     named = map_names(maps, list(name or []))
     token = read_token(token_file)
     if engine == Engine.ray:
@@ -115,6 +124,9 @@ def serve(
         if tls_cert is not None or tls_key is not None:
             raise InputError("--engine ray: Ray Serve's gRPC proxy has no TLS; use --engine grpc "
                              "or a TLS-terminating proxy in front (docs/serve.md)")
+        if learned_maps is not None:
+            raise InputError("--engine ray: learning sessions (--learned-maps) are served by "
+                             "--engine grpc only")
         if token is None:
             raise InputError("--engine ray: Ray Serve's gRPC proxy listens on every interface, "
                              f"whatever --host says; give a token (--token-file or ${TOKEN_ENV})")
@@ -125,4 +137,4 @@ def serve(
     serve_forever(named, ServeConfig(
         host=host, port=port, workers=workers, max_sessions=max_sessions, token=token,
         tls_cert=tls_cert, tls_key=tls_key, max_request_bytes=int(max_request_mb * (1 << 20)),
-        watch_s=watch))
+        watch_s=watch, learned_maps=learned_maps))

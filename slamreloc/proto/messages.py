@@ -42,6 +42,21 @@ def map_name_problem(name: str) -> str | None:
     return None
 
 
+def saved_map_name_problem(name: str) -> str | None:
+    """Why `name` cannot name a map a session saves (None when it can): a map name
+    (`map_name_problem`) that is also one plain folder name under the server's
+    `--learned-maps` folder: no '/' or '\\', not starting with '.' (nor '.' or '..': the
+    writers' temporary folders are hidden siblings)."""
+    problem = map_name_problem(name)
+    if problem:
+        return problem
+    if "/" in name or "\\" in name:
+        return "holds a path separator: a plain name, the server chooses the folder"
+    if name.startswith("."):
+        return "starts with '.': a plain visible name"
+    return None
+
+
 def quoted(text, limit: int = QUOTE_LIMIT) -> str:
     """`text` (a map name, a field the client sent) as it may be echoed in a refusal's
     message: repr-quoted and cut to about `limit` characters (a status detail travels in
@@ -86,6 +101,7 @@ GRPC_CODES = {
     pb.OVERLOADED: grpc.StatusCode.RESOURCE_EXHAUSTED,
     pb.UNAUTHENTICATED: grpc.StatusCode.UNAUTHENTICATED,
     pb.INTERNAL: grpc.StatusCode.INTERNAL,
+    pb.FAILED_PRECONDITION: grpc.StatusCode.FAILED_PRECONDITION,
 }  # the others (BAD_*): INVALID_ARGUMENT
 
 

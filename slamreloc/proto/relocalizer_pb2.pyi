@@ -20,6 +20,7 @@ class ErrorKind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     UNAUTHENTICATED: _ClassVar[ErrorKind]
     OVERLOADED: _ClassVar[ErrorKind]
     INTERNAL: _ClassVar[ErrorKind]
+    FAILED_PRECONDITION: _ClassVar[ErrorKind]
 
 class NotLocalized(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
@@ -44,6 +45,7 @@ TOO_LARGE: ErrorKind
 UNAUTHENTICATED: ErrorKind
 OVERLOADED: ErrorKind
 INTERNAL: ErrorKind
+FAILED_PRECONDITION: ErrorKind
 LOCALIZED: NotLocalized
 TOO_FEW_KEYPOINTS: NotLocalized
 TOO_FEW_INLIERS: NotLocalized
@@ -199,16 +201,18 @@ class LocalizeResponse(_message.Message):
     def __init__(self, localized: _Optional[bool] = ..., reason: _Optional[_Union[NotLocalized, str]] = ..., detail: _Optional[str] = ..., world_from_cam: _Optional[_Union[Transform, _Mapping]] = ..., num_inliers: _Optional[int] = ..., num_correspondences: _Optional[int] = ..., confidence: _Optional[float] = ..., refined: _Optional[bool] = ..., num_keypoints: _Optional[int] = ..., timings: _Optional[_Union[Timings, _Mapping]] = ..., map_version: _Optional[str] = ...) -> None: ...
 
 class SessionOpen(_message.Message):
-    __slots__ = ("map", "odometry", "depth_camera", "depth_units_per_metre")
+    __slots__ = ("map", "odometry", "depth_camera", "depth_units_per_metre", "learn")
     MAP_FIELD_NUMBER: _ClassVar[int]
     ODOMETRY_FIELD_NUMBER: _ClassVar[int]
     DEPTH_CAMERA_FIELD_NUMBER: _ClassVar[int]
     DEPTH_UNITS_PER_METRE_FIELD_NUMBER: _ClassVar[int]
+    LEARN_FIELD_NUMBER: _ClassVar[int]
     map: str
     odometry: str
     depth_camera: PinholeCamera
     depth_units_per_metre: float
-    def __init__(self, map: _Optional[str] = ..., odometry: _Optional[str] = ..., depth_camera: _Optional[_Union[PinholeCamera, _Mapping]] = ..., depth_units_per_metre: _Optional[float] = ...) -> None: ...
+    learn: bool
+    def __init__(self, map: _Optional[str] = ..., odometry: _Optional[str] = ..., depth_camera: _Optional[_Union[PinholeCamera, _Mapping]] = ..., depth_units_per_metre: _Optional[float] = ..., learn: _Optional[bool] = ...) -> None: ...
 
 class SessionFrame(_message.Message):
     __slots__ = ("image", "camera", "depth", "odometry_world_from_cam", "timestamp")
@@ -225,12 +229,20 @@ class SessionFrame(_message.Message):
     def __init__(self, image: _Optional[_Union[Image, _Mapping]] = ..., camera: _Optional[_Union[Camera, _Mapping]] = ..., depth: _Optional[_Union[Depth, _Mapping]] = ..., odometry_world_from_cam: _Optional[_Union[Transform, _Mapping]] = ..., timestamp: _Optional[float] = ...) -> None: ...
 
 class SessionRequest(_message.Message):
-    __slots__ = ("open", "frame")
+    __slots__ = ("open", "frame", "save")
     OPEN_FIELD_NUMBER: _ClassVar[int]
     FRAME_FIELD_NUMBER: _ClassVar[int]
+    SAVE_FIELD_NUMBER: _ClassVar[int]
     open: SessionOpen
     frame: SessionFrame
-    def __init__(self, open: _Optional[_Union[SessionOpen, _Mapping]] = ..., frame: _Optional[_Union[SessionFrame, _Mapping]] = ...) -> None: ...
+    save: SessionSave
+    def __init__(self, open: _Optional[_Union[SessionOpen, _Mapping]] = ..., frame: _Optional[_Union[SessionFrame, _Mapping]] = ..., save: _Optional[_Union[SessionSave, _Mapping]] = ...) -> None: ...
+
+class SessionSave(_message.Message):
+    __slots__ = ("name",)
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    def __init__(self, name: _Optional[str] = ...) -> None: ...
 
 class SessionEvent(_message.Message):
     __slots__ = ("kind", "frame", "world_from_cam", "has_pose", "reason", "num_inliers", "confidence", "reanchor", "position")
@@ -316,17 +328,31 @@ class SessionClosed(_message.Message):
     stats_json: str
     def __init__(self, world_from_cam: _Optional[_Iterable[_Union[Transform, _Mapping]]] = ..., has_pose: _Optional[_Iterable[bool]] = ..., stats_json: _Optional[str] = ...) -> None: ...
 
+class MapSaved(_message.Message):
+    __slots__ = ("name", "map_version", "num_points", "num_keyframes")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    MAP_VERSION_FIELD_NUMBER: _ClassVar[int]
+    NUM_POINTS_FIELD_NUMBER: _ClassVar[int]
+    NUM_KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    map_version: str
+    num_points: int
+    num_keyframes: int
+    def __init__(self, name: _Optional[str] = ..., map_version: _Optional[str] = ..., num_points: _Optional[int] = ..., num_keyframes: _Optional[int] = ...) -> None: ...
+
 class SessionUpdate(_message.Message):
-    __slots__ = ("opened", "frame", "error", "closed")
+    __slots__ = ("opened", "frame", "error", "closed", "saved")
     OPENED_FIELD_NUMBER: _ClassVar[int]
     FRAME_FIELD_NUMBER: _ClassVar[int]
     ERROR_FIELD_NUMBER: _ClassVar[int]
     CLOSED_FIELD_NUMBER: _ClassVar[int]
+    SAVED_FIELD_NUMBER: _ClassVar[int]
     opened: SessionOpened
     frame: FrameResult
     error: SessionError
     closed: SessionClosed
-    def __init__(self, opened: _Optional[_Union[SessionOpened, _Mapping]] = ..., frame: _Optional[_Union[FrameResult, _Mapping]] = ..., error: _Optional[_Union[SessionError, _Mapping]] = ..., closed: _Optional[_Union[SessionClosed, _Mapping]] = ...) -> None: ...
+    saved: MapSaved
+    def __init__(self, opened: _Optional[_Union[SessionOpened, _Mapping]] = ..., frame: _Optional[_Union[FrameResult, _Mapping]] = ..., error: _Optional[_Union[SessionError, _Mapping]] = ..., closed: _Optional[_Union[SessionClosed, _Mapping]] = ..., saved: _Optional[_Union[MapSaved, _Mapping]] = ...) -> None: ...
 
 class HealthRequest(_message.Message):
     __slots__ = ()

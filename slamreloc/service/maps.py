@@ -40,6 +40,13 @@ def folder_stamp(path: Path) -> tuple[int, int, int]:
         return 0, 0, 0
 
 
+def _same_folder(a: Path, b: Path) -> bool:
+    try:
+        return Path(a).resolve() == Path(b).resolve()
+    except (OSError, RuntimeError):
+        return False
+
+
 class LoadCancelled(Exception):
     """A map load given up because the server stops."""
 
@@ -255,6 +262,42 @@ class MapRegistry:
             raise load.error
         now = self.get(old.name)
         return now, now.version != old.version
+
+    def register(self, name: str, path: Path) -> ServedMap:
+        """Serve the map folder `path` as `name` (a map a session saved): added where `name` is
+        not served yet, loaded again and swapped in where it is served from `path` already
+        (as `reload`: requests in flight finish on the old one). ServiceError
+        FAILED_PRECONDITION where `name` is served from another folder; INTERNAL for a folder
+        that fails its checks; OVERLOADED while the server stops, or when another load of the
+        map (the watch's) outlasts `load_timeout_s`."""
+        path = Path(path)
+        until = time.monotonic() + self.load_timeout_s
+        while True:
+            with self._reload_lock:
+                if self._stop.is_set():
+                    raise ServiceError(pb.OVERLOADED, "the server is stopping")
+                current = self._maps.get(name)
+                if current is not None and not _same_folder(current.path, path):
+                    raise ServiceError(pb.FAILED_PRECONDITION, f"a map named {quoted(name)} is "
+                                       f"already served from another folder")
+            if current is None:
+                try:
+                    new = ServedMap.load(name, path)
+                except InputError as err:
+                    raise ServiceError(pb.INTERNAL, f"map {quoted(name)} saved but not "
+                                       f"served: {err}") from None
+                with self._reload_lock:
+                    if name not in self._maps:  # (saves are serialised by the server)
+                        self._maps = {**self._maps, name: new}
+                        return new
+                continue
+            try:
+                return self.reload(name)[0]
+            except ServiceError as err:  # the watch is loading it: wait for that load
+                if err.kind != pb.OVERLOADED or self._stop.is_set() \
+                        or time.monotonic() > until:
+                    raise
+                time.sleep(0.05)
 
     def watch(self, interval_s: float, on_reload=None) -> threading.Thread:
         """Reload any map whose folder was replaced, checking every `interval_s` seconds;

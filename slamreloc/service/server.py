@@ -35,7 +35,7 @@ import traceback
 from collections.abc import Iterator
 from concurrent import futures
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import grpc
@@ -43,12 +43,19 @@ from google.protobuf.message import DecodeError
 
 from slamreloc import __version__
 from slamreloc.errors import InputError, OutOfMemory, is_out_of_memory
+from slamreloc.map.format import META
 from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
-from slamreloc.proto.messages import ERROR_METADATA_KEY, ServiceError, quoted
+from slamreloc.proto.messages import (
+    ERROR_METADATA_KEY,
+    ServiceError,
+    quoted,
+    saved_map_name_problem,
+)
 from slamreloc.service.localize import localize
 from slamreloc.service.maps import MapRegistry
 from slamreloc.service.sessions import Session
+from slamreloc.slam.live_map import LiveMapConfig
 
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["Relocalizer"].full_name
 LOOPBACK_NAMES = ("localhost",)
@@ -74,6 +81,10 @@ class ServeConfig:
     queue_wait_s: float = 60.0  # the longest a call waits for a worker (less: its deadline)
     open_timeout_s: float = 10.0  # a session stream must send its SessionOpen within this
     session_idle_s: float = 600.0  # a session that sends nothing for this long is cancelled
+    # the folder learning sessions save their maps into (SessionSave: DIR/NAME, then served as
+    # NAME); None: a save is refused (FAILED_PRECONDITION)
+    learned_maps: Path | None = None
+    live: LiveMapConfig = field(default_factory=LiveMapConfig)  # learning sessions' maps
 
     def check(self) -> None:
         """InputError for a configuration that must not run (a non-local bind without a token,
@@ -98,6 +109,15 @@ class ServeConfig:
             problem = token_problem(self.token)
             if problem:
                 raise InputError(f"the token (`token_file` or SLAMRELOC_TOKEN) {problem}")
+        if self.learned_maps is not None:
+            folder = Path(self.learned_maps)
+            if folder.is_symlink() or not folder.is_dir():
+                what = ("a symbolic link" if folder.is_symlink() else
+                        "missing" if not folder.exists() else "not a folder")
+                raise InputError(f"{folder}: `learned_maps` must be an existing folder "
+                                 f"(it is {what})")
+            if not os.access(folder, os.W_OK | os.X_OK):
+                raise InputError(f"{folder}: `learned_maps` is not writable")
         if not self.host:
             raise InputError("`host` is empty: an address or a host name to bind")
         if not is_loopback(self.host) and self.token is None:
@@ -246,6 +266,8 @@ class RelocalizerService:
         self.opening = 0  # streams waiting for or checking their SessionOpen
         self.localizing = 0  # Localize calls running or waiting for a worker
         self.requests = 0
+        self._save_lock = threading.Lock()  # one learned map written and registered at a time
+        self.learning: set[Session] = set()  # learning sessions open (their learner threads)
 
     @staticmethod
     def pool_size(config: ServeConfig, n_maps: int) -> int:
@@ -376,6 +398,11 @@ class RelocalizerService:
                 raise
         finally:
             self.deadlines.disarm(key)
+            learning = state.get("session")
+            if learning is not None:  # its training round ends before the session is freed
+                learning.release()
+                with self._count_lock:
+                    self.learning.discard(learning)
             with self._count_lock:
                 if state["opened"]:
                     self.sessions -= 1
@@ -403,10 +430,24 @@ class RelocalizerService:
                     if kind != "open":
                         raise ServiceError(pb.BAD_REQUEST, "a session starts with SessionOpen, "
                                            f"got {_session_message(kind)}")
-                    opening = Session(self.registry.get(msg.open.map), msg.open)
+                    learn = msg.open.learn or (not msg.open.map and not self.registry.names)
+                    if learn and msg.open.map:
+                        raise ServiceError(pb.BAD_REQUEST, "open.learn: a learning session "
+                                           f"starts with no map, got map {quoted(msg.open.map)}")
+                    opening = Session(None if learn else self.registry.get(msg.open.map),
+                                      msg.open, self.config.live)
                     self._opened(state)
                     session = opening
+                    if session.learning:
+                        state["session"] = session
+                        with self._count_lock:
+                            self.learning.add(session)
                     yield pb.SessionUpdate(opened=session.opened()).SerializeToString()
+                    continue
+                if kind == "save":
+                    with self._worker(context, counted=False):
+                        saved = self._save(session, msg.save)
+                    yield pb.SessionUpdate(saved=saved).SerializeToString()
                     continue
                 if kind != "frame":
                     raise ServiceError(pb.BAD_REQUEST, "a frame expected, got "
@@ -439,6 +480,45 @@ class RelocalizerService:
                 return
             yield pb.SessionUpdate(closed=closed).SerializeToString()
 
+    def _save(self, session: Session, request: pb.SessionSave) -> pb.MapSaved:
+        """Write a learning session's map into `learned_maps`/NAME and serve it as NAME (added,
+        or swapped in where this server already serves NAME from there). Refused: a session
+        that learns nothing, a server without `learned_maps`, a NAME that is not a plain map
+        name, one served from another folder, a NAME whose folder holds something other than
+        a map, a map before the first training round has ended."""
+        if not session.learning:
+            raise ServiceError(pb.FAILED_PRECONDITION, "save: this session tracks in a served "
+                               "map and learns none (open it with SessionOpen.learn)")
+        if self.config.learned_maps is None:
+            raise ServiceError(pb.FAILED_PRECONDITION, "save: this server keeps no learned "
+                               "maps (its operator did not give `--learned-maps DIR`)")
+        name = request.name
+        problem = saved_map_name_problem(name)
+        if problem:
+            raise ServiceError(pb.BAD_REQUEST, f"save.name {quoted(name)} {problem}")
+        path = Path(self.config.learned_maps).resolve() / name
+        with self._save_lock:
+            if name in self.registry.names and not _same_folder(self.registry.get(name).path,
+                                                                path):
+                raise ServiceError(pb.FAILED_PRECONDITION, f"save.name {quoted(name)}: a map "
+                                   "of that name is served from elsewhere; choose another name")
+            if path.is_symlink() or (os.path.lexists(path) and not (path / META).is_file()):
+                raise ServiceError(pb.FAILED_PRECONDITION, f"save.name {quoted(name)}: the "
+                                   "learned maps' folder holds something of that name that is "
+                                   "not a map; choose another name")
+            saved = session.save(path)
+            if saved is None:
+                live = session.live_map
+                raise ServiceError(pb.FAILED_PRECONDITION, f"save.name {quoted(name)}: no map "
+                                   f"yet: the session has labelled {live.store.n_rows} "
+                                   "keypoints with depth, and a map needs a training round "
+                                   f"on {live.config.learner.min_rows} or more")
+            served = self.registry.register(name, path)
+        _log(f"map {quoted(name)} saved by session {session.id}: version {served.version}")
+        saved.name, saved.map_version = name, served.version
+        saved.num_points = served.scene_map.info.n_labelled
+        return saved
+
     def handler(self) -> grpc.GenericRpcHandler:
         def unary(parse, handle):
             return grpc.unary_unary_rpc_method_handler(
@@ -455,8 +535,15 @@ class RelocalizerService:
 
 def _session_message(kind: str | None) -> str:
     """A SessionRequest's content, in words, for a refusal."""
-    return {"open": "a second SessionOpen", "frame": "a frame",
-            None: "an empty SessionRequest (neither open nor frame)"}.get(kind, str(kind))
+    return {"open": "a second SessionOpen", "frame": "a frame", "save": "a SessionSave",
+            None: "an empty SessionRequest (neither open, frame nor save)"}.get(kind, str(kind))
+
+
+def _same_folder(a: Path, b: Path) -> bool:
+    try:
+        return Path(a).resolve() == Path(b).resolve()
+    except (OSError, RuntimeError):
+        return False
 
 
 def unexpected(err: Exception) -> ServiceError:
@@ -604,6 +691,10 @@ class RunningServer:
         self.registry.close()
         self.server.stop(grace_s).wait()
         self.service.deadlines.close()
+        with self.service._count_lock:
+            learning = list(self.service.learning)
+        for session in learning:  # no learner thread outlives the server
+            session.release()
         if self.threads_before is not None:
             set_threads(*self.threads_before)
             self.threads_before = None
@@ -647,7 +738,8 @@ def start_server(maps: dict[str, Path], config: ServeConfig = ServeConfig()) -> 
     options = [("grpc.max_receive_message_length", config.max_request_bytes),
                ("grpc.max_send_message_length", config.max_request_bytes),
                ("grpc.so_reuseport", 0)]
-    pool = futures.ThreadPoolExecutor(RelocalizerService.pool_size(config, len(registry.names)),
+    n_maps = len(registry.names) + (config.max_sessions if config.learned_maps else 0)
+    pool = futures.ThreadPoolExecutor(RelocalizerService.pool_size(config, n_maps),
                                       thread_name_prefix="slamreloc-serve")
     server = grpc.server(pool, handlers=[service.handler()], options=options)
     address = listen_address(config.host, config.port)
@@ -680,7 +772,10 @@ def serve_forever(maps: dict[str, Path], config: ServeConfig) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     tls = " (TLS)" if config.tls_cert else ""
-    print(f"listening on {running.address}{tls} (maps: {', '.join(running.registry.names)}; "
+    learned = (f"; learned maps saved in {config.learned_maps}" if config.learned_maps
+               else "")
+    print(f"listening on {running.address}{tls} (maps: {', '.join(running.registry.names)}"
+          f"{learned}; "
           f"protocol {PROTOCOL})", flush=True)
     while not stop.wait(1.0):
         pass

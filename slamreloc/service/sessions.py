@@ -6,10 +6,19 @@ client's own odometry pose, `odometry_world_from_cam`, in its fixed odometry fra
 runs without a front end) or a server front end that tracks the streamed depth ("auto",
 "kiss-icp", "open3d", as `slamreloc slam --odometry`). File or topic odometry is not offered:
 a client never names a file on the server.
+
+A learning session (`SessionOpen.learn`, no map) runs what `slamreloc slam --out` runs: a
+`LiveMap` without a prior, grown by the `live_mapping` plugin from every keyframe's depth and
+relocalized in by the relocalization plugin; its map is anchored at the first frame with depth.
+Every frame needs depth (its rows are lifted from it) and the first one a camera (later frames
+default to it). `save` writes the map as `slam --out` does at its end (a training round on the
+keyframes' current poses, waited for, then every row at those poses) without ending the
+session.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
@@ -32,6 +41,7 @@ from slamreloc.proto.messages import (
 from slamreloc.service.maps import ServedMap
 from slamreloc.slam.backend import BackendConfig, SlamBackend, TrackState
 from slamreloc.slam.events import EventKind, load_plugin
+from slamreloc.slam.live_map import LiveMap, LiveMapConfig
 from slamreloc.slam.poses import final_trajectory
 from slamreloc.slam.run import make_odometry
 
@@ -46,9 +56,14 @@ EVENTS = {EventKind.TRACKING_LOST: pb.SessionEvent.TRACKING_LOST,
 
 
 class Session:
-    """One client's backend + relocalization plugin on one map (the map version it opened)."""
+    """One client's backend + relocalization plugin on one map (the map version it opened), or
+    (`served` None) on the map it learns (`live`: its `LiveMapConfig`)."""
 
-    def __init__(self, served: ServedMap, request: pb.SessionOpen):
+    # a save before the first training round has ended waits this long for it
+    SAVE_WAIT_S = 300.0
+
+    def __init__(self, served: ServedMap | None, request: pb.SessionOpen,
+                 live: LiveMapConfig | None = None):
         odometry = request.odometry or CLIENT_ODOMETRY
         if odometry not in (CLIENT_ODOMETRY, *SERVER_ODOMETRY):
             raise ServiceError(pb.BAD_REQUEST, f"odometry {quoted(odometry)}: one of "
@@ -68,9 +83,18 @@ class Session:
         front_end = (None if self.client_odometry
                      else make_odometry(odometry, self.depth_camera))
         self.odometry_name = odometry if front_end is None else front_end.name
-        plugin = load_plugin("relocalization", scene_map=self.served.scene_map)
+        self.live_map: LiveMap | None = None
+        self.camera = None if served is None else served.scene_map.camera  # frames' default
+        if served is None:  # learning: the map grows from the frames (as `slam --out`)
+            self.live_map = LiveMap(live or LiveMapConfig())
+            self.mapper = load_plugin("live_mapping", live_map=self.live_map, out=None)
+            plugin = load_plugin("relocalization", localizer=self.live_map)
+            plugins = [self.mapper, plugin]
+        else:
+            plugin = load_plugin("relocalization", scene_map=self.served.scene_map)
+            plugins = [plugin]
         self.plugin = plugin
-        self.backend = SlamBackend(front_end, [plugin], BackendConfig())
+        self.backend = SlamBackend(front_end, plugins, BackendConfig())
         self._decisions_sent = 0
 
     @property
@@ -78,17 +102,24 @@ class Session:
         """Frames processed so far: the index the next frame gets."""
         return len(self.backend.frames)
 
+    @property
+    def learning(self) -> bool:
+        return self.live_map is not None
+
     def opened(self) -> pb.SessionOpened:
-        return pb.SessionOpened(session_id=self.id, map_version=self.served.version,
-                                odometry=self.odometry_name)
+        return pb.SessionOpened(session_id=self.id, odometry=self.odometry_name,
+                                map_version="" if self.served is None else self.served.version)
 
     def frame(self, msg: pb.SessionFrame) -> pb.FrameResult:
         """Check and process one frame; ServiceError (nothing processed) for a defective one."""
         loc = self.plugin.localizer
         image = image_from_msg(msg.image, loc.extractor.check_size, "frame.image")
         h, w = image.shape[:2]
+        if self.camera is None and not msg.HasField("camera"):
+            raise ServiceError(pb.BAD_CAMERA, "frame.camera: required in a learning session's "
+                               "first frame (there is no map camera; later frames default to it)")
         camera = camera_from_msg(msg.camera if msg.HasField("camera") else None, w, h,
-                                 self.served.scene_map.camera, "frame.camera")
+                                 self.camera, "frame.camera")
         depth = None
         if msg.HasField("depth"):
             if msg.depth.HasField("depth_camera"):
@@ -98,6 +129,9 @@ class Session:
                                    self.depth_units, "frame.depth")
             if self.depth_camera is not None:
                 check_depth_camera(self._depth_camera_msg, depth, "SessionOpen.depth_camera")
+        elif self.learning:
+            raise ServiceError(pb.BAD_DEPTH, "frame.depth: a learning session needs depth in "
+                               "every frame (the map's points are lifted from it)")
         elif not self.client_odometry:
             raise ServiceError(pb.BAD_DEPTH, f"frame.depth: {self.odometry_name} odometry "
                                "needs depth in every frame")
@@ -111,9 +145,13 @@ class Session:
             check_stamp(msg.timestamp, "frame.timestamp")  # the rule of trajectory files too
         except InputError as err:
             raise ServiceError(pb.BAD_REQUEST, str(err)) from None
+        if self.live_map is not None:
+            self.live_map.learner.check()  # a failed round: INTERNAL, before this frame
         t0 = time.perf_counter()
         step = self.backend.process(image, depth, camera, odom, msg.timestamp,
                                     self.depth_camera)
+        if self.camera is None:
+            self.camera = camera  # the default of the frames that follow
         out = pb.FrameResult(index=step.index, state=STATES[step.state],
                              backend_ms=1000 * (time.perf_counter() - t0))
         if step.world_from_cam is not None:
@@ -143,6 +181,27 @@ class Session:
                 reason=d["type"], position=d["position"]))
         self._decisions_sent = len(decisions)
         return out
+
+    def save(self, path) -> pb.MapSaved | None:
+        """Write the learned map to the folder `path` (atomically: `save_map`); the session
+        carries on. First a training round on the keyframes' current poses, waited for (as
+        `slam --out` at its end; up to SAVE_WAIT_S for each of the running round and that
+        one); None where no round has published a regressor (too few rows with depth)."""
+        from slamreloc.map.meta import DatasetMeta
+
+        live = self.live_map
+        # as `slam --out` at its end: a last round on the keyframes' current placement
+        live.finish(final_round=True, timeout_s=self.SAVE_WAIT_S)
+        if live.save(path, DatasetMeta(kind="session", metric=True, poses="slam")) is None:
+            return None
+        return pb.MapSaved(num_keyframes=live.store.n_keyframes)
+
+    def release(self, timeout_s: float | None = None) -> None:
+        """The stream ended, however it did: wait for a training round still running (its
+        thread must not outlive the server: torch torn down under it aborts the process)."""
+        if self.live_map is not None:
+            with contextlib.suppress(Exception):  # a failed round: no one left to tell
+                self.live_map.learner.wait(timeout_s)
 
     def close(self) -> pb.SessionClosed:
         """End of the stream: settle pending relocalizations, optimise the whole graph."""
