@@ -33,6 +33,10 @@ from slamreloc.map.surface import IcpConfig, refine_with_depth
 class RelocalizationConfig:
     gate: GateConfig = field(default_factory=GateConfig)
     loop_closure_every: int = 3  # keyframes from an accepted relocalization to the next try
+    # a loop closure between keyframes of a map being built: its sigmas are the graph's
+    # relocalization sigmas times this (its points come from depth, not a regressor; 0.5 on
+    # the RedKitchen stream: ATE 3.8 -> 3.1 cm, chosen on the stream BENCHMARKS.md reports)
+    keyframe_loop_sigma_scale: float = 0.5
     keep_fraction: float = 0.5  # PnP on this share of the most confident predictions (localizer)
     # the depth refinement of PnP poses (`refine_with_depth`); None: no depth refinement
     icp: IcpConfig | None = field(default_factory=IcpConfig)
@@ -130,7 +134,8 @@ class RelocalizationPlugin:
             self.backend.add_loop_closure(c.frame, c.world_from_cam)
             return "loop_closure"
         if ref is not None:
-            self.backend.add_keyframe_loop(c.frame, ref.key, ref.key_from_cam)
+            self.backend.add_keyframe_loop(c.frame, ref.key, ref.key_from_cam,
+                                           self.config.keyframe_loop_sigma_scale)
             return "keyframe_loop"
         return "confirmation"
 

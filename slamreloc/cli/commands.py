@@ -30,6 +30,20 @@ POSES_HELP = ("take the frames' poses from this file instead of the dataset's: a
 GUIDED_HELP = ("regressor: refine the pose on the map's database points matched near it, on maps "
                "whose labels agree with their images (docs/method.md); --no-guided: the pose "
                "from the regressed points alone")
+# upper bounds of counts the options take: beyond them a value is a typo, not a wish (1e11
+# epochs would train for ever, silently: a run's progress is shown per epoch)
+MAX_EPOCHS = 100_000
+MAX_ROUNDS = 1000
+
+
+def check_range(flag: str, value: int | float | None, low: int | float,
+                high: int | float) -> None:
+    """InputError `FLAG must be in LOW..HIGH, got VALUE` unless `value` (None: not given) is
+    within [low, high]."""
+    if value is not None and not low <= value <= high:
+        raise InputError(f"{flag} must be in {low}..{high}, got {str(value)[:24]}")
+
+
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Camera relocalization with a lightweight scene-coordinate regressor.")
 app.command()(serve)
@@ -84,8 +98,7 @@ def map_cmd(
     from slamreloc.datasets import load_dataset
     from slamreloc.map.build import MapConfig, build_map
 
-    if epochs is not None and epochs < 1:
-        raise InputError(f"--epochs must be at least 1, got {epochs}")
+    check_range("--epochs", epochs, 1, MAX_EPOCHS)
     config = MapConfig(features=features.value, device=device.value)
     if arch is not None:
         config.arch = arch.value
@@ -205,6 +218,8 @@ def pseudo_label_cmd(
     from slamreloc.cli import jobs
     from slamreloc.pseudo_label import PseudoLabelConfig
 
+    check_range("--rounds", rounds, 1, MAX_ROUNDS)
+    check_range("--epochs", epochs, 1, MAX_EPOCHS)
     config = PseudoLabelConfig(rounds=rounds, update=update.value, epochs=epochs,
                                device=device.value)
     jobs.pseudo_label(map_dir, dataset, out, report, split, config, truth, poses)
@@ -319,6 +334,9 @@ def slam(
     = None,
     save_every: Annotated[float, typer.Option(
         help="seconds between writes of the --out map (0: only at the end)")] = 30.0,
+    sift_upsample: Annotated[bool, typer.Option(
+        "--sift-upsample", help="the --out map's SIFT starts at twice the image's resolution: "
+        "more keypoints on small images (under about 640x480)")] = False,
     split: Annotated[str, typer.Option(help="split, role or sequence names to track")] = "test",
     kidnap_every: Annotated[int, typer.Option(
         help="teleport the camera after every N processed frames (0: never)")] = 0,
@@ -339,8 +357,13 @@ def slam(
     learn the map while tracking (from nothing, or extending --map) and save it."""
     from slamreloc.cli import jobs
 
+    live = None
+    if sift_upsample:
+        from slamreloc.slam.live_map import LiveMapConfig
+
+        live = LiveMapConfig(feature_options={"upsample": True})
     jobs.slam(dataset, map_dir, report, split, kidnap_every, kidnap_skip, odometry, trajectory,
-              poses=poses, out=out, save_every_s=save_every, kidnap_from=kidnap_from)
+              poses=poses, out=out, save_every_s=save_every, kidnap_from=kidnap_from, live=live)
 
 
 @app.command()

@@ -17,8 +17,15 @@ from pathlib import Path
 from rich.table import Table
 
 from slamreloc.datasets import Dataset, load_dataset, read_image
+from slamreloc.datasets.poses import NAMES_FILE
 from slamreloc.errors import InputError, OutOfMemory
-from slamreloc.geometry import Rigid3, names_sidecar, tum_line, write_tum_trajectory
+from slamreloc.geometry import (
+    Rigid3,
+    distinct_stamps,
+    names_sidecar,
+    tum_line,
+    write_tum_trajectory,
+)
 from slamreloc.io.fileio import check_outputs, write_json
 from slamreloc.localize.evaluate import (
     EvaluationConfig,
@@ -48,7 +55,8 @@ def evaluate(map_dir: Path, dataset_dir: Path, report: Path, split: str = "test"
     check_outputs({"--report": report, "--trajectory": trajectory,
                    "--trajectory's names file": sidecar(trajectory), "--plot": plot},
                   {"the map": map_dir, "the dataset": dataset_dir, "--poses": poses,
-                   **{f"--reference {p}": p for p in references}, **recorded_inputs(map_dir)})
+                   **{f"--reference {p}": p for p in references}, **recorded_inputs(map_dir)},
+                  files={"--trajectory's names file": NAMES_FILE})
     scene_map = SceneMap.load(map_dir)
     labels = reference_labels(list(references))
     dataset = load_dataset(dataset_dir, poses)
@@ -57,6 +65,13 @@ def evaluate(map_dir: Path, dataset_dir: Path, report: Path, split: str = "test"
     if unposed is not None and dataset.poses_source != "dataset":
         raise InputError(f"{dataset.poses_source}: no pose for query frame {unposed.name} "
                          "(--poses gives the queries' ground truth)")
+    if unposed is not None:  # named by the dataset, not by a file a bag was unpacked to
+        from slamreloc.datasets.rosbag import is_rosbag
+
+        hint = ("give --poses, or --topic pose=TOPIC (a pose topic or tf:PARENT:CHILD)"
+                if is_rosbag(Path(dataset_dir)) else "give --poses")
+        raise InputError(f"{dataset_dir}: query frame {unposed.name} has no ground-truth pose "
+                         f"in the dataset ({hint})")
     scoring = [prepare_reference(Path(p), label, scene_map, dataset, frames)
                for p, label in zip(references, labels)]
     refine = depth_refiner(scene_map, dataset) if depth else None
@@ -213,7 +228,8 @@ def slam(dataset: Path, map_dir: Path | None, report: Path, split: str = "test",
                    "--trajectory's names file": sidecar(trajectory), "--out": out},
                   {"the dataset": dataset, "the map": map_dir, "--odometry": odometry_file,
                    "--poses": poses, **(recorded_inputs(map_dir) if map_dir else {})},
-                  folders={"--out": (is_map, "a slamreloc map")})
+                  folders={"--out": (is_map, "a slamreloc map")},
+                  files={"--trajectory's names file": NAMES_FILE})
     config = SlamRunConfig(split=split, odometry=odometry, kidnap_every=kidnap_every,
                            kidnap_skip=kidnap_skip, progress=progress,
                            kidnap_from=kidnap_every if kidnap_from < 0 else kidnap_from,
@@ -225,8 +241,9 @@ def slam(dataset: Path, map_dir: Path | None, report: Path, split: str = "test",
     if trajectory is not None:
         world_from_cam = final_trajectory(backend)
         keep = [i for i, p in enumerate(world_from_cam) if p is not None]
+        stamps = distinct_stamps([f.timestamp for f in frames])  # several sequences: indices
         write_tum_trajectory(
-            trajectory, [frames[i].timestamp for i in keep], [world_from_cam[i] for i in keep],
+            trajectory, [stamps[i] for i in keep], [world_from_cam[i] for i in keep],
             [f"slamreloc slam {dataset} (split {split}), map frame, camera-to-world",
              "timestamp tx ty tz qx qy qz qw"], names=[frames[i].name for i in keep])
         result["trajectory"] = os.path.relpath(trajectory, Path(report).parent)

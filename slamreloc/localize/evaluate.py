@@ -18,7 +18,8 @@ from rich.table import Table
 from slamreloc.datasets import Dataset, read_image, read_reference
 from slamreloc.datasets.poses import FrameKey, match_poses
 from slamreloc.errors import InputError
-from slamreloc.geometry import Rigid3, Sim3, align_poses, pose_error, write_tum_trajectory
+from slamreloc.geometry import (Rigid3, Sim3, align_poses, distinct_stamps, pose_error,
+                                write_tum_trajectory)
 from slamreloc.localize.localizer import Localizer, make_localizer
 from slamreloc.map.scene_map import SceneMap
 from slamreloc.runtime.progress import console, track
@@ -343,9 +344,7 @@ def write_tum(path: Path, results: list[QueryResult]) -> None:
     evo reads them); failures are left out. The first column is the frame's timestamp, or
     its index in `results` when timestamps repeat (several sequences); the frame names go to
     the sidecar `<path stem>.names.txt` (`stamp name` per line)."""
-    stamps = [q.timestamp for q in results]
-    if len(set(stamps)) < len(stamps):
-        stamps = [float(i) for i in range(len(results))]
+    stamps = distinct_stamps([q.timestamp for q in results])
     done = [(t, q) for t, q in zip(stamps, results) if q.world_from_cam is not None]
     write_tum_trajectory(path, [t for t, _ in done], [q.world_from_cam for _, q in done],
                          names=[q.name for _, q in done])

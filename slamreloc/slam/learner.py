@@ -28,6 +28,7 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import torch
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
 
@@ -38,13 +39,16 @@ class LearnerConfig:
     round; `train`: the rest of the training settings (`TrainConfig`)."""
 
     warm_epochs: int = 4
-    scratch_epochs: int = 12
-    scratch_steps: int = 1500  # at most this many optimisation steps in a scratch round
+    scratch_epochs: int = 6
+    scratch_steps: int = 600  # at most this many optimisation steps in a scratch round
     round_rows: int = 30000  # rows of a warm round: the new ones, then replayed old ones
     final_epochs: int = 12
     warm_lr_scale: float = 0.5
     regrow: float = 2.0
     min_rows: int = 500  # fewer labelled rows: no round yet
+    # torch threads of the rounds (set on the learner's own thread: OpenMP's count is per
+    # thread), so that the tracker keeps the other cores; 0: torch's default
+    threads: int = 1
     train: TrainConfig = field(default_factory=lambda: TrainConfig(lr_halvings=2))
     device: str = "cpu"
 
@@ -118,6 +122,8 @@ class BackgroundLearner:
         self.check()
 
     def _run(self) -> None:
+        if self.config.threads > 0:
+            torch.set_num_threads(self.config.threads)  # this thread's own OpenMP team
         try:
             while True:
                 with self._lock:

@@ -8,6 +8,8 @@ Relocalization of a frame (`localize_features`), against the map as it stands:
    refinement on their points (as `RegressorLocalizer`);
 2. the database, where there is no regressor yet or it finds too few inliers (a place mapped
    since its last round): each descriptor's nearest database row (ratio test) -> PnP-RANSAC.
+   A regressor pose with enough inliers but no old rows near it (a loop query in a place only
+   mapped recently) is returned without a reference: it confirms the track, closes nothing.
 Either way the result names the keyframe that holds most of its inliers and the pose relative
 to it (`Reference`): the backend turns a relocalization against an old keyframe into a loop
 closure between keyframes, so it holds wherever the graph later moves them.
@@ -220,8 +222,9 @@ class LiveMap:
         model = self.learner.model
         if model is not None:
             result = self._by_regressor(model, feats, camera, live, allowed)
-        if (not result.estimate.success or result.reference is None
+        if (not result.estimate.success
                 or result.estimate.num_inliers < self.config.regressor_inliers):
+            # the regressor does not know the place (yet): the rows, which know it at once
             result = self._by_database(feats, camera, live, allowed)
         result.timings_ms = {"total": 1000 * (time.perf_counter() - t0)}
         return result

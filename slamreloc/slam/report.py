@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slamreloc.geometry import Rigid3, align_poses, pose_error
+from slamreloc.geometry import Rigid3, align_poses, distinct_stamps, pose_error
 from slamreloc.slam.events import EventKind
 from slamreloc.slam.metrics import ate_rmse
 from slamreloc.slam.poses import final_trajectory, odometry_only_trajectory
@@ -125,6 +125,7 @@ def event_list(backend, plugins, jumps: list[int], frames) -> list[dict]:
         if e.kind in (EventKind.TRACKING_LOST, EventKind.TRACKING_RECOVERED)]
     for p in plugins:
         events += getattr(getattr(p, "stats", None), "decisions", [])
+    stamps = distinct_stamps([f.timestamp for f in frames])  # the trajectory file's column
     for e in events:
-        e["timestamp"] = frames[e["frame"]].timestamp
+        e["timestamp"] = stamps[e["frame"]]
     return sorted(events, key=lambda e: e["frame"])
