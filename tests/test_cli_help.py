@@ -25,7 +25,7 @@ def usage_arguments(text: str) -> list[str]:
     lines = text.split("Usage:", 1)[1].splitlines()
     end = next((i for i, line in enumerate(lines) if not line.strip()), len(lines))
     usage = " ".join(" ".join(lines[:end]).split())  # rich pads its blank lines with spaces
-    return [t.strip("{}.") for t in usage.split("[OPTIONS]", 1)[1].split()]
+    return [t.strip("{}.[]") for t in usage.split("[OPTIONS]", 1)[1].split()]
 
 
 def test_every_command_is_covered():
@@ -42,9 +42,10 @@ def test_positional_arguments_are_uppercase(command):
     assert len(shown) == len(arguments), (command, shown)
     for name in shown:
         assert re.fullmatch(r"[A-Z][A-Z_]*", name), (command, name, text)
-    for p in arguments:  # and the Arguments panel lists them by the same names
+    for p in arguments:  # and the Arguments panel lists them by the same names (* required)
         assert p.metavar and p.metavar.strip(".") in shown, (command, p.name)
-        assert re.search(rf"│ \*\s+{re.escape(p.metavar)}\s", text), (command, p.metavar)
+        star = r"\*\s+" if p.required else r"\s+\[?"
+        assert re.search(rf"│ {star}{re.escape(p.metavar)}", text), (command, p.metavar)
 
 
 def test_known_argument_names():

@@ -75,7 +75,7 @@ def require_ray() -> None:
 
 def serve(
     maps: Annotated[Optional[list[Path]], typer.Argument(
-        metavar="[MAP]...", help="map folders to serve (none: only with --learned-maps)")]
+        metavar="MAP", help="map folders to serve (none: only with --learned-maps)")]
     = None,
     name: Annotated[Optional[list[str]], typer.Option(
         help="a map's name, in the order of the maps (default: the folder's name)")] = None,
