@@ -15,7 +15,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import atomic_file
-from slamreloc.io.numbers import number_problem, parse_number
+from slamreloc.io.numbers import number_problem
 
 RIGID_TOL = 1e-3  # max |R^T R - I| and |det R - 1| accepted for a pose read from a file
 MAX_COORDINATE = 1e9  # metres: beyond any map, and squares stay far from overflow
@@ -259,7 +259,12 @@ def parse_tum_line(line: str, source: str = "trajectory",
         raise InputError(f"{source}: expected 8 fields 'name tx ty tz qx qy qz qw', got {len(parts)}")
     if numeric_stamp:
         parse_stamp(parts[0], source)
-    vals = np.array([parse_number(p, source, "a pose value") for p in parts[1:]])
+    for text in parts[1:]:  # one rule for numbers in text (slamreloc.io.numbers)
+        problem = number_problem(text)
+        if problem:
+            raise InputError(f"{source}: non-numeric pose value {text[:40]!r} ({problem}; "
+                             "numbers are plain ASCII decimals such as -1.5 or 2e-3)")
+    vals = np.array([float(text) for text in parts[1:]])
     if not np.all(np.isfinite(vals[:3])):
         raise InputError(f"{source}: invalid pose values in line {line.strip()[:120]!r}")
     if np.abs(vals[:3]).max() > MAX_COORDINATE:

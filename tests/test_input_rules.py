@@ -74,9 +74,9 @@ def test_a_pose_file_with_a_quaternion_of_norm_2_is_refused(tmp_path):
     path.write_text("seq-01/frame-000000 0 0 0 0 0 0 1\nseq-01/frame-000001 0 0 0 0 0 0 2\n")
     with pytest.raises(InputError, match=r"poses.txt:2: quaternion norm 2, not 1"):
         read_poses(path)
-    for bad in ("nan", "inf", "0"):
+    for bad in ("nan", "inf", "0"):  # nan and inf are not numbers to the one text rule
         path.write_text(f"seq-01/frame-000000 0 0 0 0 0 {bad} 0\n")
-        with pytest.raises(InputError, match="poses.txt:1: quaternion"):
+        with pytest.raises(InputError, match="poses.txt:1: (quaternion|non-numeric pose value)"):
             read_poses(path)
     # four decimals, as TUM's ground truth files are written: within the rule
     path.write_text("1305031102.1753 1.3405 0.6266 1.6575 0.6574 0.6126 -0.2949 -0.3248\n")

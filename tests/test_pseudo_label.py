@@ -124,7 +124,7 @@ def test_cli_and_bad_inputs(updated, small_map, scene_dir, tmp_path):
         (("pseudo-label", tmp_path, scene_dir, "--out", tmp_path / "n", "--report",
           tmp_path / "r.json"), "not a slamreloc map"),
         (("pseudo-label", small_map.root, scene_dir, "--out", tmp_path / "n", "--report",
-          tmp_path / "r.json", "--rounds", "0"), "--rounds must be at least 1"),
+          tmp_path / "r.json", "--rounds", "0"), "--rounds must be in 1..1000"),
         (("pseudo-label", small_map.root, scene_dir, "--out", tmp_path / "n", "--report",
           tmp_path / "r.json", "--split", "seq-99"), "unknown split or sequence"),
     ]
