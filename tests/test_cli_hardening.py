@@ -276,20 +276,6 @@ def test_map_metadata_values_out_of_the_schema_are_refused(tiny_map, path, value
         assert w in str(err.value)
 
 
-def test_a_frame_named_twice_in_a_map_is_refused(tiny_map, tmp_path):
-    import shutil
-
-    from slamreloc.map.meta import MapMeta
-
-    root = tmp_path / "map"
-    shutil.copytree(tiny_map, root)
-    doc = json.loads((root / META).read_text())
-    doc["frame_names"] = [doc["frame_names"][0]] * len(doc["frame_names"])
-    (root / META).write_text(json.dumps(doc))
-    with pytest.raises(InputError, match="frame_names.*twice"):
-        MapMeta.read(root)
-
-
 @pytest.mark.parametrize("key", ["in_std", "out_scale"])
 def test_regressor_scales_must_be_positive(key):
     import torch

@@ -279,17 +279,13 @@ class MapMeta(_Record):
 
     @classmethod
     def read(cls, root: str | Path) -> MapMeta:
-        """MAP/slamreloc_map.json, parsed and checked (`from_json`), its frames named once
-        each."""
+        """MAP/slamreloc_map.json, parsed and checked (`from_json`). A frame may be named more
+        than once: a map updated with a sequence it already holds, or extended by a SLAM
+        session over frames it was learned from, keeps each observation as a frame of its
+        own."""
         path = Path(root) / META
         meta = cls.from_json(parse_json(read_bytes(path, "map metadata", MAX_META_BYTES), path),
                              path)
-        names = meta.frame_names or ()
-        if len(set(names)) != len(names):  # a map's database rows name their frames by these
-            seen: set[str] = set()
-            twice = next(n for n in names if n in seen or seen.add(n))
-            raise InputError(f"{path}: 'frame_names' holds {_short(twice)} twice (each names "
-                             "one of the map's frames)")
         return meta
 
     @classmethod
