@@ -189,12 +189,6 @@ def plot_curve(curve: dict, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
-def evaluate(map_dir: Path, data: Path, report: Path) -> dict:
-    r = jobs.evaluate(map_dir, data, report, "test", references=[data / SFM], progress=False) \
-        if hasattr(jobs, "evaluate") else None
-    return r
-
-
 def cli(*args) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "slamreloc.cli", *map(str, args)],
                           capture_output=True, text=True)
