@@ -215,6 +215,38 @@ def pose_error(world_from_cam_est: Rigid3, world_from_cam_gt: Rigid3) -> tuple[f
     return dt, dr
 
 
+# two readings of one value agree within this, relative to the larger magnitude (at least 1):
+# float noise of a text round trip, far below any difference a model or a pose means
+AGREE_REL = 1e-9
+
+
+def values_agree(a, b, rel: float = AGREE_REL) -> bool:
+    """Whether two readings of the same numbers (same shape, any units) agree: every pair
+    within `rel` of the larger magnitude (at least 1)."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if a.shape != b.shape:
+        return False
+    scale = np.maximum(1.0, np.maximum(np.abs(a), np.abs(b)))
+    return bool(np.all(np.abs(a - b) <= rel * scale))
+
+
+def same_pose(a: Rigid3, b: Rigid3, rel: float = AGREE_REL) -> bool:
+    """Whether two readings of a pose are one pose: rotation matrices and translations (metres
+    or a model's units) agree within `rel` (`values_agree`); q and -q are the same rotation.
+    The one rule for "the same pose, read twice" (a COLMAP model's .bin and .txt, a bag's or a
+    TUM file's repeated stamp)."""
+    return values_agree(a.rotation, b.rotation, rel) and \
+        values_agree(a.translation, b.translation, rel)
+
+
+def pose_gap(a: Rigid3, b: Rigid3) -> str:
+    """"0.012 m and 0.5 deg apart": how far two poses are (`pose_error`: the camera centres'
+    distance in metres, or the poses' units, and the rotation between them in degrees), for
+    messages."""
+    dt, dr = pose_error(a, b)
+    return f"{dt:.3g} m and {dr:.3g} deg apart"
+
+
 def tum_line(name: str, world_from_cam: Rigid3) -> str:
     """`name tx ty tz qx qy qz qw`, camera-to-world."""
     vals = [*world_from_cam.translation, *world_from_cam.quat_xyzw()]
@@ -256,7 +288,8 @@ def parse_tum_line(line: str, source: str = "trajectory",
     The quaternion must be a unit quaternion (`unit_quaternion`)."""
     parts = line.split()
     if len(parts) != 8:
-        raise InputError(f"{source}: expected 8 fields 'name tx ty tz qx qy qz qw', got {len(parts)}")
+        raise InputError(f"{source}: expected 8 fields 'name tx ty tz qx qy qz qw', "
+                         f"got {len(parts)}")
     if numeric_stamp:
         parse_stamp(parts[0], source)
     for text in parts[1:]:  # one rule for numbers in text (slamreloc.io.numbers)
@@ -299,12 +332,46 @@ def _short_values(v: np.ndarray) -> str:
 
 def read_tum_trajectory(path, numeric_stamps: bool = False) -> list[tuple[str, Rigid3]]:
     """A TUM trajectory file: one `name tx ty tz qx qy qz qw` per line (camera-to-world);
-    blank lines and `#` comments are skipped. Errors name the file and line."""
+    blank lines and `#` comments are skipped. Errors name the file and line. A timestamp
+    (a numeric first column) on more than one line is one pose read twice when the lines
+    carry the same pose (`same_pose`), and is read once; with different poses it is an
+    InputError naming both lines (`unique_stamps`): which one is the camera's is not for the
+    reader to guess."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: trajectory file not found")
-    return [parse_tum_line(line, f"{path}:{i}", numeric_stamps)
-            for i, line in _content_lines(path, "trajectory")]
+    return unique_stamps([(i, *parse_tum_line(line, f"{path}:{i}", numeric_stamps))
+                          for i, line in _content_lines(path, "trajectory")], path)
+
+
+def _stamp_value(text: str) -> float | None:
+    """The timestamp (seconds) a first column holds, as `parse_stamp` reads it; None for a
+    frame name (anything `parse_stamp` refuses)."""
+    if number_problem(text):
+        return None
+    stamp = float(text)
+    return stamp if np.isfinite(stamp) and abs(stamp) <= MAX_STAMP_S else None
+
+
+def unique_stamps(rows: list[tuple[int, str, Rigid3]], path) -> list[tuple[str, Rigid3]]:
+    """(first column, pose) of each (line number, first column, pose) row of the TUM file
+    `path`, each timestamp once: a later row of a timestamp already read (the same number,
+    however written) is dropped where its pose is the same (`same_pose`: float noise, q or -q)
+    and an InputError `FILE:N: timestamp T repeats line M with a different pose (X m and Y deg
+    apart)` otherwise. Frame names (non-numeric first columns) are left to the caller."""
+    first_row: dict[float, tuple[int, Rigid3]] = {}
+    out: list[tuple[str, Rigid3]] = []
+    for line_no, first, pose in rows:
+        stamp = _stamp_value(first)
+        if stamp is not None:
+            seen = first_row.setdefault(stamp, (line_no, pose))
+            if seen[0] != line_no:
+                if same_pose(seen[1], pose):
+                    continue
+                raise InputError(f"{path}:{line_no}: timestamp {first[:40]} repeats line "
+                                 f"{seen[0]} with a different pose ({pose_gap(seen[1], pose)})")
+        out.append((first, pose))
+    return out
 
 
 def _content_lines(path: Path, what: str) -> list[tuple[int, str]]:

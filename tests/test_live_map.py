@@ -203,3 +203,49 @@ def torch_equal(a, b) -> bool:
     import torch
 
     return bool(torch.equal(a, b))
+
+
+@pytest.mark.parametrize("search_frames, expect_home", [(1, True), (2, False)])
+def test_loop_query_searches_only_keyframes_near_the_tracked_pose(search_frames, expect_home):
+    """A camera that went out 1.2 m and came back home: its loop query at home matches the
+    home keyframe's rows, not a far keyframe whose rows hold the very same descriptors (a
+    repeated texture elsewhere) at points that place the camera there; searching the whole
+    map (2 keyframes here) takes the far copy, whose descriptors are the nearer ones."""
+    from slamreloc.types import Features
+
+    camera = Camera(640, 480, 500.0, 500.0, 320.0, 240.0)
+    backend = SlamBackend(None, [], BackendConfig(keyframe_every=1))
+    live = LiveMap(LiveMapConfig(loop_search_frames=search_frames))
+    live.attach(backend)
+    rng = np.random.default_rng(1)
+    home_points = rng.uniform(-1, 1, (200, 3)) + [0, 0, 3]
+    desc = rng.standard_normal((200, 128)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    noisy = desc + 0.05 * rng.standard_normal(desc.shape).astype(np.float32)
+    noisy /= np.linalg.norm(noisy, axis=1, keepdims=True)
+    n = 81
+    at = [Rigid3(np.eye(3), np.array([0.03 * min(i, n - 1 - i), 0, 0])) for i in range(n)]
+    for i, world_from_cam in enumerate(at):
+        backend.process(None, None, camera, world_from_cam, float(i))
+        if i == 0:
+            backend.anchor(0, world_from_cam)
+        key = backend.frames[-1].key
+        if i == 0:  # home: the true rows, descriptors a little off the query's
+            rows = (noisy, home_points)
+        elif i == 40:  # 1.2 m away: the query's exact descriptors, points seen from there
+            rows = (desc, home_points + at[40].translation)
+        else:
+            continue
+        live.store.add(KeyframeRows(key, i, f"f{i}", np.zeros((200, 2), np.float32),
+                                    rows[0].astype(np.float16), world_from_cam.inverse()
+                                    .transform(rows[1]).astype(np.float32)))
+    uv = home_points[:, :2] / home_points[:, 2:] * 500.0 + [320.0, 240.0]
+    feats = Features(uv.astype(np.float32), desc, np.ones(200, np.float32))
+    result = live.localize_query(feats, camera, n - 1, loop_only=True)
+    assert result.source == "database" and result.estimate.success
+    found = result.estimate.world_from_cam.translation
+    if expect_home:
+        np.testing.assert_allclose(found, at[0].translation, atol=0.01)
+        assert result.reference.frame == 0
+    else:
+        np.testing.assert_allclose(found, at[40].translation, atol=0.01)

@@ -146,8 +146,12 @@ def test_typed_views_read_what_the_metadata_records(doc):
     dataset = doc.get("dataset")
     root = dataset.get("root") if isinstance(dataset, dict) else None
     assert meta.dataset_root == (Path(root) if isinstance(root, str) else None)
-    assert meta.metric is (bool(dataset.get("metric", True)) if isinstance(dataset, dict)
-                           else True)
+    metric = dataset.get("metric", True) if isinstance(dataset, dict) else True
+    if metric is None or isinstance(metric, bool):
+        assert meta.metric is bool(metric)
+    else:  # kept verbatim, refused where it is read as a yes or no
+        with pytest.raises(InputError, match="'dataset.metric' must be true or false"):
+            meta.metric  # noqa: B018
     assert meta.frame_names == (tuple(doc["frame_names"]) if "frame_names" in doc else None)
     meta.train_config  # noqa: B018 - malformed training settings take the defaults
 

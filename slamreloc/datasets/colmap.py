@@ -7,6 +7,11 @@
 
 The model is read with pycolmap (which also composes rig and frame poses of COLMAP >= 3.12
 models); points3D is not needed (slamreloc triangulates its own labels) and is not read.
+A folder holding the model both as .bin and as .txt is read when the two describe the same
+model (the same image names, each with the same camera and pose, within `geometry.AGREE_REL`:
+`geometry.same_pose`), and refused when they disagree; a folder holding cameras or images of
+one format without the other (`images.bin` beside `cameras.txt`, a stray `cameras.txt` beside a
+.bin model) is refused, naming the missing file.
 Each model file is first walked record by record (colmap_check.py), so that a damaged file is
 an InputError naming the file (and the line), not garbage, an unbounded allocation or a hang in
 pycolmap's reader.
@@ -31,13 +36,14 @@ from slamreloc.datasets.base import Dataset
 from slamreloc.datasets.colmap_check import check_model
 from slamreloc.datasets.io import check_frame_files, read_text
 from slamreloc.errors import InputError
-from slamreloc.geometry import Rigid3
+from slamreloc.geometry import Rigid3, pose_gap, same_pose, values_agree
 from slamreloc.io.jsonio import read_json
 from slamreloc.types import Camera, Frame
 
 MODEL_DIRS = ("sparse/0", "sparse")
 FILES = ("cameras", "images")
 OPTIONAL_FILES = ("rigs", "frames")
+EXTS = ("bin", "txt")
 
 
 def is_colmap(root: Path) -> bool:
@@ -46,21 +52,36 @@ def is_colmap(root: Path) -> bool:
 
 def find_model(root: Path, dirs: tuple[str, ...] = MODEL_DIRS) -> tuple[Path, str]:
     """(model folder, "bin" or "txt") of the project at `root`: the first of `dirs` (relative
-    to `root`; "." is `root` itself) that holds cameras and images."""
+    to `root`; "." is `root` itself) that holds cameras and images. A folder with both formats
+    complete gives "bin" (`read_checked` then reads the .txt too and compares); a folder with
+    cameras or images of a format without the other is an InputError naming the missing file."""
     for rel in dirs:
         folder = root / rel
-        for ext in ("bin", "txt"):
-            if all((folder / f"{name}.{ext}").is_file() for name in FILES):
-                return folder, ext
-        if any((folder / f"{name}.{ext}").is_file() for name in FILES for ext in ("bin", "txt")):
-            have = sorted(p.name for p in folder.iterdir() if p.stem in FILES and p.is_file())
-            raise InputError(f"{folder}: incomplete COLMAP model (has {', '.join(have)}; needs "
-                             "cameras and images, both .bin or both .txt)")
+        present = {ext: [n for n in FILES if (folder / f"{n}.{ext}").is_file()] for ext in EXTS}
+        if not any(present.values()):
+            continue
+        partial = [(ext, names) for ext, names in present.items()
+                   if names and len(names) < len(FILES)]
+        if partial:
+            complete = [ext for ext, names in present.items() if len(names) == len(FILES)]
+            missing = "; ".join(
+                f"{names[0]}.{ext} without {next(n for n in FILES if n not in names)}.{ext}"
+                for ext, names in partial)
+            beside = f" beside the .{complete[0]} model" if complete else ""
+            raise InputError(f"{folder}: incomplete COLMAP model: {missing}{beside} (a model "
+                             "is cameras and images, both .bin or both .txt)")
+        return folder, "bin" if present["bin"] else "txt"
     if dirs == MODEL_DIRS:
         raise InputError(f"{root / 'sparse'}: no COLMAP model (cameras and images .bin or .txt) "
                          "in sparse/0 or sparse")
     where = " or ".join("the folder itself" if d == "." else d for d in dirs)
     raise InputError(f"{root}: no COLMAP model (cameras and images .bin or .txt) in {where}")
+
+
+def other_format(folder: Path, ext: str) -> str | None:
+    """The model's other format ("txt" beside "bin") where the folder holds it complete too."""
+    other = "txt" if ext == "bin" else "bin"
+    return other if all((folder / f"{n}.{other}").is_file() for n in FILES) else None
 
 
 def read_reconstruction(folder: Path, ext: str):
@@ -123,11 +144,60 @@ def image_world_from_cam(image, source: str) -> Rigid3 | None:
     return Rigid3.from_matrix(cam_from_world, source=source).inverse()
 
 
+def read_checked(folder: Path, ext: str):
+    """(ModelIndex, pycolmap Reconstruction) of the model in `folder`, its files checked
+    (`check_model`) before pycolmap reads them. Where the folder holds the model in the other
+    format too, that one is checked and read as well: InputError naming the folder unless both
+    describe the same model (`models_disagree`)."""
+    index = check_model(folder, ext)
+    rec = read_reconstruction(folder, ext)
+    other = other_format(folder, ext)
+    if other is not None:
+        check_model(folder, other)
+        problem = models_disagree(rec, read_reconstruction(folder, other),
+                                  (folder / f"images.{ext}", folder / f"images.{other}"))
+        if problem:
+            raise InputError(f"{folder}: the .{ext} and .{other} models disagree ({problem}); "
+                             "keep one of them")
+    return index, rec
+
+
+def _image_record(rec, image, images_file: Path) -> tuple[str, int, int, tuple, Rigid3 | None]:
+    """(camera model, width, height, parameters, world_from_cam or None) of a pycolmap image."""
+    cam = rec.cameras[image.camera_id]
+    return (cam.model.name, int(cam.width), int(cam.height), tuple(float(p) for p in cam.params),
+            image_world_from_cam(image, f"{images_file}: pose of image {image.name!r}"))
+
+
+def models_disagree(a, b, images_files: tuple[Path, Path]) -> str | None:
+    """What differs between two pycolmap readings of a model, read from `images_files` (None:
+    nothing): the image names, or an image's camera (model, size, parameters) or pose
+    (`same_pose`). Image and camera ids are not compared (a writer may renumber them); what
+    each image is, is."""
+    images = [{im.name: im for im in rec.images.values()} for rec in (a, b)]
+    for mine, theirs, file in ((images[0], images[1], images_files[0]),
+                               (images[1], images[0], images_files[1])):
+        only = sorted(set(mine) - set(theirs))
+        if only:
+            return f"image {only[0][:80]!r} is in {file.name} only"
+    for name in sorted(images[0]):
+        ra = _image_record(a, images[0][name], images_files[0])
+        rb = _image_record(b, images[1][name], images_files[1])
+        if ra[:3] != rb[:3] or not values_agree(ra[3], rb[3]):
+            return f"image {name[:80]!r} has different cameras"
+        if (ra[4] is None) != (rb[4] is None):
+            posed = images_files[0] if ra[4] is not None else images_files[1]
+            return f"image {name[:80]!r} is posed in {posed.name} only"
+        if ra[4] is not None and not same_pose(ra[4], rb[4]):
+            return f"image {name[:80]!r} has poses {pose_gap(ra[4], rb[4])}"
+    return None
+
+
 def read_model_poses(folder: Path, ext: str) -> dict[str, Rigid3 | None]:
     """world_from_cam (camera-to-world, the model's units) of every image of the model in
-    `folder`, by image name; None for an image without a pose. The files are checked first."""
-    check_model(folder, ext)
-    rec = read_reconstruction(folder, ext)
+    `folder`, by image name; None for an image without a pose. The files are checked first
+    (`read_checked`)."""
+    _, rec = read_checked(folder, ext)
     images_file = folder / f"images.{ext}"
     return {image.name: image_world_from_cam(image, f"{images_file}: pose of image "
                                                     f"{image.name!r}")
@@ -151,8 +221,7 @@ def _read_split(path: Path) -> list[str]:
 def load_colmap(root: Path) -> Dataset:
     root = Path(root)
     folder, ext = find_model(root)
-    index = check_model(folder, ext)
-    rec = read_reconstruction(folder, ext)
+    index, rec = read_checked(folder, ext)
     images_file = folder / f"images.{ext}"
     images_dir = root / "images"
     if not rec.images:

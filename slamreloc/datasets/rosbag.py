@@ -17,6 +17,10 @@ A bag is a ROS 1 `.bag` file, a ROS 2 bag folder (with `metadata.yaml`) or a ROS
   messages around it, within 0.1 s on both sides. A pose whose child frame is not the image's
   frame is composed with the `/tf_static` chain from that frame to the image's when there is
   one.
+- Repeated stamps: two messages of one image, depth or pose topic with the same stamp are one
+  message twice when they hold the same image bytes or the same pose (`geometry.same_pose`:
+  within float noise), and are read once; otherwise the bag is refused, naming the topic and
+  the stamp (which of the two is the camera's is not for slamreloc to guess).
 
 Images and depth maps are extracted into a private temporary folder (removed when the
 interpreter exits), so that frames point at ordinary files: compressed images as received,
@@ -26,6 +30,7 @@ raw images as PNG, depth as 16-bit PNG in millimetres.
 from __future__ import annotations
 
 import atexit
+import hashlib
 import shutil
 import tempfile
 from collections.abc import Callable, Iterator
@@ -41,7 +46,7 @@ from slamreloc.datasets.base import Dataset
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import open_regular
 from slamreloc.geometry import (MAX_COORDINATE, Rigid3, matrix_to_quat, nearest_stamps,
-                                unit_quaternion)
+                                pose_gap, same_pose, unit_quaternion)
 from slamreloc.io.images import check_encoded_image, check_image_size
 from slamreloc.runtime.progress import console
 from slamreloc.types import Camera, Frame
@@ -408,16 +413,26 @@ def _extract(bag: _Bag, topic: str, folder: Path, make_file: FileMaker,
     """Write each message of `topic` to `folder` as a file; all must be `size` pixels."""
     folder.mkdir()
     stills: list[_Still] = []
-    for receive_time, msg in bag.messages(topic):
-        source = f"{bag.path}: {what} topic {topic}, message {len(stills)}"
+    seen: dict[float, tuple[int, bytes]] = {}  # stamp -> (first message, its file's digest)
+    for i, (receive_time, msg) in enumerate(bag.messages(topic)):
+        source = f"{bag.path}: {what} topic {topic}, message {i}"
         data, suffix, got = make_file(msg, source)
         if got != size:
             raise InputError(f"{source}: {what} is {got[0]}x{got[1]} pixels, the images are "
                              f"{size[0]}x{size[1]}" + (" (depth must be registered to the "
                                                        "images)" if what == "depth" else ""))
+        stamp = _stamp(msg.header, receive_time)
+        digest = hashlib.sha256(data).digest()
+        first, first_digest = seen.setdefault(stamp, (i, digest))
+        if first != i:  # a repeated stamp: the same message again is read once
+            if first_digest != digest:
+                raise InputError(f"{bag.path}: {what} topic {topic}: messages {first} and {i} "
+                                 f"are both stamped {stamp:.6f} s but hold different "
+                                 f"{'depth maps' if what == 'depth' else 'images'}")
+            continue
         path = folder / f"{len(stills):06d}{suffix}"
         path.write_bytes(data)
-        stills.append(_Still(_stamp(msg.header, receive_time), path))
+        stills.append(_Still(stamp, path))
     return stills
 
 
@@ -531,7 +546,9 @@ def _pose_messages(bag: _Bag, spec: str) -> Iterator[tuple[float, Any]]:
 
 
 def _read_pose_track(bag: _Bag, spec: str) -> PoseTrack:
-    """The pose messages of `spec` (a pose topic or tf:PARENT:CHILD), sorted by stamp."""
+    """The pose messages of `spec` (a pose topic or tf:PARENT:CHILD), sorted by stamp, each
+    stamp once: messages of one stamp must carry the same pose (`same_pose`), else InputError
+    naming the bag, the topic and the stamp."""
     stamps, poses, child = [], [], None
     for i, (receive_time, msg) in enumerate(_pose_messages(bag, spec)):
         header, child_frame, translation, rotation = _pose_fields(msg)
@@ -540,8 +557,16 @@ def _read_pose_track(bag: _Bag, spec: str) -> PoseTrack:
         child = _frame_id(child_frame) if child_frame is not None else None
     if not poses:
         raise InputError(f"{bag.path}: pose {spec} has no messages")
-    order = np.argsort(stamps, kind="stable")
-    return PoseTrack(np.asarray(stamps)[order], [poses[i] for i in order], child)
+    kept: list[int] = []  # message indices, by stamp, the first of each stamp
+    for i in np.argsort(stamps, kind="stable").tolist():
+        first = kept[-1] if kept and stamps[kept[-1]] == stamps[i] else None
+        if first is None:
+            kept.append(i)
+        elif not same_pose(poses[first], poses[i]):
+            raise InputError(f"{bag.path}: pose {spec}: messages {first} and {i} are both "
+                             f"stamped {stamps[i]:.6f} s but carry different poses "
+                             f"({pose_gap(poses[first], poses[i])})")
+    return PoseTrack(np.asarray(stamps)[kept], [poses[i] for i in kept], child)
 
 
 def _static_transforms(bag: _Bag) -> dict[tuple[str, str], Rigid3]:

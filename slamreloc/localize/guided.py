@@ -53,18 +53,21 @@ class GuidedMatcher:
         self.axes = world_from_cam[:, :3, 2]  # their optical axes (+z), world frame
         self.rows = rows_by_frame(database.frame_index, len(world_from_cam))
 
-    def nearby_rows(self, cam_from_world: Rigid3, allowed: np.ndarray | None = None
+    def nearby_rows(self, cam_from_world: Rigid3, allowed: np.ndarray | None = None,
+                    n_frames: int | None = None, max_angle_deg: float | None = None
                     ) -> np.ndarray:
         """Database rows of the `n_frames` training cameras nearest to the pose's centre
         among those looking within `max_angle_deg` of its direction (and `allowed`, a mask
-        over the training cameras, where given)."""
+        over the training cameras, where given); both default to the config's."""
+        n_frames = self.config.n_frames if n_frames is None else n_frames
+        max_angle_deg = self.config.max_angle_deg if max_angle_deg is None else max_angle_deg
         world_from_cam = cam_from_world.inverse()
         axis = world_from_cam.rotation[:, 2]
         distance = np.linalg.norm(self.centers - world_from_cam.translation, axis=1)
-        distance[self.axes @ axis < np.cos(np.radians(self.config.max_angle_deg))] = np.inf
+        distance[self.axes @ axis < np.cos(np.radians(max_angle_deg))] = np.inf
         if allowed is not None:
             distance[~allowed] = np.inf
-        near = np.argsort(distance, kind="stable")[:self.config.n_frames]
+        near = np.argsort(distance, kind="stable")[:n_frames]
         near = near[np.isfinite(distance[near])]
         if len(near) == 0:
             return np.zeros(0, np.int64)

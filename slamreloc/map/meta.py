@@ -23,6 +23,11 @@ keys it reads leniently (everything but what `from_json` checks) that lack the f
 are kept verbatim in the record's `extra`, and `to_json` writes the keys in the order they were
 read. `MapMeta.from_json(d, path).to_json() == d` for every metadata `from_json` accepts
 (`format_version` is added where a format-1 map records only `version`).
+
+A value kept verbatim is refused where it is used: `recorded_inputs` (which every command with
+a map consults before it writes anything) refuses a `dataset.root` or `pseudo_label.dataset.root`
+that is not a string (null: not recorded), naming the file and the field. `dataset_root`, a
+view, reads such a root as none; `surface.voxel_m` is recorded, never read.
 """
 
 from __future__ import annotations
@@ -49,6 +54,7 @@ MAX_META_BYTES = 64 << 20
 _HEADER = ("format", "format_version", "slamreloc_version")
 _TRAILER = ("files", "frame_names")
 _STAMPED = (*_HEADER, "version", *_TRAILER)  # what `stamped` sets (`version`: format 1's key)
+_NOT_JSON = ("extra", "order", "source")  # a record's fields that are no key of its JSON
 
 
 def _is_int(v) -> bool:
@@ -107,11 +113,11 @@ class _Record:
     def _typed(self) -> dict[str, Json]:
         """The typed fields' JSON values in declaration order, those not None."""
         return {f.name: _to_json(getattr(self, f.name)) for f in fields(self)
-                if f.name not in ("extra", "order") and getattr(self, f.name) is not None}
+                if f.name not in _NOT_JSON and getattr(self, f.name) is not None}
 
     def get(self, key: str, default: Json = None) -> Json:
         """The value recorded under `key`, typed or not (`default` when absent), as dict.get."""
-        typed = key not in ("extra", "order") and key in {f.name for f in fields(self)}
+        typed = key not in _NOT_JSON and key in {f.name for f in fields(self)}
         value = getattr(self, key) if typed else None
         return self.extra.get(key, default) if value is None else value
 
@@ -271,6 +277,8 @@ class MapMeta(_Record):
     files: dict[str, str] | None = _key(_is_object)  # file name -> SHA-256 hex (format >= 2)
     # the database's training frames, in the order of its poses (None: not recorded)
     frame_names: tuple[str, ...] | None = _key(_is_strings, tuple)
+    # the file it was read from (`from_json`'s path), for messages; None: built in code
+    source: Path | None = field(default=None, compare=False, repr=False)
 
     def _typed(self) -> dict[str, Json]:
         return {"format": MAP_FORMAT, **super()._typed()}
@@ -310,7 +318,7 @@ class MapMeta(_Record):
         _check_schema(doc, version, path)
         meta = cls._parse({k: v for k, v in doc.items() if k != "format"},
                           format_version=version)
-        return replace(meta, order=tuple(doc))
+        return replace(meta, order=tuple(doc), source=Path(path))
 
     # -- writing ---------------------------------------------------------------------------
 
@@ -391,21 +399,49 @@ class MapMeta(_Record):
     def recorded_inputs(self) -> dict[str, Path | None]:
         """The files the map records it was made from - its dataset, the pose file it used,
         the dataset of its last update: inputs (`check_outputs`) of every command that has the
-        map, which never writes there. Only absolute paths count (the schema's)."""
+        map, which never writes there. Only absolute paths count (the schema's). A recorded
+        dataset that is not an object, or a root that is not a string (null: not recorded), is
+        an InputError naming the file and the field: a check that silently passed over it
+        would let a command write into that dataset."""
         def absolute(p) -> Path | None:
             return Path(p) if isinstance(p, str) and p and Path(p).is_absolute() else None
 
-        update = self.pseudo_label.dataset if self.pseudo_label else None
-        return {"the dataset the map records": absolute(self.dataset.root if self.dataset
-                                                        else None),
+        update = self.pseudo_label.get("dataset") if self.pseudo_label else None
+        return {"the dataset the map records": absolute(self._recorded_root(
+                    self.get("dataset"), "dataset")),
                 "the pose file the map records": absolute(self.poses_source),
-                "the dataset of the map's update": absolute(
-                    update.get("root") if isinstance(update, dict) else None)}
+                "the dataset of the map's update": absolute(self._recorded_root(
+                    update, "pseudo_label.dataset"))}
+
+    def _recorded_root(self, dataset: Json, where: str) -> str | None:
+        """The `root` of a recorded dataset record (`where`: its key path), None where none
+        is recorded; InputError naming the metadata file for a value of another type."""
+        if isinstance(dataset, _Record):
+            dataset = dataset.to_json()
+        if dataset is None:
+            return None
+        if not isinstance(dataset, dict):
+            raise InputError(f"{self.source or META}: '{where}' must be an object, got "
+                             f"{_short(dataset)}")
+        root = dataset.get("root")
+        if root is not None and not isinstance(root, str):
+            raise InputError(f"{self.source or META}: '{where}.root' must be a string (the "
+                             f"dataset's path), got {_short(root)}")
+        return root
 
     @property
     def metric(self) -> bool:
-        """Whether the map is in metres (False: an SfM model's units; recorded or true)."""
-        return bool(self.dataset.get("metric", True)) if self.dataset else True
+        """Whether the map is in metres (False: an SfM model's units; recorded or true).
+        `dataset.metric` is true or false (null: false, as maps read it before the schema);
+        any other value, kept verbatim, is an InputError naming the file and the field here,
+        where it is read as a bool ("false" would be true)."""
+        if not self.dataset:
+            return True
+        metric = self.dataset.get("metric", True)
+        if metric is None or isinstance(metric, bool):
+            return bool(metric)
+        raise InputError(f"{self.source or META}: 'dataset.metric' must be true or false, got "
+                         f"{_short(metric)}")
 
     @property
     def n_frames_updated(self) -> int:

@@ -92,6 +92,7 @@ class ServedMap:
                     _ = scene_map.database
                 step()
                 _ = scene_map.surface
+                _ = scene_map.info.metric  # what info() answers: refused here, not per call
                 if scene_map.provenance_unverified:  # documented: read without a checksum
                     warnings.warn(f"map {quoted(name)}: {path / PROVENANCE} is not listed in "
                                   f"{META}: served without checking its checksum (rewrite the "

@@ -14,17 +14,21 @@ from slamreloc.types import Camera
 
 @dataclass(frozen=True)
 class KissIcpConfig:
-    """voxel_m: kiss-icp's map voxel (metres); `depth_camera`: the camera that took the depth
-    where it is not registered to the image (`Frame.depth_camera`, any pixel size: scaled to
-    the depth map), None: registered depth, use the RGB camera; fitness cells are
-    `fitness_cell_m` (metres) wide."""
+    """voxel_m: kiss-icp's map voxel (metres; on RedKitchen 0.07 registers a frame in 12-22 ms
+    against 36-50 at 0.05, and the live-mapping stream keeps its ATE, 4.6 cm either way,
+    where 0.10 (6 ms) drifts to 6.8 cm: BENCHMARKS.md, "SLAM that learns its own map");
+    `depth_camera`: the camera that took the depth where it is not registered
+    to the image (`Frame.depth_camera`, any pixel size: scaled to the depth map), None:
+    registered depth, use the RGB camera; fitness cells are `fitness_cell_m` (metres) wide,
+    None: one voxel (a coarser map holds fewer points per cell, so a fixed cell would read
+    a good fit as a poor one)."""
 
     sampling: DepthSampling = field(default_factory=DepthSampling)
-    voxel_m: float = 0.05
+    voxel_m: float = 0.07
     max_points_per_voxel: int = 5
     max_iterations: int = 100
     depth_camera: Camera | None = None
-    fitness_cell_m: float = 0.05
+    fitness_cell_m: float | None = None
 
 
 class KissIcpOdometry(Odometry):
@@ -62,6 +66,7 @@ class KissIcpOdometry(Odometry):
         fitness = None
         if model is not None:
             world = source @ pose[:3, :3].T + pose[:3, 3]
-            fitness = occupied_fraction(world, model, self.config.fitness_cell_m)
+            cell = self.config.fitness_cell_m or self.config.voxel_m
+            fitness = occupied_fraction(world, model, cell)
         return OdometryStep(Rigid3(pose[:3, :3].copy(), pose[:3, 3].copy()), fitness,
                             len(points))

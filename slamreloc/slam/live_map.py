@@ -51,7 +51,8 @@ class LiveMapConfig:
     per keyframe; train_every: keyframes between submissions to the learner; regressor_inliers:
     a regressor pose with fewer PnP inliers falls back to the database; keep_fraction: share
     of the most confident predictions RANSAC uses; ratio: the database matching's ratio test;
-    loop_min_frames: what a loop query leaves out (`localize_query`)."""
+    loop_min_frames: what a loop query leaves out and loop_search_*: where it looks
+    (`localize_query`)."""
 
     features: str = "sift"
     feature_options: dict = field(default_factory=dict)
@@ -63,6 +64,15 @@ class LiveMapConfig:
     # a loop query (`localize_query` while tracking) matches only keyframes at least this many
     # frames older than the query or of another track segment, and prior maps' frames
     loop_min_frames: int = 30
+    # a loop query's database search (a tracked frame: its pose is known to within the drift)
+    # takes only the rows of the `loop_search_frames` keyframes nearest to the tracked pose
+    # that look within `loop_search_angle_deg` of its direction, not the whole map
+    loop_search_frames: int = 20
+    loop_search_angle_deg: float = 60.0
+    # a loop query runs the regressor's RANSAC only where at least `regressor_inliers` of its
+    # confident points reproject within this many pixels of the tracked pose (a place it has
+    # not learned yet fails RANSAC only after all of its trials, ~0.1 s)
+    loop_gate_px: float = 40.0
     keep_fraction: float = 0.5
     ratio: float = 0.9
     guided: GuidedConfig = field(default_factory=GuidedConfig)
@@ -183,10 +193,20 @@ class LiveMap:
         version = self._version()
         if self._db is None or self._db.version != version:
             self._db = self.store.database(self.poses(), version)
-            self._db_desc = torch.as_tensor(self._db.database.descriptors.astype(np.float32))
+            self._db_desc = None  # made when a search needs it (`_descriptors`)
             self._guided = (GuidedMatcher(self._db.database, self.config.guided)
                             if len(self._db.database.points) else None)
         return self._db
+
+    def _descriptors(self, rows: np.ndarray | None) -> torch.Tensor:
+        """The database's descriptors as float32 (all of them, kept until the database
+        changes, or only `rows`)."""
+        descriptors = self._db.database.descriptors
+        if rows is not None:
+            return torch.as_tensor(descriptors[rows].astype(np.float32))
+        if self._db_desc is None:
+            self._db_desc = torch.as_tensor(descriptors.astype(np.float32))
+        return self._db_desc
 
     # ---- relocalizing --------------------------------------------------------------------
     def localize_features(self, feats: Features, camera: Camera) -> LiveLocalization:
@@ -200,7 +220,11 @@ class LiveMap:
         its correspondences come only from frames a loop can close on (prior maps' frames,
         keyframes `loop_min_frames` older or of another track segment), since the track's
         own recent keyframes always match and close no loop."""
-        return self._localize(feats, camera, self._loop_frames(frame) if loop_only else None)
+        if not loop_only:
+            return self._localize(feats, camera, None)
+        world_from_cam = self.backend.pose_of(frame) if self.backend is not None else None
+        return self._localize(feats, camera, self._loop_frames(frame),
+                              None if world_from_cam is None else world_from_cam.inverse())
 
     def _loop_frames(self, frame: int) -> np.ndarray:
         """Mask over the database's frames: those a loop query of `frame` may use."""
@@ -210,8 +234,10 @@ class LiveMap:
         return np.array([f < 0 or frame - f >= self.config.loop_min_frames
                          or frames[f].segment != segment for f in live.frames], bool)
 
-    def _localize(self, feats: Features, camera: Camera, allowed: np.ndarray | None
-                  ) -> LiveLocalization:
+    def _localize(self, feats: Features, camera: Camera, allowed: np.ndarray | None,
+                  near: Rigid3 | None = None) -> LiveLocalization:
+        """`allowed`: mask over the database's frames; `near`: the tracked cam_from_world
+        (map frame), which narrows the database search (`loop_search_*`)."""
         t0 = time.perf_counter()
         live = self.database()
         n = len(feats)
@@ -221,15 +247,15 @@ class LiveMap:
             return result
         model = self.learner.model
         if model is not None:
-            result = self._by_regressor(model, feats, camera, live, allowed)
+            result = self._by_regressor(model, feats, camera, live, allowed, near)
         if (not result.estimate.success
                 or result.estimate.num_inliers < self.config.regressor_inliers):
             # the regressor does not know the place (yet): the rows, which know it at once
-            result = self._by_database(feats, camera, live, allowed)
+            result = self._by_database(feats, camera, live, allowed, near)
         result.timings_ms = {"total": 1000 * (time.perf_counter() - t0)}
         return result
 
-    def _by_regressor(self, model, feats, camera, live, allowed) -> LiveLocalization:
+    def _by_regressor(self, model, feats, camera, live, allowed, near) -> LiveLocalization:
         with torch.inference_mode():
             points, confidence = model.predict(torch.as_tensor(feats.descriptors,
                                                                dtype=torch.float32))
@@ -239,6 +265,11 @@ class LiveMap:
         if conf is not None:
             n_keep = max(round(self.config.keep_fraction * len(conf)), min(len(conf), 50))
             keep = np.argsort(-conf, kind="stable")[:n_keep]
+        if near is not None and self._agreeing(near, feats.keypoints[keep], points[keep],
+                                               camera) < self.config.regressor_inliers:
+            n = len(feats)
+            return LiveLocalization(PoseEstimate(None, 0, n, np.zeros(n, bool)), {}, n,
+                                    source="regressor")
         est = estimate_pose(feats.keypoints[keep], points[keep], camera.pinhole, REGRESSOR_PNP)
         result = LiveLocalization(est, {}, len(feats), source="regressor")
         if not est.success:
@@ -255,12 +286,28 @@ class LiveMap:
             result.reference = self._reference(live, rows, refined, p2d, camera)
         return result
 
-    def _by_database(self, feats, camera, live, allowed) -> LiveLocalization:
+    def _agreeing(self, cam_from_world: Rigid3, keypoints: np.ndarray, points: np.ndarray,
+                  camera: Camera) -> int:
+        """How many world points reproject within `loop_gate_px` of their keypoints from
+        `cam_from_world` (in front of the camera)."""
+        in_cam = cam_from_world.transform(points)
+        front = in_cam[:, 2] > 1e-3
+        uv = project(in_cam[front], *camera.pinhole.params())
+        return int((np.linalg.norm(uv - keypoints[front], axis=1) <= self.config.loop_gate_px)
+                   .sum())
+
+    def _by_database(self, feats, camera, live, allowed, near) -> LiveLocalization:
         db = live.database
-        desc, index = self._db_desc, None
-        if allowed is not None:
+        index = None
+        if near is not None and self._guided is not None:
+            index = np.sort(self._guided.nearby_rows(
+                near, allowed, self.config.loop_search_frames, self.config.loop_search_angle_deg))
+        elif allowed is not None:
             index = np.flatnonzero(allowed[db.frame_index])
-            desc = desc[torch.as_tensor(index)]
+        if index is not None and len(index) < 4:
+            return LiveLocalization(PoseEstimate(None, 0, len(feats), np.zeros(len(feats), bool)),
+                                    {}, len(feats), source="database")
+        desc = self._descriptors(index)
         m = match_descriptors(feats.descriptors, desc, self.config.ratio, mutual=False,
                               db_points=db.points if index is None else db.points[index],
                               same_point_m=0.05, db_chunk=LOCALIZER_DB_CHUNK)
