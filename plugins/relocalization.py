@@ -26,6 +26,7 @@ from slamreloc.plugins.relocstats import RelocStats
 from slamreloc.geometry import Rigid3
 from slamreloc.slam.backend import TrackState
 from slamreloc.slam.events import Event, EventKind, FrameData
+from slamreloc.slam.live_map import LiveMap
 from slamreloc.map.surface import IcpConfig, refine_with_depth
 
 
@@ -164,9 +165,9 @@ class RelocalizationPlugin:
         onto the map's surface where the frame has depth; None when PnP fails."""
         loc = self.localizer
         with self.backend.timer("relocalization"):
-            feats = (loc.features(frame) if hasattr(loc, "features")
-                 else loc.extractor.extract(frame.image, frame.camera))
-            live = hasattr(loc, "localize_query")  # a map the session builds (LiveMap)
+            live = isinstance(loc, LiveMap)  # a map the session builds
+            feats = (loc.features(frame) if live  # shared with its keyframe rows
+                     else loc.extractor.extract(frame.image, frame.camera))
             result = (loc.localize_query(feats, frame.camera, frame.index,
                                          loop_only=self.backend.state == TrackState.TRACKING)
                       if live else loc.localize_features(feats, frame.camera))

@@ -137,6 +137,19 @@ def test_second_session_anchors_in_the_first_map_and_extends_it(live_session, ki
     assert {p.name: p.read_bytes() for p in map1.iterdir() if p.is_file()} == before
 
 
+def test_slam_in_a_learned_map_scores_in_its_frame(live_session, kidnap_scene):
+    """`slam --map` of a learned map (no --out): the ground truth is fitted onto the map's
+    keyframes, as `evaluate` does, so the ATE and the anchors are judged in the map's frame,
+    not against truth in another frame (metres off)."""
+    r1, map1, work = live_session
+    res = cli("slam", kidnap_scene, *LIVE, "--map", map1, "--report", work / "r3.json")
+    assert res.returncode == 0, res.stderr
+    r = json.loads((work / "r3.json").read_text())
+    assert r["truth_aligned_on_keyframes"]
+    assert r["n_kidnaps"] == r["n_recovered"] and r["n_false_anchors"] == 0
+    assert r["ate_rmse_m"] < 0.05, r["ate_rmse_m"]
+
+
 def test_slam_needs_a_map_or_an_out(kidnap_scene, tmp_path):
     res = cli("slam", kidnap_scene, "--report", tmp_path / "r.json")
     assert res.returncode == 2
@@ -249,3 +262,50 @@ def test_loop_query_searches_only_keyframes_near_the_tracked_pose(search_frames,
         assert result.reference.frame == 0
     else:
         np.testing.assert_allclose(found, at[40].translation, atol=0.01)
+
+
+def _slam_process(kidnap_scene, work):
+    import os
+
+    return subprocess.Popen(
+        [sys.executable, "-m", "slamreloc.cli", "slam", str(kidnap_scene), *LIVE, "--out",
+         str(work / "map"), "--save-every", "1", "--report", str(work / "r.json")],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
+def test_sigterm_while_learning_writes_the_map_and_ends_in_one_line(kidnap_scene, tmp_path):
+    """SIGTERM once a round has published (the map is on disk): the session ends as on
+    Ctrl-C, exit 130, one `interrupted:` line, the map written and loadable; the learner's
+    thread is stopped first (a process leaving it inside torch aborts: SIGABRT, exit 134)."""
+    import signal
+    import time
+
+    from slamreloc.map.scene_map import SceneMap
+
+    proc = _slam_process(kidnap_scene, tmp_path)
+    deadline = time.monotonic() + 240
+    while not (tmp_path / "map" / "slamreloc_map.json").exists():
+        assert proc.poll() is None, proc.stderr.read()
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("interrupted:"), err
+    SceneMap.load(tmp_path / "map")
+
+
+def test_sigterm_at_start_up_is_one_line(kidnap_scene, tmp_path):
+    """SIGTERM while the command is still importing its libraries: one line, exit 130."""
+    import signal
+    import time
+
+    proc = _slam_process(kidnap_scene, tmp_path)
+    time.sleep(1.5)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert proc.returncode in (130, -signal.SIGTERM), err  # -15: before our handler is set
+    assert len(lines) <= 1 and "Traceback" not in err, err

@@ -71,6 +71,18 @@ def _run_app() -> int | None:
         return 1
 
 
+def _after_interrupt(err: BaseException) -> bool:
+    """Whether `err` was raised while a Ctrl-C (or SIGTERM, `sigterm_as_ctrl_c`) was being
+    handled, or because of one: the interruption is what the user should hear of."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, KeyboardInterrupt):
+            return True
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return False
+
+
 def main() -> None:
     import warnings
 
@@ -93,6 +105,9 @@ def main() -> None:
         print(f"error: {message}", file=sys.stderr)
         sys.exit(2)
     except Exception as err:  # an allocation that failed is one line too
+        if _after_interrupt(err):  # e.g. a library's import cut short by Ctrl-C / SIGTERM
+            print("interrupted", file=sys.stderr)
+            sys.exit(130)
         if not is_out_of_memory(err):
             raise
         print(f"error: out of memory ({type(err).__name__}: {' '.join(str(err).split())[:200]})"

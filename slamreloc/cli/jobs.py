@@ -17,7 +17,7 @@ from pathlib import Path
 from rich.table import Table
 
 from slamreloc.datasets import Dataset, load_dataset, read_image
-from slamreloc.datasets.poses import NAMES_FILE
+from slamreloc.datasets.poses import NAMES_FILE, TUM_FILE
 from slamreloc.errors import InputError, OutOfMemory
 from slamreloc.geometry import (
     Rigid3,
@@ -27,6 +27,7 @@ from slamreloc.geometry import (
     write_tum_trajectory,
 )
 from slamreloc.io.fileio import check_outputs, write_json
+from slamreloc.io.jsonio import read_json
 from slamreloc.localize.evaluate import (
     EvaluationConfig,
     evaluate_map,
@@ -56,7 +57,8 @@ def evaluate(map_dir: Path, dataset_dir: Path, report: Path, split: str = "test"
                    "--trajectory's names file": sidecar(trajectory), "--plot": plot},
                   {"the map": map_dir, "the dataset": dataset_dir, "--poses": poses,
                    **{f"--reference {p}": p for p in references}, **recorded_inputs(map_dir)},
-                  files={"--trajectory's names file": NAMES_FILE})
+                  files={"--report": REPORT_FILE, "--trajectory": TUM_FILE,
+                         "--trajectory's names file": NAMES_FILE})
     scene_map = SceneMap.load(map_dir)
     labels = reference_labels(list(references))
     dataset = load_dataset(dataset_dir, poses)
@@ -93,6 +95,22 @@ def recorded_inputs(map_dir: Path) -> dict[str, Path | None]:
     from slamreloc.map.meta import MapMeta
 
     return MapMeta.read(map_dir).recorded_inputs()
+
+
+def is_report_file(path: Path) -> bool:
+    """Whether `path` reads as a report a command may replace: a JSON object that is not a
+    map's own file (a map's metadata is a JSON object too); any other file is the user's."""
+    if is_map(path.parent):
+        return False
+    try:
+        read_json(path, "report")
+    except InputError:
+        return False
+    return True
+
+
+# `check_outputs`' `files` entry of a --report
+REPORT_FILE = (is_report_file, "a JSON report outside any map folder")
 
 
 def sidecar(trajectory: Path | None) -> Path | None:
@@ -229,7 +247,8 @@ def slam(dataset: Path, map_dir: Path | None, report: Path, split: str = "test",
                   {"the dataset": dataset, "the map": map_dir, "--odometry": odometry_file,
                    "--poses": poses, **(recorded_inputs(map_dir) if map_dir else {})},
                   folders={"--out": (is_map, "a slamreloc map")},
-                  files={"--trajectory's names file": NAMES_FILE})
+                  files={"--report": REPORT_FILE, "--trajectory": TUM_FILE,
+                         "--trajectory's names file": NAMES_FILE})
     config = SlamRunConfig(split=split, odometry=odometry, kidnap_every=kidnap_every,
                            kidnap_skip=kidnap_skip, progress=progress,
                            kidnap_from=kidnap_every if kidnap_from < 0 else kidnap_from,
@@ -265,7 +284,8 @@ def pseudo_label(map_dir: Path, dataset_dir: Path, out: Path, report: Path,
     check_outputs({"--report": report, "--out": out},
                   {"the map": map_dir, "the dataset": dataset_dir, "--truth": truth,
                    "--poses": poses, **recorded_inputs(map_dir)},
-                  folders={"--out": (is_map, "a slamreloc map")})
+                  folders={"--out": (is_map, "a slamreloc map")},
+                  files={"--report": REPORT_FILE})
     old = SceneMap.load(map_dir)
     dataset = load_dataset(dataset_dir)
     new_map, result = update_map(old, dataset, out, split, config or PseudoLabelConfig(),

@@ -40,6 +40,7 @@ from slamreloc.geometry import (
     nearest_stamps,
     read_named_trajectory,
     read_names_sidecar,
+    read_tum_trajectory,
 )
 from slamreloc.io.fileio import open_regular, read_text
 from slamreloc.io.limits import limits
@@ -109,6 +110,21 @@ def is_names_file(path: Path) -> bool:
 
 # `check_outputs`' `files` entry of a TUM output's names sidecar
 NAMES_FILE = (is_names_file, "a frame-names file ('stamp name' lines)")
+
+
+def is_tum_file(path: Path) -> bool:
+    """Whether `path` reads as a TUM trajectory (`timestamp tx ty tz qx qy qz qw` lines), which
+    a command writing one (`--trajectory`, `export --tum`) may replace; any other file there
+    (a dataset's pose file, a map's file) is the user's."""
+    try:
+        read_tum_trajectory(path)
+    except InputError:
+        return False
+    return True
+
+
+# `check_outputs`' `files` entry of a TUM trajectory output
+TUM_FILE = (is_tum_file, "a TUM trajectory ('timestamp tx ty tz qx qy qz qw' lines)")
 
 
 def _refuse_repeated_names(path: Path) -> None:

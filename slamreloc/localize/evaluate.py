@@ -150,16 +150,20 @@ def session_alignment(scene_map: SceneMap, dataset: Dataset, queries: list[Frame
     frame, not the dataset's: (dataset_from_map, its record), the similarity fitted on the
     map's keyframes that the dataset has poses of (never the queries), by which estimates are
     scored against the dataset's poses; None for a map in its dataset's frame."""
-    recorded = scene_map.info.dataset
-    if recorded is None or recorded.poses != "slam":
+    frames = scene_map.session_frames()
+    if frames is None:
         return None
     query_names = {f.name for f in queries}
     truth = {f.name: f.world_from_cam for f in dataset.frames("all")
              if f.world_from_cam is not None and f.name not in query_names}
-    db = scene_map.database
-    map_from_cam = {n: Rigid3.from_matrix(m, tol=1e-2, source=f"{scene_map.root}: frame {n}")
-                    for n, m in zip(db.frame_names, db.world_from_cam.reshape(-1, 4, 4))
-                    if n in truth}
+    map_from_cam = {n: pose for n, pose in frames.items() if n in truth}
+    queried = sum(n in query_names for n in frames)
+    if len(map_from_cam) < 3 and queried:
+        raise InputError(
+            f"{scene_map.root}: a map a SLAM session learned is scored after fitting the "
+            f"dataset's poses onto its keyframes that are not queried, and {queried} of its "
+            f"{len(frames)} keyframes are among the queries (only {len(map_from_cam)} left): "
+            "evaluate it on frames the session did not track (another split)")
     ref_from_map, record = align_to_reference(map_from_cam, truth,
                                               f"{dataset.root}: the map's keyframes")
     return ref_from_map, {**record, "aligned": True, "on": "the map's keyframes"}

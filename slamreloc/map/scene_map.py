@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
+from slamreloc.geometry import Rigid3
 from slamreloc.map.format import (
     DATABASE,
     DB_KEYS,
@@ -122,6 +123,18 @@ class SceneMap:
         names = list(self.info.frame_names or ())
         check_database(arrays, path, self.info.regressor.to_config().in_dim, names)
         return MapDatabase(*(arrays[k] for k in DB_KEYS[:4]), names, arrays["world_from_cam"])
+
+    def session_frames(self) -> dict[str, Rigid3] | None:
+        """For a map a SLAM session learned (`slam --out`: recorded poses "slam", its frame
+        the session's, not the dataset's): its keyframes' world_from_cam by name (map frame,
+        metres), what a dataset's poses are fitted onto to compare with it; None for a map in
+        its dataset's frame."""
+        recorded = self.info.dataset
+        if recorded is None or recorded.poses != "slam":
+            return None
+        db = self.database
+        return {n: Rigid3.from_matrix(m, tol=1e-2, source=f"{self.root}: frame {n}")
+                for n, m in zip(db.frame_names, np.asarray(db.world_from_cam).reshape(-1, 4, 4))}
 
     @cached_property
     def surface(self) -> Surface | None:

@@ -218,7 +218,8 @@ class MapRegistry:
         ServiceError OVERLOADED at once while another caller waits for a load of the map (at
         most one runs, and one caller waits for it), and when the load outlasts
         `load_timeout_s` (it is left to finish on its own: the next reload waits for it and
-        takes its result if it still runs then); INTERNAL for a folder that fails its checks. The map already loaded serves meanwhile, and on any refusal."""
+        takes its result if it still runs then); INTERNAL for a folder that fails its checks.
+        The map already loaded serves meanwhile, and on any refusal."""
         with self._reload_lock:
             if self._stop.is_set():
                 raise ServiceError(pb.OVERLOADED, "the server is stopping")

@@ -267,6 +267,7 @@ class RelocalizerService:
         self.localizing = 0  # Localize calls running or waiting for a worker
         self.requests = 0
         self._save_lock = threading.Lock()  # one learned map written and registered at a time
+        self._written: set[Path] = set()  # the learned maps' folders this server wrote
         self.learning: set[Session] = set()  # learning sessions open (their learner threads)
 
     @staticmethod
@@ -444,9 +445,8 @@ class RelocalizerService:
                             self.learning.add(session)
                     yield pb.SessionUpdate(opened=session.opened()).SerializeToString()
                     continue
-                if kind == "save":
-                    with self._worker(context, counted=False):
-                        saved = self._save(session, msg.save)
+                if kind == "save":  # no worker slot: a save computes no localization
+                    saved = self._save(session, msg.save)
                     yield pb.SessionUpdate(saved=saved).SerializeToString()
                     continue
                 if kind != "frame":
@@ -484,8 +484,15 @@ class RelocalizerService:
         """Write a learning session's map into `learned_maps`/NAME and serve it as NAME (added,
         or swapped in where this server already serves NAME from there). Refused: a session
         that learns nothing, a server without `learned_maps`, a NAME that is not a plain map
-        name, one served from another folder, a NAME whose folder holds something other than
-        a map, a map before the first training round has ended."""
+        name (`saved_name_problem`), a target the server may not write (`_target_problem`),
+        a map before the first training round has ended, another session's save being written
+        (OVERLOADED at once: the save lock is never waited for), a file system error (one
+        line, no server path: `save_refusal`).
+
+        The training round the save waits for (up to 2 x `Session.SAVE_WAIT_S`) runs on the
+        session's own learner and holds neither a worker slot nor the save lock: Localize,
+        other sessions' frames and saves, Health and ListMaps go on meanwhile. The lock is
+        held only to check the target again, write the map and register it."""
         if not session.learning:
             raise ServiceError(pb.FAILED_PRECONDITION, "save: this session tracks in a served "
                                "map and learns none (open it with SessionOpen.learn)")
@@ -493,31 +500,77 @@ class RelocalizerService:
             raise ServiceError(pb.FAILED_PRECONDITION, "save: this server keeps no learned "
                                "maps (its operator did not give `--learned-maps DIR`)")
         name = request.name
-        problem = saved_map_name_problem(name)
+        problem = saved_name_problem(name)
         if problem:
             raise ServiceError(pb.BAD_REQUEST, f"save.name {quoted(name)} {problem}")
-        path = Path(self.config.learned_maps).resolve() / name
-        with self._save_lock:
-            if name in self.registry.names and not _same_folder(self.registry.get(name).path,
-                                                                path):
-                raise ServiceError(pb.FAILED_PRECONDITION, f"save.name {quoted(name)}: a map "
-                                   "of that name is served from elsewhere; choose another name")
-            if path.is_symlink() or (os.path.lexists(path) and not (path / META).is_file()):
-                raise ServiceError(pb.FAILED_PRECONDITION, f"save.name {quoted(name)}: the "
-                                   "learned maps' folder holds something of that name that is "
-                                   "not a map; choose another name")
-            saved = session.save(path)
-            if saved is None:
-                live = session.live_map
-                raise ServiceError(pb.FAILED_PRECONDITION, f"save.name {quoted(name)}: no map "
-                                   f"yet: the session has labelled {live.store.n_rows} "
-                                   "keypoints with depth, and a map needs a training round "
-                                   f"on {live.config.learner.min_rows} or more")
-            served = self.registry.register(name, path)
+        try:
+            path = Path(self.config.learned_maps).resolve() / name
+            self._check_target(name, path)  # before the wait: a refusal needs no round
+            session.train_for_save()
+            if not self._save_lock.acquire(blocking=False):
+                raise ServiceError(pb.OVERLOADED, f"save.name {quoted(name)}: another "
+                                   "session's map is being written; try again when it is done")
+            try:
+                self._check_target(name, path)  # again: the maps may have changed meanwhile
+                saved = session.write(path)
+                if saved is None:
+                    live = session.live_map
+                    raise ServiceError(pb.FAILED_PRECONDITION, f"save.name {quoted(name)}: no "
+                                       f"map yet: the session has labelled {live.store.n_rows} "
+                                       "keypoints with depth, and a map needs a training "
+                                       f"round on {live.config.learner.min_rows} or more")
+                self._written.add(path)
+                served = self.registry.register(name, path)
+            finally:
+                self._save_lock.release()
+        except OSError as err:
+            raise save_refusal(name, err) from None
         _log(f"map {quoted(name)} saved by session {session.id}: version {served.version}")
         saved.name, saved.map_version = name, served.version
         saved.num_points = served.scene_map.info.n_labelled
         return saved
+
+    def _check_target(self, name: str, path: Path) -> None:
+        """ServiceError FAILED_PRECONDITION unless a save may write the map NAME at `path`
+        (`learned_maps`/NAME, resolved): NAME is not served from another folder; `path` is
+        not, does not hold and does not lie inside the folder of a map served under another
+        name, nor an input a served map records (its dataset, its pose file); it is absent, or
+        a map this server serves as NAME (given as MAP, or saved before) or wrote itself - a
+        map left in the folder by an earlier run or another server is not replaced (give it as
+        MAP to save over it); never a symbolic link nor anything that is not a map."""
+        said = f"save.name {quoted(name)}"
+        maps = self.registry.all()
+        own = False  # NAME is served from `path`
+        for m in maps:
+            folder = _resolved(m.path)
+            if m.name == name:
+                if folder != path:
+                    raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: a map of that name is "
+                                       "served from elsewhere; choose another name")
+                own = True
+            elif _overlap(folder, path):
+                raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: its folder "
+                                   f"{_relation(path, folder)} the folder of the map "
+                                   f"{quoted(m.name)} this server serves; choose another name")
+        for m in maps:
+            try:
+                recorded = m.scene_map.info.recorded_inputs()
+            except InputError:
+                recorded = {"an input the map records (unreadable)": m.path}
+            for what, source in recorded.items():
+                if source is not None and _overlap(_resolved(source), path):
+                    raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: its folder "
+                                       f"{_relation(path, _resolved(source))} {what} (map "
+                                       f"{quoted(m.name)}); choose another name")
+        if path.is_symlink() or (os.path.lexists(path) and not (path / META).is_file()):
+            raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: the learned maps' folder "
+                               "holds something of that name that is not a map; choose "
+                               "another name")
+        if os.path.lexists(path) and not own and path not in self._written:
+            raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: the learned maps' folder "
+                               "holds a map of that name that this server does not serve "
+                               "(left by an earlier run or another server); the operator gives "
+                               "it as MAP to serve it and save over it, or choose another name")
 
     def handler(self) -> grpc.GenericRpcHandler:
         def unary(parse, handle):
@@ -539,11 +592,77 @@ def _session_message(kind: str | None) -> str:
             None: "an empty SessionRequest (neither open, frame nor save)"}.get(kind, str(kind))
 
 
-def _same_folder(a: Path, b: Path) -> bool:
+def _resolved(path) -> Path:
+    """`path` with its links followed (as far as they resolve)."""
     try:
-        return Path(a).resolve() == Path(b).resolve()
+        return Path(path).resolve()
     except (OSError, RuntimeError):
-        return False
+        return Path(os.path.abspath(path))
+
+
+def _overlap(a: Path, b: Path) -> bool:
+    """Whether the resolved paths are the same, or one lies inside the other."""
+    return a == b or a.is_relative_to(b) or b.is_relative_to(a)
+
+
+def _relation(a: Path, b: Path) -> str:
+    """How `a` stands to `b` (which `_overlap`), in words."""
+    return "is" if a == b else "lies inside" if a.is_relative_to(b) else "would hold"
+
+
+# the bytes of a saved map's name: NAME_MAX (255) less what the map writer's hidden temporary
+# sibling `.NAME.tmp-PID` adds to it ("." and ".tmp-" and a PID of up to 7 digits)
+MAX_SAVED_NAME_BYTES = 255 - len("." + ".tmp-") - 7
+
+
+def saved_name_problem(name: str) -> str | None:
+    """Why `name` cannot name a map a session saves (None when it can): the one rule of
+    SessionSave's name - a map name that is one plain folder name (`saved_map_name_problem`),
+    valid Unicode, at most MAX_SAVED_NAME_BYTES bytes of UTF-8 (the file system bounds a
+    name in bytes, not in characters, and the writer's temporary folder's name is longer)."""
+    problem = saved_map_name_problem(name)
+    if problem:
+        return problem
+    try:
+        size = len(name.encode("utf-8"))
+    except UnicodeEncodeError:
+        return "is not valid Unicode text (it holds a lone surrogate)"
+    if size > MAX_SAVED_NAME_BYTES:
+        return (f"is {size} bytes of UTF-8, more than {MAX_SAVED_NAME_BYTES} (a folder's name "
+                "is bounded in bytes by the file system)")
+    return None
+
+
+def save_refusal(name: str, err: OSError) -> ServiceError:
+    """The refusal of a save the server's file system refused: one line naming the save and
+    the system's reason, never a server path (logged, with it, for the operator):
+    BAD_REQUEST for a name too long for that file system, else FAILED_PRECONDITION."""
+    _log(f"map {quoted(name)} not saved: {type(err).__name__}: {' '.join(str(err).split())}")
+    reason = err.strerror or type(err).__name__
+    kind = pb.BAD_REQUEST if err.errno == errno.ENAMETOOLONG else pb.FAILED_PRECONDITION
+    return ServiceError(kind, f"save.name {quoted(name)}: the server's file system refused "
+                        f"the map ({reason}); choose another name or ask its operator")
+
+
+def learned_maps_problem(folder: Path, maps: list) -> str | None:
+    """Why `folder` cannot be `learned_maps` beside the served `maps` (ServedMap), or None: it
+    must not be, nor lie inside, a served map's folder, nor an input a served map records
+    (its dataset, its pose file: `MapMeta.recorded_inputs`), where a session's save would
+    write. A served map may lie inside it (a map saved there and served again by name)."""
+    where = _resolved(folder)
+    for m in maps:
+        inputs = {f"the folder of the served map {quoted(m.name)}": m.path}
+        inputs.update({f"{what} (map {quoted(m.name)})": p
+                       for what, p in m.scene_map.info.recorded_inputs().items()})
+        for what, p in inputs.items():
+            if p is None:
+                continue
+            other = _resolved(p)
+            if where == other or where.is_relative_to(other):
+                said = what if where == other else f"{what}, {p}"
+                return (f"{folder}: `learned_maps` {_relation(where, other)} {said}: a "
+                        "session's save would write there; give a folder of its own")
+    return None
 
 
 def unexpected(err: Exception) -> ServiceError:
@@ -734,6 +853,15 @@ def start_server(maps: dict[str, Path], config: ServeConfig = ServeConfig()) -> 
     if problem is not None:
         raise problem
     registry = MapRegistry(maps, config.load_timeout_s)
+    if config.learned_maps is not None:
+        try:
+            problem = learned_maps_problem(Path(config.learned_maps), registry.all())
+        except InputError:
+            registry.close()
+            raise
+        if problem is not None:
+            registry.close()
+            raise InputError(problem)
     service = RelocalizerService(registry, config)
     options = [("grpc.max_receive_message_length", config.max_request_bytes),
                ("grpc.max_send_message_length", config.max_request_bytes),

@@ -12,8 +12,8 @@ A learning session (`SessionOpen.learn`, no map) runs what `slamreloc slam --out
 relocalized in by the relocalization plugin; its map is anchored at the first frame with depth.
 Every frame needs depth (its rows are lifted from it) and the first one a camera (later frames
 default to it). `save` writes the map as `slam --out` does at its end (a training round on the
-keyframes' current poses, waited for, then every row at those poses) without ending the
-session.
+keyframes' current poses, waited for: `train_for_save`, then every row at those poses:
+`write`) without ending the session.
 """
 
 from __future__ import annotations
@@ -182,19 +182,31 @@ class Session:
         self._decisions_sent = len(decisions)
         return out
 
-    def save(self, path) -> pb.MapSaved | None:
-        """Write the learned map to the folder `path` (atomically: `save_map`); the session
-        carries on. First a training round on the keyframes' current poses, waited for (as
-        `slam --out` at its end; up to SAVE_WAIT_S for each of the running round and that
-        one); None where no round has published a regressor (too few rows with depth)."""
+    def train_for_save(self) -> None:
+        """The first half of a save, before anything is written: a training round on the
+        keyframes' current poses, waited for (as `slam --out` at its end; up to SAVE_WAIT_S
+        for each of the running round and that one). It needs no worker slot nor the server's
+        save lock: the round runs on the session's own learner thread, and no other message of
+        this session's stream is processed meanwhile."""
+        self.live_map.finish(final_round=True, timeout_s=self.SAVE_WAIT_S)
+
+    def write(self, path) -> pb.MapSaved | None:
+        """The second half: write the learned map to the folder `path` (atomically:
+        `save_map`) as it stands after `train_for_save`; the session carries on. None where no
+        round has published a regressor (too few rows with depth); OSError from the file
+        system as it comes."""
         from slamreloc.map.meta import DatasetMeta
 
         live = self.live_map
-        # as `slam --out` at its end: a last round on the keyframes' current placement
-        live.finish(final_round=True, timeout_s=self.SAVE_WAIT_S)
         if live.save(path, DatasetMeta(kind="session", metric=True, poses="slam")) is None:
             return None
         return pb.MapSaved(num_keyframes=live.store.n_keyframes)
+
+    def save(self, path) -> pb.MapSaved | None:
+        """`train_for_save`, then `write` (the server runs them apart: only the write holds
+        its save lock)."""
+        self.train_for_save()
+        return self.write(path)
 
     def release(self, timeout_s: float | None = None) -> None:
         """The stream ended, however it did: wait for a training round still running (its

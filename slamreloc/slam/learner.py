@@ -66,6 +66,10 @@ class Round:
     version: int  # the model version it published
 
 
+class _Stopped(Exception):
+    """A round ended by `BackgroundLearner.stop`."""
+
+
 class BackgroundLearner:
     """Trains and publishes the regressor of a live map (see the module's docstring)."""
 
@@ -85,6 +89,7 @@ class BackgroundLearner:
         self._rng = np.random.default_rng(config.train.seed)
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
+        self._stopping = threading.Event()  # `stop`: rounds end at their next epoch
         self._t0 = time.perf_counter()
         self.rounds: list[Round] = []
         self.error: BaseException | None = None  # a round's failure, raised by `check`
@@ -102,6 +107,8 @@ class BackgroundLearner:
         if len(points) < self.config.min_rows:
             return
         with self._lock:
+            if self._stopping.is_set():
+                return
             self._pending = (descriptors, points, final)
             if self.running:
                 return
@@ -121,6 +128,18 @@ class BackgroundLearner:
             thread.join(timeout_s)
         self.check()
 
+    def stop(self, timeout_s: float | None = None) -> None:
+        """End the learner: the waiting submission is dropped, the running round ends at its
+        next epoch without publishing, and this returns once its thread has ended (or after
+        `timeout_s`). The published model stays; no round starts after this. A process must
+        not exit with the thread inside torch (its forced unwinding aborts the process)."""
+        with self._lock:
+            self._stopping.set()
+            self._pending = None
+        thread = self._thread
+        if thread is not None:
+            thread.join(timeout_s)
+
     def _run(self) -> None:
         if self.config.threads > 0:
             torch.set_num_threads(self.config.threads)  # this thread's own OpenMP team
@@ -128,11 +147,17 @@ class BackgroundLearner:
             while True:
                 with self._lock:
                     job, self._pending = self._pending, None
-                if job is None:
+                if job is None or self._stopping.is_set():
                     return
                 self._round(*job)
+        except _Stopped:
+            return
         except BaseException as e:  # noqa: BLE001 - handed to the tracker's thread by check()
             self.error = e
+
+    def _check_stop(self, epoch: int, loss_m: float) -> None:
+        if self._stopping.is_set():
+            raise _Stopped
 
     def _round(self, descriptors: np.ndarray, points: np.ndarray, final: bool) -> None:
         c = self.config
@@ -153,7 +178,8 @@ class BackgroundLearner:
             if not final:
                 rows = self._window(n)
         stats = train_regressor(model, descriptors[rows].astype(np.float32), points[rows], train,
-                                c.device, progress=False, fine_tune=not scratch)
+                                c.device, progress=False, fine_tune=not scratch,
+                                on_epoch_end=self._check_stop)
         model.eval().requires_grad_(False)  # published: read by the tracker, never trained
         self.model = model  # the swap: readers hold either the old model or this one
         self.version += 1

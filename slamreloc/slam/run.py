@@ -139,7 +139,7 @@ def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = Sl
     inputs = read_frames(dataset, processed, image=True, depth=not external)
     mapper = next((p for p in plugins if isinstance(getattr(p, "live_map", None), LiveMap)),
                   None)
-    with _sigterm_interrupts(mapper is not None):
+    with _sigterm_interrupts(mapper is not None), _learner_stopped(mapper):
         try:
             t_backend = feed_all(backend, track(inputs, "slam", total=len(processed),
                                                 enabled=config.progress))
@@ -154,12 +154,19 @@ def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = Sl
         except KeyboardInterrupt:
             if mapper is None or mapper.out is None:
                 raise
+            mapper.live_map.learner.stop()  # the last published model is what is saved
             written = mapper.save()
             raise Interrupted(
                 f"{mapper.out}: the session was interrupted after {len(backend.frames)} frames; "
                 + ("the map as it stood is saved there" if written else
                    "no map was written (no training round had ended)")) from None
-    prior = mapper.live_map.prior if mapper is not None else None
+    prior = None
+    if mapper is not None:
+        prior = mapper.live_map.prior
+    elif map_dir is not None:  # a map a session learned is in that session's frame
+        from slamreloc.map.scene_map import SceneMap
+
+        prior = SceneMap.load(map_dir, regressor=False)
     report = build_report(backend, processed, jumps, plugins, config, t_backend,
                           own_frame=mapper is not None and prior is None,
                           map_from_truth=learned_map_frame(prior, dataset))
@@ -170,20 +177,30 @@ def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = Sl
 
 
 def learned_map_frame(scene_map, dataset) -> Rigid3 | None:
-    """map_from_truth for a map a SLAM session learned (recorded poses "slam": its frame is
-    that session's): the rigid alignment of the dataset's poses onto the map's frames, by
-    name; None for any other map (or one whose frames the dataset does not name)."""
-    if scene_map is None or scene_map.info.dataset is None \
-            or scene_map.info.dataset.poses != "slam":
+    """map_from_truth for a map a SLAM session learned (`SceneMap.session_frames`): the rigid
+    alignment of the dataset's poses onto the map's frames, by name; None for any other map
+    (or one whose frames the dataset does not name)."""
+    frames = None if scene_map is None else scene_map.session_frames()
+    if frames is None:
         return None
     truth = {f.name: f.world_from_cam for f in dataset.frames("all")
              if f.world_from_cam is not None}
-    db = scene_map.database
-    pairs = [(truth[n], Rigid3.from_matrix(m, tol=1e-2, source=f"{scene_map.root}: frame {n}"))
-             for n, m in zip(db.frame_names, db.world_from_cam) if n in truth]
-    if len(pairs) < 3:
+    common = [n for n in frames if n in truth]
+    if len(common) < 3:
         return None
-    return align_poses([t for t, _ in pairs], [m for _, m in pairs], with_scale=False).rigid
+    return align_poses([truth[n] for n in common], [frames[n] for n in common],
+                       with_scale=False).rigid
+
+
+@contextmanager
+def _learner_stopped(mapper):
+    """However the session ends, its learner's thread has ended when this block is left
+    (`BackgroundLearner.stop`)."""
+    try:
+        yield
+    finally:
+        if mapper is not None:
+            mapper.live_map.learner.stop()
 
 
 @contextmanager

@@ -1,0 +1,248 @@
+"""Where a learning session's SessionSave may write, through the real server and client: never
+into a served map's folder or an input a served map records (`--learned-maps` is refused at
+start-up), never over a map the server does not serve under that name, a name counted in the
+file system's bytes, a file-system error as one typed line without a server path; and a save
+(its training round, its write) blocks no other client."""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import grpc
+import pytest
+
+from slamreloc.client import Client, RemoteError
+from slamreloc.datasets import load_dataset
+from slamreloc.errors import InputError
+from slamreloc.map.format import META
+from slamreloc.service.server import MAX_SAVED_NAME_BYTES, ServeConfig, start_server
+from slamreloc.slam import live_map
+from tests.test_service_live import LIVE, frames  # noqa: F401 - the shared fixture
+
+REPO = Path(__file__).resolve().parents[1]
+# rounds of one epoch: the maps only need to exist, not to be good
+FAST = replace(LIVE, learner=replace(LIVE.learner, warm_epochs=1, scratch_epochs=1,
+                                     scratch_steps=40, final_epochs=1))
+N_LEARN = 12  # frames streamed before the first save: 11 keyframes, ~10000 rows
+
+
+def tree(folder: Path) -> dict[str, str]:
+    """Every file under `folder` -> the MD5 of its contents."""
+    return {str(p.relative_to(folder)): hashlib.md5(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def refused(call, kind: str) -> RemoteError:
+    with pytest.raises(RemoteError) as err:
+        call()
+    assert err.value.kind == kind, err.value
+    assert "\n" not in str(err.value)
+    return err.value
+
+
+@pytest.fixture(scope="module")
+def learning(tmp_path_factory, frames):  # noqa: F811
+    """A server with only `--learned-maps` (one worker), and a learning session that has
+    streamed N_LEARN frames and saved its map as "seed"."""
+    folder = tmp_path_factory.mktemp("saves") / "learned"
+    folder.mkdir()
+    running = start_server({}, ServeConfig(port=0, watch_s=0, learned_maps=folder, live=FAST))
+    client = Client(running.address, timeout_s=30)
+    session = client.session(odometry="auto", learn=True)
+    for f in frames[:N_LEARN]:
+        session.send(f.image, camera=f.camera, depth=f.depth, timestamp=f.timestamp)
+    assert session.save("seed").map_version
+    yield running, folder, client, session
+    session.close()
+    client.close()
+    running.stop()
+
+
+def test_names_are_counted_in_bytes(learning):
+    """Finding 7: <= 128 characters but over the file system's bytes: BAD_REQUEST naming the
+    bytes, no server path, nothing written; the longest name that fits in bytes saves."""
+    running, folder, client, session = learning
+    before = sorted(os.listdir(folder))
+    for name in ("é" * 128, "€" * 100, "\U0001d538" * 64, "é" * 121 + "a"):
+        err = refused(lambda: session.save(name), "BAD_REQUEST")
+        size = len(name.encode())
+        assert f"{size} bytes" in str(err) and str(MAX_SAVED_NAME_BYTES) in str(err), err
+        assert str(folder) not in str(err) and "Errno" not in str(err), err
+    assert sorted(os.listdir(folder)) == before
+    name = "é" * (MAX_SAVED_NAME_BYTES // 2)  # 242 bytes: the writer's temporary sibling fits
+    saved = session.save(name)
+    assert (folder / name / META).is_file()
+    assert {m.name: m.version for m in client.list_maps()}[name] == saved.map_version
+
+
+def test_an_unserved_map_in_the_folder_is_not_replaced(learning):
+    """Finding 6: a map left in DIR (an earlier run, another server) is not saved over
+    (docs: give it as MAP first); the map this server saved under that name is."""
+    running, folder, client, session = learning
+    shutil.copytree(folder / "seed", folder / "oldmap")
+    before = tree(folder / "oldmap")
+    err = refused(lambda: session.save("oldmap"), "FAILED_PRECONDITION")
+    assert "does not serve" in str(err) and str(folder) not in str(err), err
+    assert err.code == grpc.StatusCode.FAILED_PRECONDITION
+    assert tree(folder / "oldmap") == before
+    assert "oldmap" not in {m.name for m in client.list_maps()}
+    again = session.save("seed")  # its own: replaced, served anew
+    assert {m.name: m.version for m in client.list_maps()}["seed"] == again.map_version
+
+
+def test_a_folder_served_under_another_name_is_not_replaced(learning, tmp_path):
+    """Finding 4: DIR/m served as `other`: a save of `m` is refused (folders compared, not
+    names), before any training round (the session has no frame); `other` too (its name is
+    served from another folder)."""
+    _, seed_folder, _, _ = learning
+    shutil.copytree(seed_folder / "seed", tmp_path / "m")
+    before = tree(tmp_path / "m")
+    running = start_server({"other": tmp_path / "m"},
+                           ServeConfig(port=0, watch_s=0, learned_maps=tmp_path, live=FAST))
+    try:
+        with Client(running.address) as client, client.session(odometry="auto",
+                                                                learn=True) as session:
+            err = refused(lambda: session.save("m"), "FAILED_PRECONDITION")
+            assert "'other'" in str(err) and str(tmp_path) not in str(err), err
+            err = refused(lambda: session.save("other"), "FAILED_PRECONDITION")
+            assert "served from elsewhere" in str(err), err
+            assert [m.name for m in client.list_maps()] == ["other"]
+    finally:
+        running.stop()
+    assert tree(tmp_path / "m") == before
+
+
+def test_learned_maps_inside_a_served_map_or_its_dataset_is_refused(learning, tmp_path,
+                                                                      kidnap_scene):
+    """Findings 3 and 5: --learned-maps equal to or inside a served map's folder, or the
+    dataset a served map records, stops the start (InputError naming `learned_maps`); a
+    served map inside --learned-maps (a saved map served again) is fine."""
+    _, seed_folder, _, _ = learning
+    base = tmp_path / "maps" / "base"
+    shutil.copytree(seed_folder / "seed", base)
+    recorded = tmp_path / "recorded"  # as `slam --out` records its dataset
+    shutil.copytree(base, recorded)
+    meta = json.loads((recorded / META).read_text())
+    meta["dataset"] = {**meta["dataset"], "root": str(Path(kidnap_scene).resolve()),
+                       "kind": load_dataset(kidnap_scene).kind, "split": "kidnap"}
+    (recorded / META).write_text(json.dumps(meta))
+    (base / "sub").mkdir()
+    inside_scene = next(p for p in Path(kidnap_scene).iterdir() if p.is_dir())
+    cases = [({"base": base}, base, "is the folder of the served map 'base'"),
+             ({"base": base}, base / "sub", "lies inside the folder of the served map"),
+             ({"rec": recorded}, Path(kidnap_scene), "is the dataset the map records"),
+             ({"rec": recorded}, inside_scene, "lies inside the dataset the map records")]
+    for maps, folder, words in cases:
+        before = tree(folder)
+        with pytest.raises(InputError, match="`learned_maps`") as err:
+            start_server(maps, ServeConfig(port=0, watch_s=0, learned_maps=folder))
+        assert words in str(err.value) and "\n" not in str(err.value), err.value
+        assert tree(folder) == before
+    running = start_server({"base": base}, ServeConfig(port=0, watch_s=0,
+                                                       learned_maps=base.parent))
+    running.stop()
+    # the command line: one line naming the flag, exit status 2
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    res = subprocess.run([sys.executable, "-m", "slamreloc.cli", "serve", str(base),
+                          "--learned-maps", str(base), "--port", "0"], cwd=REPO, env=env,
+                         capture_output=True, text=True, timeout=120)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1, res.stderr
+    assert lines[0].startswith("error: ") and "--learned-maps" in lines[0], lines
+
+
+@pytest.mark.parametrize("code, kind", [(errno.ENOSPC, "FAILED_PRECONDITION"),
+                                        (errno.ENAMETOOLONG, "BAD_REQUEST")])
+def test_a_file_system_error_is_one_typed_line(learning, monkeypatch, code, kind):
+    """Finding 7's second half: an OSError while saving is a typed refusal with the system's
+    reason and no server path (it was INTERNAL, with the path and a traceback)."""
+    running, folder, client, session = learning
+
+    def full(out, *args, **kwargs):
+        raise OSError(code, os.strerror(code), str(out))
+
+    monkeypatch.setattr(live_map, "save_map", full)
+    err = refused(lambda: session.save("diskfull"), kind)
+    assert os.strerror(code) in str(err) and str(folder) not in str(err), err
+    assert "diskfull" not in {m.name for m in client.list_maps()}
+    assert not (folder / "diskfull").exists()
+
+
+class Gate:
+    """Holds the first call of a function until `open`; `entered` once it is held."""
+
+    def __init__(self, monkeypatch, owner, name: str):
+        self.entered, self.released = threading.Event(), threading.Event()
+        original, calls = getattr(owner, name), []
+
+        def held(*args, **kwargs):
+            calls.append(1)
+            if len(calls) == 1:
+                self.entered.set()
+                assert self.released.wait(60)
+            return original(*args, **kwargs)
+
+        monkeypatch.setattr(owner, name, held)
+
+    def open(self) -> None:
+        self.released.set()
+
+
+def quick(call, seconds: float = 10.0):
+    t0 = time.monotonic()
+    out = call()
+    assert time.monotonic() - t0 < seconds
+    return out
+
+
+def test_a_save_blocks_no_other_client(learning, frames, monkeypatch):  # noqa: F811
+    """A save held in its training round: Localize (one worker), Health, ListMaps and
+    another session's save go on. Held in its write: those still answer, and another
+    session's save is refused OVERLOADED at once rather than waiting on the lock."""
+    running, folder, client, session = learning
+    f = frames[3]
+    answers: list = []
+
+    def save(name):
+        try:
+            answers.append(session.save(name))
+        except RemoteError as err:
+            answers.append(err)
+
+    with Client(running.address, timeout_s=20) as other:
+        for owner, name, second in ((live_map.LiveMap, "finish", None),
+                                    (live_map, "save_map", "OVERLOADED")):
+            gate = Gate(monkeypatch, owner, name)
+            saver = threading.Thread(target=save, args=("held",))
+            saver.start()
+            try:
+                assert gate.entered.wait(30)
+                quick(lambda: other.localize(f.image, camera=f.camera, map="seed"))
+                assert quick(other.health).serving
+                assert "seed" in {m.name for m in quick(other.list_maps)}
+                with other.session(odometry="auto", learn=True) as second_session:
+                    if second is None:  # nothing learned: refused before any lock
+                        refused(lambda: quick(lambda: second_session.save("second")),
+                                "FAILED_PRECONDITION")
+                    else:
+                        err = refused(lambda: quick(lambda: second_session.save("second"), 5),
+                                      second)
+                        assert "another session's map is being written" in str(err), err
+            finally:
+                gate.open()
+                saver.join(120)
+            assert not saver.is_alive()
+            assert not isinstance(answers[-1], RemoteError), answers[-1]
+            assert answers[-1].name == "held"
+            monkeypatch.undo()
+    assert "held" in {m.name for m in client.list_maps()}
