@@ -242,7 +242,7 @@ def test_limit_flag_raises_a_bound(small_map, tmp_path):
 
 def test_limits_from_the_environment():
     assert parse_limits(["max_json_depth=12"]) == {"max_json_depth": 12}
-    code = ("import os; os.environ['SLAMRELOC_MAX_IMAGE_PIXELS'] = '1e6';"
+    code = ("import os; os.environ['SLAMRELOC_MAX_IMAGE_PIXELS'] = '1000000';"
             "from slamreloc.io.limits import limits; print(limits().max_image_pixels)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "1000000"

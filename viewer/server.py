@@ -37,11 +37,12 @@ def address(server, host: str) -> str:
 
 
 def check_address(host: str, port: int) -> None:
-    """InputError unless `host` resolves and `port` is a TCP port (before anything is read)."""
+    """InputError unless `host` resolves and `port` is a TCP port, 0 to 65535 (0: any free
+    one, as `serve --port 0`), before anything is read."""
     import socket
 
-    if not 0 < port < 65536:
-        raise InputError(f"`port` {port}: must be in 1..65535")
+    if not 0 <= port <= 65535:  # serve's rule (`ServeConfig.check`): 0 takes any free port
+        raise InputError(f"`port` {port}: not a TCP port")
     try:
         socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
     except (OSError, UnicodeError) as err:
@@ -54,6 +55,9 @@ def start(inputs: ViewerInputs, data: SceneData | None = None) -> tuple[object, 
     check_address(inputs.host, inputs.port)
     data = data if data is not None else load_scene_data(inputs)
     server = make_server(inputs.host, inputs.port)
+    if not server.get_port():  # a viser that reports the 0 it was given, not the port it took
+        server.stop()
+        raise InputError("`port` 0: this viser cannot say which port it took; give a port")
     try:
         handles = build_scene(server, data)
     except BaseException:
@@ -68,7 +72,7 @@ def serve(inputs: ViewerInputs, data: SceneData | None = None,
     server, handles = start(inputs, data)
     stop = stop or threading.Event()
     port = server.get_port()
-    moved = f" (port {inputs.port} was busy)" if port != inputs.port else ""
+    moved = f" (port {inputs.port} was busy)" if inputs.port and port != inputs.port else ""
     echo(f"viewer: {address(server, inputs.host)}{moved}  - press Ctrl-C to stop")
     old = None
     if threading.current_thread() is threading.main_thread():

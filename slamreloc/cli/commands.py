@@ -30,6 +30,8 @@ POSES_HELP = ("take the frames' poses from this file instead of the dataset's: a
 GUIDED_HELP = ("regressor: refine the pose on the map's database points matched near it, on maps "
                "whose labels agree with their images (docs/method.md); --no-guided: the pose "
                "from the regressed points alone")
+SPLIT_HELP = ("train | test | all | a role (kidnap, ...) | a sequence, or a comma-separated list "
+              "of them, each sequence once")
 # upper bounds of counts the options take: beyond them a value is a typo, not a wish (1e11
 # epochs would train for ever, silently: a run's progress is shown per epoch)
 MAX_EPOCHS = 100_000
@@ -79,7 +81,7 @@ def map_cmd(
         metavar="DATASET",
         help="dataset (7-Scenes, TUM, synthetic, COLMAP, `slamreloc sfm` output, a ROS bag)")],
     out: Annotated[Path, typer.Option("--out", help="map folder to write")],
-    split: Annotated[str, typer.Option(help="train | test | all | sequence names")] = "train",
+    split: Annotated[str, typer.Option(help=SPLIT_HELP)] = "train",
     features: Annotated[FeatureName, typer.Option(help="local features")] = FeatureName.sift,
     superpoint_weights: Annotated[Optional[Path], typer.Option(
         help="SuperPoint weights (.pth), needed with --features superpoint")] = None,
@@ -116,7 +118,7 @@ def evaluate(
     dataset: Annotated[Path, typer.Argument(
         metavar="DATASET", help="dataset folder with ground-truth poses")],
     report: Annotated[Path, typer.Option("--report", help="REPORT.json to write")],
-    split: Annotated[str, typer.Option(help="train | test | all | sequence names")] = "test",
+    split: Annotated[str, typer.Option(help=SPLIT_HELP)] = "test",
     method: Annotated[Method, typer.Option(help="regressor, or the matching baseline")] =
     Method.regressor,
     trajectory: Annotated[Optional[Path], typer.Option(
@@ -283,7 +285,8 @@ def export(
     tum: Annotated[Optional[Path], typer.Option(
         help="write the training poses (TUM, camera-to-world)")] = None,
     dataset: Annotated[Optional[Path], typer.Option(
-        help="dataset for colours and image names (default: the one the map records)")] = None,
+        help="dataset for colours and image names (default: the one the map records); "
+             "refused unless it holds the map's images (docs/formats.md, 'Export')")] = None,
 ) -> None:
     """Export MAP's labelled points and training cameras to COLMAP, PLY and TUM."""
     from slamreloc.map.export import export_map
@@ -303,7 +306,8 @@ def demo(
     Path("slamreloc-demo"),
     no_viewer: Annotated[bool, typer.Option("--no-viewer", help="do not serve the viewer")] =
     False,
-    port: Annotated[int, typer.Option(help="viewer port")] = 8080,
+    port: Annotated[int, typer.Option(
+        help="viewer port (the next free one if busy; 0: any free one)")] = 8080,
 ) -> None:
     """The main job on the embedded synthetic scene (about 10 min on 2 CPU cores).
 
@@ -317,6 +321,10 @@ def demo(
     7. the web viewer of it all until Ctrl-C (not with --no-viewer)"""
     from slamreloc.cli.demo import run_demo
 
+    if not no_viewer:  # the port's rule before the stages, not after them
+        from slamreloc.viewer.server import check_address
+
+        check_address("127.0.0.1", port)
     run_demo(workdir, viewer=not no_viewer, port=port)
 
 
@@ -332,17 +340,24 @@ def slam(
         "--out", help="learn a map while tracking and write it to this folder (every "
                       "--save-every seconds, at the end, on Ctrl-C); from nothing without --map")]
     = None,
-    save_every: Annotated[float, typer.Option(
-        help="seconds between writes of the --out map (0: only at the end)")] = 30.0,
+    save_every: Annotated[Optional[float], typer.Option(
+        help="seconds between writes of the --out map (0: only at the end; default 30); only "
+             "with --out")] = None,
     sift_upsample: Annotated[bool, typer.Option(
         "--sift-upsample", help="the --out map's SIFT starts at twice the image's resolution: "
-        "more keypoints on small images (under about 640x480)")] = False,
-    split: Annotated[str, typer.Option(help="split, role or sequence names to track")] = "test",
+        "more keypoints on small images (under about 640x480); only with --out learning from "
+        "nothing (extending a --map keeps that map's features)")] = False,
+    split: Annotated[str, typer.Option(
+        help="split, role or sequence names to track, or a comma-separated list of them "
+             "(each sequence once)")] = "test",
     kidnap_every: Annotated[int, typer.Option(
         help="teleport the camera after every N processed frames (0: never)")] = 0,
-    kidnap_skip: Annotated[int, typer.Option(help="frames dropped at each kidnapping")] = 20,
-    kidnap_from: Annotated[int, typer.Option(
-        help="processed frames before the first kidnapping (default: --kidnap-every)")] = -1,
+    kidnap_skip: Annotated[Optional[int], typer.Option(
+        help="frames dropped at each kidnapping (default 20); only with --kidnap-every")] =
+    None,
+    kidnap_from: Annotated[Optional[int], typer.Option(
+        help="processed frames before the first kidnapping (default: --kidnap-every); only "
+             "with --kidnap-every")] = None,
     odometry: Annotated[str, typer.Option(
         help="auto | kiss-icp | open3d | a TUM trajectory file from another system | "
              "topic:/NAME, a pose topic of a ROS bag DATASET (auto: kiss-icp on unregistered "
@@ -357,13 +372,40 @@ def slam(
     learn the map while tracking (from nothing, or extending --map) and save it."""
     from slamreloc.cli import jobs
 
+    check_slam_options(map_dir, out, save_every, sift_upsample, kidnap_every, kidnap_skip,
+                       kidnap_from)
     live = None
     if sift_upsample:
         from slamreloc.slam.live_map import LiveMapConfig
 
         live = LiveMapConfig(feature_options={"upsample": True})
-    jobs.slam(dataset, map_dir, report, split, kidnap_every, kidnap_skip, odometry, trajectory,
-              poses=poses, out=out, save_every_s=save_every, kidnap_from=kidnap_from, live=live)
+    jobs.slam(dataset, map_dir, report, split, kidnap_every,
+              20 if kidnap_skip is None else kidnap_skip, odometry, trajectory, poses=poses,
+              out=out, save_every_s=30.0 if save_every is None else save_every,
+              kidnap_from=-1 if kidnap_from is None else kidnap_from, live=live)
+
+
+def check_slam_options(map_dir: Path | None, out: Path | None, save_every: float | None,
+                       sift_upsample: bool, kidnap_every: int, kidnap_skip: int | None,
+                       kidnap_from: int | None) -> None:
+    """InputError for an option given where it has no effect (None / False: not given): it
+    would be ignored without a word. One line naming both options."""
+    if out is None and save_every is not None:
+        raise InputError("--save-every applies only with --out (the map learned while "
+                         "tracking is written every --save-every seconds): give --out, or "
+                         "leave --save-every out")
+    if sift_upsample and out is None:
+        raise InputError("--sift-upsample applies only with --out (the features of the map "
+                         "learned while tracking): give --out, or leave --sift-upsample out")
+    if sift_upsample and map_dir is not None:
+        raise InputError("--sift-upsample has no effect with --map: the --out map extends "
+                         "--map and keeps its features; leave --sift-upsample out")
+    if kidnap_from is not None and kidnap_from < 0:
+        raise InputError(f"--kidnap-from must be >= 0, got {kidnap_from}")
+    for flag, value in (("--kidnap-skip", kidnap_skip), ("--kidnap-from", kidnap_from)):
+        if value is not None and kidnap_every == 0:
+            raise InputError(f"{flag} applies only with --kidnap-every N (N > 0; 0: the camera "
+                             f"is never kidnapped): give --kidnap-every, or leave {flag} out")
 
 
 @app.command()
@@ -377,7 +419,8 @@ def view(
     dataset: Annotated[Optional[Path], typer.Option(
         help="dataset folder for images and ground truth (default: the one the map records)")]
     = None,
-    port: Annotated[int, typer.Option(help="port (the next free one if busy)")] = 8080,
+    port: Annotated[int, typer.Option(
+        help="port (the next free one if busy; 0: any free one, printed)")] = 8080,
     host: Annotated[str, typer.Option(help="address to bind (0.0.0.0 exposes it)")] =
     "127.0.0.1",
     max_points: Annotated[int, typer.Option(help="voxel-downsample the map beyond this")] =

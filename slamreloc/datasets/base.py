@@ -35,35 +35,64 @@ class Dataset:
         return self.root if self.poses_source == "dataset" else Path(self.poses_source)
 
     def frames(self, split: str = "all") -> list[Frame]:
-        """Frames of a split: "train", "test", "all", a role, or comma-separated sequences."""
+        """Frames of a split: "train", "test", "all", a role, a sequence, or a comma-separated
+        list of these (`resolve_split`)."""
         return [f for seq in self.resolve_split(split) for f in self.sequences[seq]]
 
     def resolve_split(self, split: str) -> list[str]:
-        if split == "all":
+        """The sequences of `split`: "all", a split ("train", "test"), a role ("kidnap"), a
+        sequence name, or a comma-separated list of these (`kidnap,seq-03`), in that order. A
+        list that names a sequence twice, directly or through a split or role it also names,
+        is refused: its frames would be used twice."""
+        items = [s.strip() for s in split.split(",")]
+        if not all(items):
+            raise InputError(f"{self.root}: `split` {split[:200]!r}: an empty name (give a "
+                             "split, role or sequence, or a comma-separated list of them)")
+        names: list[str] = []
+        given_as: dict[str, str] = {}  # sequence -> the item of the list that named it
+        for item in items:
+            for seq in self._resolve_one(item, split):
+                if seq in given_as:
+                    first = given_as[seq]
+                    what = (f"'{item}' twice" if first == item else
+                            f"sequence '{seq}' twice ({_as(first, seq)} and {_as(item, seq)})")
+                    raise InputError(f"{self.root}: `split` {split[:200]!r} names {what}: its "
+                                     "frames would be used twice")
+                given_as[seq] = item
+                names.append(seq)
+        return names
+
+    def _resolve_one(self, name: str, split: str) -> list[str]:
+        """The sequences of one item of a split list."""
+        if name == "all":
             return list(self.sequences)
-        if split in self.splits:
-            names = self.splits[split]
-            where = self.split_files.get(split, self.root)
+        if name in self.splits:
+            names = self.splits[name]
+            where = self.split_files.get(name, self.root)
             missing = [s for s in names if s not in self.sequences]
             if missing:
-                raise InputError(f"{where}: split '{split}' names sequence '{missing[0]}', which "
+                raise InputError(f"{where}: split '{name}' names sequence '{missing[0]}', which "
                                  f"has no frames in {self.root}")
             if not names:
-                raise InputError(f"{where}: split '{split}' names no sequences")
-            return names
-        by_role = [s for s, r in self.roles.items() if r == split]
+                raise InputError(f"{where}: split '{name}' names no sequences")
+            return list(names)
+        by_role = [s for s, r in self.roles.items() if r == name]
         if by_role:
             missing = [s for s in by_role if s not in self.sequences]
             if missing:
-                raise InputError(f"{self.root}: role '{split}' names sequence '{missing[0]}', "
+                raise InputError(f"{self.root}: role '{name}' names sequence '{missing[0]}', "
                                  "which has no frames")
             return by_role
-        names = [s.strip() for s in split.split(",")]
-        if not all(names):
-            raise InputError(f"{self.root}: empty sequence name in split '{split}'")
-        missing = [s for s in names if s not in self.sequences]
-        if missing:
-            known = ", ".join(["train", "test", "all", *self.roles.values(), *self.sequences])
-            raise InputError(f"{self.root}: unknown split or sequence '{missing[0]}' "
-                             f"(known: {known})")
-        return names
+        if name in self.sequences:
+            return [name]
+        known = ", ".join(dict.fromkeys(["all", *self.splits, *self.roles.values(),
+                                         *self.sequences]))
+        within = f" (in `split` {split[:200]!r})" if name != split.strip() else ""
+        raise InputError(f"{self.root}: unknown split or sequence {name[:200]!r}{within} "
+                         f"(known splits, roles and sequences: {known[:2000]}; a "
+                         "comma-separated list may combine them)")
+
+
+def _as(item: str, seq: str) -> str:
+    """How a split list's item named a sequence (for a message)."""
+    return f"as '{seq}'" if item == seq else f"in '{item}'"

@@ -9,7 +9,7 @@ from typing import ClassVar
 import numpy as np
 
 from slamreloc.errors import InputError, OutOfMemory, is_out_of_memory
-from slamreloc.io.limits import limits
+from slamreloc.io.limits import bytes_text, limits
 from slamreloc.types import Camera, Features
 
 
@@ -77,7 +77,7 @@ class Extractor:
         limit = limits().max_feature_bytes
         if need > limit:
             raise InputError(f"{source}: {self.name} features of a {width}x{height} image need "
-                             f"~{need / 1e9:.1f} GB of memory, over the {limit / 1e9:.1f} GB "
+                             f"~{bytes_text(need)} of memory, over the {bytes_text(limit)} "
                              "limit (raise it with `limit` max_feature_bytes=N or "
                              "SLAMRELOC_MAX_FEATURE_BYTES)")
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import open_regular, read_bytes, regular_size
-from slamreloc.io.limits import limits
+from slamreloc.io.limits import limits, pixels_text
 
 T = TypeVar("T")
 # libjpeg's warnings (jerror.h): those that mean the data is corrupt or cut short, and the
@@ -209,10 +209,10 @@ def check_image_size(width: int, height: int, source, what: str = "image") -> No
         raise InputError(f"{source}: {what} is {width}x{height} pixels; at least "
                          f"{lim.min_image_side} pixels a side are needed")
     if width * height > lim.max_image_pixels:
-        raise InputError(f"{source}: {what} is {width}x{height} = {width * height / 1e6:.1f} "
-                         f"MP, over the {lim.max_image_pixels / 1e6:.1f} MP limit (raise it "
-                         "with `limit` max_image_pixels=N or "
-                         "SLAMRELOC_MAX_IMAGE_PIXELS)")
+        raise InputError(f"{source}: {what} is {width}x{height} = "
+                         f"{pixels_text(width * height)}, over the "
+                         f"{pixels_text(lim.max_image_pixels)} limit (raise it with `limit` "
+                         "max_image_pixels=N or SLAMRELOC_MAX_IMAGE_PIXELS)")
 
 
 def jpeg_has_scan_data(data: bytes) -> bool:

@@ -4,9 +4,10 @@ Every reader takes its bound from here, so one setting covers the CLI, the Pytho
 service: the image decoder checks `max_image_pixels` against the header before it decodes, a
 feature extractor checks the pixels it will work on, JSON readers check size and nesting depth.
 
-Raise a bound with the CLI's global option (`slamreloc --max-image-pixels 50000000 localize
-...`), the environment (`SLAMRELOC_MAX_IMAGE_PIXELS=50000000`), or `set_limits(...)` in Python.
-The defaults keep every command under ~2 GB of memory on any input (BENCHMARKS.md, "Input
+Raise a bound with the CLI's global option (`slamreloc --limit max_image_pixels=50000000
+localize ...`), the environment (`SLAMRELOC_MAX_IMAGE_PIXELS=50000000`), or `set_limits(...)`
+in Python: a whole number in ASCII digits (`slamreloc.io.numbers`), each bound given once. The
+defaults keep every command under ~2 GB of memory on any input (BENCHMARKS.md, "Input
 bounds"); docs/formats.md lists them.
 """
 
@@ -49,10 +50,35 @@ def _from_environment() -> InputLimits:
         text = os.environ.get(name)
         if text is None:
             continue
-        if number_problem(text.strip()):
-            raise InputError(f"environment variable {name}: not a number ({text[:40]!r})")
-        overrides[f.name] = int(float(text))
+        overrides[f.name] = whole_limit(text, f"environment variable {name}")
     return InputLimits(**overrides)
+
+
+def whole_limit(text: str, source: str) -> int:
+    """A bound's value as text (`--limit`, an environment variable): a positive whole number
+    by the project's number rule for whole numbers (`slamreloc.io.numbers`: ASCII digits; no
+    exponent, fraction, separator or blank); InputError naming `source`."""
+    problem = number_problem(text, integer=True)
+    if problem:
+        raise InputError(f"{source}: {text[:40]!r} is {problem} (a bound is a count of "
+                         "pixels, bytes, ... in ASCII digits, such as 50000000)")
+    value = int(text)
+    if value <= 0:
+        raise InputError(f"{source}: must be a positive whole number, got {text[:40]}")
+    return value
+
+
+def pixels_text(n: int) -> str:
+    """A pixel count for a message: `76800 pixels`, in megapixels from one (`16.8 MP`), never
+    rounded to nothing (a bound of 1000 pixels was "0.0 MP")."""
+    return f"{n / 1e6:.1f} MP" if n >= 1_000_000 else f"{n} pixels"
+
+
+def bytes_text(n: int) -> str:
+    """A byte count for a message: `1000 bytes`, `12.6 MB`, `1.6 GB`."""
+    if n >= 1_000_000_000:
+        return f"{n / 1e9:.1f} GB"
+    return f"{n / 1e6:.1f} MB" if n >= 1_000_000 else f"{n} bytes"
 
 
 _current: InputLimits | None = None
@@ -75,20 +101,19 @@ def set_limits(**overrides: int) -> InputLimits:
 
 
 def parse_limits(items: list[str]) -> dict[str, int]:
-    """`["max_image_pixels=5e7", ...]` (the CLI's `--limit NAME=VALUE`) -> set_limits' kwargs."""
+    """`["max_image_pixels=50000000", ...]` (the CLI's `--limit NAME=VALUE`) -> set_limits'
+    kwargs. Each VALUE by `whole_limit`; a NAME given twice is refused (which one was meant?)."""
     names = [f.name for f in fields(InputLimits)]
-    out = {}
+    out: dict[str, int] = {}
     for item in items:
         name, sep, text = item.partition("=")
         name = name.strip().replace("-", "_")
         if not sep or name not in names:
-            raise InputError(f"`limit` {item!r}: expected NAME=VALUE with NAME one of "
+            raise InputError(f"`limit` {item[:80]!r}: expected NAME=VALUE with NAME one of "
                              f"{', '.join(names)}")
-        if number_problem(text.strip()):
-            raise InputError(f"`limit` {item[:80]!r}: {text[:40]!r} is not a number (plain "
-                             "ASCII decimal)")
-        value = float(text)
-        if not value.is_integer() or value <= 0:
-            raise InputError(f"`limit` {item!r}: must be a positive whole number")
-        out[name] = int(value)
+        value = whole_limit(text, f"`limit` {item[:80]!r}")
+        if name in out:
+            raise InputError(f"`limit` {name} is given twice ({str(out[name])[:24]} and "
+                             f"{str(value)[:24]}): give each bound once")
+        out[name] = value
     return out

@@ -5,7 +5,8 @@ and a TUM trajectory of the training poses (evo).
 Map frame, metres. The database holds one row per labelled keypoint; rows of one triangulated
 track share their world point exactly, so they become one COLMAP 3D point with a track of all
 their observations (depth labels: one observation each). Colours come from the training images
-when the map's dataset is at hand (the one it records, or `dataset`), else grey.
+when the map's dataset is at hand (the one it records, or `dataset`), else grey; a `dataset`
+that is not the map's is refused (`check_dataset_of_map`).
 """
 
 from __future__ import annotations
@@ -52,6 +53,66 @@ def frame_images(scene_map: SceneMap, dataset=None) -> tuple[Path | None, dict[s
         except InputError:
             return None, {}
     return Path(dataset.root), {f.name: f.image_path for f in dataset.frames("all")}
+
+
+def check_dataset_of_map(scene_map: SceneMap, dataset_dir: Path, dataset) -> None:
+    """InputError unless `dataset` (given as `dataset_dir`) holds the images `scene_map` was
+    built from: another dataset whose frames have the same names would colour the points
+    with its own pictures, silently. Some of the map's frames must be in it, and:
+
+    - a dataset the map records (its own, or its update's): taken as it is;
+    - another path while a recorded one is at hand (a copy, say): each of the map's frames
+      found in both has the same image file, byte for byte;
+    - the map records none, or its recorded one has moved: the frames are of the map
+      camera's size and (a map built on its dataset's own poses, never updated) have the
+      poses the map holds for them."""
+    import filecmp
+
+    from slamreloc.datasets import load_dataset
+
+    meta = scene_map.info
+    recorded = [Path(p) for key, p in meta.recorded_inputs().items()
+                if p is not None and "pose file" not in key]
+    if any(r.resolve() == Path(dataset_dir).resolve() for r in recorded):
+        return
+    db = scene_map.database
+    index = {name: i for i, name in enumerate(db.frame_names)}
+    frames = [f for f in dataset.frames("all") if f.name in index]
+    if not frames:
+        first = db.frame_names[0] if len(db.frame_names) else "-"
+        raise InputError(f"`dataset` {dataset_dir}: holds none of the map's "
+                         f"{len(db.frame_names)} frames (such as '{first}'): not the dataset "
+                         "it was built from")
+    at_hand = {}  # frame name -> its image in a recorded dataset
+    for root in recorded:
+        try:
+            for f in load_dataset(root).frames("all") if root.exists() else []:
+                at_hand.setdefault(f.name, f.image_path)
+        except InputError:
+            continue  # not readable now: as if moved
+    if at_hand:
+        for f in frames:
+            theirs = at_hand.get(f.name)
+            if theirs is not None and not filecmp.cmp(f.image_path, theirs, shallow=False):
+                raise InputError(f"`dataset` {dataset_dir}: {f.image_path} is not the image of "
+                                 f"frame '{f.name}' in the dataset the map records ({theirs}): "
+                                 "the points would be coloured from other images (leave "
+                                 "`dataset` out to use the map's)")
+        return
+    cam = scene_map.camera
+    for f in frames:
+        if (f.camera.width, f.camera.height) != (cam.width, cam.height):
+            raise InputError(f"`dataset` {dataset_dir}: frame '{f.name}' is "
+                             f"{f.camera.width}x{f.camera.height}, the map's camera "
+                             f"{cam.width}x{cam.height}: not the images the map was built from")
+    if meta.poses_source != "dataset" or meta.pseudo_label or dataset.poses_source != "dataset":
+        return  # the map's poses are not the dataset's own (SLAM, --poses, an update)
+    for f in frames:
+        pose = np.asarray(db.world_from_cam[index[f.name]], np.float64)
+        if f.world_from_cam is not None and np.abs(f.world_from_cam.matrix() - pose).max() > 1e-3:
+            raise InputError(f"`dataset` {dataset_dir}: frame '{f.name}' has another pose than "
+                             "the map holds for it (the map was built on its dataset's own "
+                             "poses): not the dataset it was built from")
 
 
 def export_points(scene_map: SceneMap, images: dict[str, Path],
@@ -221,6 +282,7 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
         from slamreloc.datasets import load_dataset
 
         dataset = load_dataset(dataset_dir)
+        check_dataset_of_map(scene_map, dataset_dir, dataset)
     root, images = frame_images(scene_map, dataset)
     summary = {"frames": len(scene_map.database.frame_names)}
     if colmap is not None or ply is not None:
