@@ -302,3 +302,25 @@ def test_export_colours_only_from_the_maps_images(work, tiny_map, dataset, tmp_p
     one_error_line(cli("export", tiny_map, "--dataset", other, "--ply", ply), "--dataset",
                    "holds none of the map's 2 frames")
     assert not ply.exists()
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--report", "a.json", "--report", "b.json"], ["--report is given twice"]),
+    (["--report=a.json", "--report", "b.json"], ["--report is given twice"]),
+    (["--report", "a.json", "--guided", "--no-guided"], ["--guided and --no-guided"]),
+])
+def test_an_option_taking_one_value_given_twice_is_refused(tiny_map, dataset, tmp_path, argv,
+                                                            words):
+    """click keeps the last of an option given twice silently: refused before any work."""
+    argv = [a.replace("a.json", str(tmp_path / "a.json")) for a in argv]
+    one_error_line(cli("evaluate", tiny_map, dataset, *argv), *words)
+    assert not (tmp_path / "a.json").exists()
+
+
+def test_view_refuses_a_json_that_is_no_report(tiny_map, tmp_path):
+    """`view --report` takes evaluate, slam or pseudo-label reports; any other JSON object
+    (a map's own metadata) is refused, not shown as a report."""
+    if not _viewer_of_this_checkout():
+        pytest.skip("slamreloc.viewer is imported from another checkout (editable install)")
+    one_error_line(cli("view", tiny_map, "--report", tiny_map / META, "--port", "0"),
+                   "not a report of evaluate, slam or pseudo-label")

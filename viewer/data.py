@@ -146,7 +146,6 @@ class SceneData:
     evaluations: list[EvalReport] = field(default_factory=list)
     slams: list[SlamReport] = field(default_factory=list)
     pseudo_labels: list[PseudoLabelReport] = field(default_factory=list)
-    other_reports: list[tuple[Path, dict]] = field(default_factory=list)
     max_images: int = 512
     thumbnail_width: int = 160
 
@@ -154,5 +153,4 @@ class SceneData:
         """(kind, path, data) of every report, for the numbers panel."""
         return ([("evaluate", r.path, r.data) for r in self.evaluations]
                 + [("slam", r.path, r.data) for r in self.slams]
-                + [("pseudo-label", r.path, r.data) for r in self.pseudo_labels]
-                + [("report", p, d) for p, d in self.other_reports])
+                + [("pseudo-label", r.path, r.data) for r in self.pseudo_labels])

@@ -64,6 +64,7 @@ def load_scene_data(inputs: ViewerInputs) -> SceneData:
             scene.slams.append(read_slam_report(path, data, trajectories))
         elif kind == "pseudo-label":
             scene.pseudo_labels.append(read_pseudo_label(path, data))
-        else:
-            scene.other_reports.append((path, data))
+        else:  # what else would be shown is not what the user meant to give
+            raise InputError(f"`report` {path}: not a report of evaluate, slam or "
+                             "pseudo-label (a JSON object without their fields)")
     return scene

@@ -40,6 +40,39 @@ def sigterm_as_ctrl_c() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+def _repeated_option(args: list[str]) -> str | None:
+    """The problem with a command line that gives an option taking one value (or a flag and
+    its `--no-` form) more than once: click keeps the last silently, so `--port 70000 --port
+    18080` would serve on a port nobody asked for twice. None when there is none."""
+    import typer.main
+
+    group = typer.main.get_command(app)  # typer's own click: parameters read by duck typing
+    command, params = group, list(group.params)
+    for arg in args:
+        if arg == "--":
+            break
+        if command is group and arg in getattr(group, "commands", {}):
+            command = group.commands[arg]
+            params = list(command.params)
+    seen: dict[int, str] = {}
+    for arg in args:
+        if arg == "--":
+            break
+        name = arg.split("=", 1)[0]
+        for param in params:
+            if (getattr(param, "param_type_name", "") != "option"
+                    or getattr(param, "multiple", False) or getattr(param, "count", False)):
+                continue
+            if name in (*param.opts, *param.secondary_opts):
+                first = seen.get(id(param))
+                if first == name:
+                    return f"{name} is given twice: give it once"
+                if first is not None:
+                    return f"{first} and {name} set one option: give it once"
+                seen[id(param)] = name
+    return None
+
+
 def _run_app() -> int | None:
     """Run the typer app; a command line it cannot parse (an unknown option, a missing or
     malformed value) is one `error:` line naming the option and exit status 2, as bad input
@@ -52,6 +85,10 @@ def _run_app() -> int | None:
     except ImportError:  # typer before it vendored click
         from click.exceptions import NoArgsIsHelpError
 
+    repeated = _repeated_option(sys.argv[1:])
+    if repeated:
+        print(f"error: {repeated}", file=sys.stderr)
+        return 2
     try:
         return app(standalone_mode=False)
     except NoArgsIsHelpError as err:  # as typer shows it
