@@ -32,6 +32,8 @@ from slamreloc.errors import InputError
 from slamreloc.io.limits import InputLimits, parse_limits, pixels_text
 from slamreloc.io.numbers import number_problem
 from slamreloc.map.format import META
+from tests.test_cli_hardening import cli
+from tests.test_cli_hardening import one_error_line as hardening_error_line
 from tests.test_fuzz_inputs import _tiny_map, make_sevenscenes
 
 REPO = Path(__file__).resolve().parents[1]
@@ -39,20 +41,11 @@ FAST = settings(max_examples=60, deadline=None, derandomize=True, database=None)
 LIMIT_NAMES = [f for f in vars(InputLimits()).keys()]
 
 
-def cli(*argv, timeout: float = 120) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    return subprocess.run([sys.executable, "-m", "slamreloc.cli", *map(str, argv)], cwd=REPO,
-                          env=env, capture_output=True, text=True, timeout=timeout)
-
-
 def one_error_line(res: subprocess.CompletedProcess, *words: str) -> str:
-    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
-    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), res.stderr
-    for w in words:
-        assert w in lines[0], (w, lines[0])
-    assert "`" not in lines[0], lines[0]  # every setting shown as its flag
-    return lines[0]
+    """`test_cli_hardening`'s check, and every setting shown as its flag (no `name`)."""
+    line = hardening_error_line(res, *words)
+    assert "`" not in line, line
+    return line
 
 
 @pytest.fixture(scope="module")
