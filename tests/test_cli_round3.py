@@ -317,3 +317,16 @@ def test_view_refuses_a_json_that_is_no_report(tiny_map, tmp_path):
         pytest.skip("slamreloc.viewer is imported from another checkout (editable install)")
     one_error_line(cli("view", tiny_map, "--report", tiny_map / META, "--port", "0"),
                    "not a report of evaluate, slam or pseudo-label")
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["slam", "DATA", "--report", "r.json", "--kidnap-every", "1_0"], "--kidnap-every '1_0'"),
+    (["slam", "DATA", "--report", "r.json", "--kidnap-every= 5"], "--kidnap-every ' 5'"),
+    (["slam", "DATA", "--report", "r.json", "--kidnap-skip", "٣"], "--kidnap-skip '٣'"),
+    (["localize", "MAP", "a.png", "--intrinsics", "500", "500", "3_20", "240"],
+     "--intrinsics '3_20'"),
+])
+def test_number_options_follow_the_number_rule(argv, option):
+    """What int() / float() take but the number rule refuses (separators, blanks, other
+    scripts' digits) is refused in an option's value as in a file, before any work."""
+    one_error_line(cli(*argv), option, "number rule")

@@ -55,21 +55,60 @@ def _repeated_option(args: list[str]) -> str | None:
             command = group.commands[arg]
             params = list(command.params)
     seen: dict[int, str] = {}
-    for arg in args:
+    for i, arg in enumerate(args):
         if arg == "--":
             break
-        name = arg.split("=", 1)[0]
+        name, eq, value = arg.partition("=")
         for param in params:
             if (getattr(param, "param_type_name", "") != "option"
-                    or getattr(param, "multiple", False) or getattr(param, "count", False)):
+                    or name not in (*param.opts, *param.secondary_opts)):
                 continue
-            if name in (*param.opts, *param.secondary_opts):
-                first = seen.get(id(param))
-                if first == name:
-                    return f"{name} is given twice: give it once"
-                if first is not None:
-                    return f"{first} and {name} set one option: give it once"
-                seen[id(param)] = name
+            values = [value] if eq else args[i + 1:i + 1 + max(0, getattr(param, "nargs", 1))]
+            if getattr(param, "is_flag", False):
+                values = []
+            for text, kind in zip(values, _value_kinds(param, len(values))):
+                problem = _number_text_problem(text, kind)
+                if problem:
+                    return f"{name} {text!r}: {problem}"
+            if getattr(param, "multiple", False) or getattr(param, "count", False):
+                continue
+            first = seen.get(id(param))
+            if first == name:
+                return f"{name} is given twice: give it once"
+            if first is not None:
+                return f"{first} and {name} set one option: give it once"
+            seen[id(param)] = name
+    return None
+
+
+def _value_kinds(param, n: int) -> list[str]:
+    """"integer", "float" or "" for each of an option's `n` values, from its annotation (typer
+    keeps it as `type_descriptor`) or click's type name."""
+    import types
+    import typing
+
+    annotation = getattr(getattr(param, "type_descriptor", None), "annotation", None)
+    if annotation is None:
+        return [getattr(getattr(param, "type", None), "name", "")] * n
+    args = [a for a in typing.get_args(annotation) if a is not type(None)]
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType) and len(args) == 1:
+        annotation, args = args[0], list(typing.get_args(args[0]))
+    kinds = args if typing.get_origin(annotation) is tuple else [annotation] * n
+    names = {int: "integer", float: "float"}
+    return [names.get(k, "") for k in kinds]
+
+
+def _number_text_problem(text: str, kind: str) -> str | None:
+    """What Python's int() / float() would take in a number option's value but the project's
+    number rule (`slamreloc.io.numbers`) refuses: digit separators, blanks, other scripts'
+    digits. Values click refuses itself, and nan / inf (each option's own check names its
+    range), are left to them."""
+    if not any(k in kind for k in ("integer", "float")):
+        return None
+    if "_" in text or text != text.strip() or not text.isascii():
+        what = "whole number" if "integer" in kind else "number"
+        return (f"not a {what} by the number rule (plain ASCII digits, no separators or "
+                "blanks)")
     return None
 
 
