@@ -25,7 +25,8 @@ from slamreloc.client import Client, RemoteError
 from slamreloc.datasets import load_dataset
 from slamreloc.errors import InputError
 from slamreloc.map.format import META
-from slamreloc.service.server import MAX_SAVED_NAME_BYTES, ServeConfig, start_server
+from slamreloc.proto.messages import MAX_SAVED_NAME_BYTES
+from slamreloc.service.server import ServeConfig, start_server
 from slamreloc.slam import live_map
 from tests.test_service_live import LIVE, frames  # noqa: F401 - the shared fixture
 

@@ -42,11 +42,18 @@ def map_name_problem(name: str) -> str | None:
     return None
 
 
+# the bytes of a saved map's name: NAME_MAX (255) less what the map writer's hidden temporary
+# sibling `.NAME.tmp-PID` adds to it ("." and ".tmp-" and a PID of up to 7 digits)
+MAX_SAVED_NAME_BYTES = 255 - len("." + ".tmp-") - 7
+
+
 def saved_map_name_problem(name: str) -> str | None:
     """Why `name` cannot name a map a session saves (None when it can): a map name
     (`map_name_problem`) that is also one plain folder name under the server's
     `--learned-maps` folder: no '/' or '\\', not starting with '.' (nor '.' or '..': the
-    writers' temporary folders are hidden siblings)."""
+    writers' temporary folders are hidden siblings), valid Unicode of at most
+    MAX_SAVED_NAME_BYTES bytes of UTF-8 (a file system bounds a name in bytes, not in
+    characters)."""
     problem = map_name_problem(name)
     if problem:
         return problem
@@ -54,6 +61,13 @@ def saved_map_name_problem(name: str) -> str | None:
         return "holds a path separator: a plain name, the server chooses the folder"
     if name.startswith("."):
         return "starts with '.': a plain visible name"
+    try:
+        size = len(name.encode("utf-8"))
+    except UnicodeEncodeError:
+        return "is not valid Unicode text (it holds a lone surrogate)"
+    if size > MAX_SAVED_NAME_BYTES:
+        return (f"is {size} bytes of UTF-8, more than {MAX_SAVED_NAME_BYTES} (a folder's name "
+                "is bounded in bytes by the file system)")
     return None
 
 

@@ -484,7 +484,7 @@ class RelocalizerService:
         """Write a learning session's map into `learned_maps`/NAME and serve it as NAME (added,
         or swapped in where this server already serves NAME from there). Refused: a session
         that learns nothing, a server without `learned_maps`, a NAME that is not a plain map
-        name (`saved_name_problem`), a target the server may not write (`_target_problem`),
+        name (`saved_map_name_problem`), a target the server may not write (`_target_problem`),
         a map before the first training round has ended, another session's save being written
         (OVERLOADED at once: the save lock is never waited for), a file system error (one
         line, no server path: `save_refusal`).
@@ -500,7 +500,7 @@ class RelocalizerService:
             raise ServiceError(pb.FAILED_PRECONDITION, "save: this server keeps no learned "
                                "maps (its operator did not give `--learned-maps DIR`)")
         name = request.name
-        problem = saved_name_problem(name)
+        problem = saved_map_name_problem(name)
         if problem:
             raise ServiceError(pb.BAD_REQUEST, f"save.name {quoted(name)} {problem}")
         try:
@@ -609,28 +609,6 @@ def _relation(a: Path, b: Path) -> str:
     """How `a` stands to `b` (which `_overlap`), in words."""
     return "is" if a == b else "lies inside" if a.is_relative_to(b) else "would hold"
 
-
-# the bytes of a saved map's name: NAME_MAX (255) less what the map writer's hidden temporary
-# sibling `.NAME.tmp-PID` adds to it ("." and ".tmp-" and a PID of up to 7 digits)
-MAX_SAVED_NAME_BYTES = 255 - len("." + ".tmp-") - 7
-
-
-def saved_name_problem(name: str) -> str | None:
-    """Why `name` cannot name a map a session saves (None when it can): the one rule of
-    SessionSave's name - a map name that is one plain folder name (`saved_map_name_problem`),
-    valid Unicode, at most MAX_SAVED_NAME_BYTES bytes of UTF-8 (the file system bounds a
-    name in bytes, not in characters, and the writer's temporary folder's name is longer)."""
-    problem = saved_map_name_problem(name)
-    if problem:
-        return problem
-    try:
-        size = len(name.encode("utf-8"))
-    except UnicodeEncodeError:
-        return "is not valid Unicode text (it holds a lone surrogate)"
-    if size > MAX_SAVED_NAME_BYTES:
-        return (f"is {size} bytes of UTF-8, more than {MAX_SAVED_NAME_BYTES} (a folder's name "
-                "is bounded in bytes by the file system)")
-    return None
 
 
 def save_refusal(name: str, err: OSError) -> ServiceError:
