@@ -91,6 +91,32 @@ def _pose_bag(frames, path: Path, kind: str, repeat) -> tuple[Path, str, dict]:
     return path, spec, {topic: messages}
 
 
+@fuzz_settings(6)
+@given(kind=st.sampled_from(["translation", "rotation"]), k=st.sampled_from(NOISE + DIFFERENT))
+def test_a_static_transform_given_twice_is_read_once_or_refused(scene, tmp_path_factory, kind,
+                                                                  k):
+    """/tf_static repeating the rig's base -> mount (latched topics repeat): the same
+    transform is read once; another one is refused, naming the pair."""
+    from slamreloc.datasets.rosbag import parse_topics
+    from tests.rosbag_support import BASE_FROM_MOUNT, static_tf
+
+    topics = parse_topics(["pose=tf:map:base"])
+    dataset, frames = scene
+    msgs = Messages(2)
+    t0 = frame_stamp(frames[0])
+    again = msgs.tf([msgs.transform(t0, "base", "mount",
+                                    perturbed(BASE_FROM_MOUNT, kind, 10.0 ** k))])
+    bag = write_bag(dataset, frames, tmp_path_factory.mktemp("static") / "run", poses="tf",
+                    static=False, extra={"/tf_static": [*static_tf(msgs, t0), again]})
+    if k in NOISE:
+        loaded = load_rosbag(bag, topics).frames("all")
+        assert len(loaded) == len(frames) and all(f.world_from_cam for f in loaded)
+        return
+    with pytest.raises(InputError, match="/tf_static gives base -> mount twice with "
+                                         "different transforms"):
+        load_rosbag(bag, topics)
+
+
 def write_pose_bag(dataset, frames, path: Path, kind: str, repeat) -> tuple[Path, str]:
     path, spec, extra = _pose_bag(frames, path, kind, repeat)
     write_bag(dataset, frames, path, poses=None, static=False, extra=extra)

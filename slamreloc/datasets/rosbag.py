@@ -570,12 +570,22 @@ def _read_pose_track(bag: _Bag, spec: str) -> PoseTrack:
 
 
 def _static_transforms(bag: _Bag) -> dict[tuple[str, str], Rigid3]:
-    """(parent, child) -> parent_from_child of every /tf_static transform."""
+    """(parent, child) -> parent_from_child of every /tf_static transform. A pair published
+    again with the same transform (latched topics repeat) is read once; with another one it
+    is an InputError naming the pair (`same_pose`): which one holds is not for us to guess."""
     if bag.topics.get(TF_STATIC_TOPIC, ("",))[0] != TF_MESSAGE:
         return {}
-    return {(_frame_id(t.header.frame_id), _frame_id(t.child_frame_id)):
-            _rigid(t.transform.translation, t.transform.rotation, f"{bag.path}: /tf_static")
-            for _, msg in bag.messages(TF_STATIC_TOPIC) for t in msg.transforms}
+    edges: dict[tuple[str, str], Rigid3] = {}
+    for _, msg in bag.messages(TF_STATIC_TOPIC):
+        for t in msg.transforms:
+            pair = (_frame_id(t.header.frame_id), _frame_id(t.child_frame_id))
+            edge = _rigid(t.transform.translation, t.transform.rotation,
+                          f"{bag.path}: /tf_static")
+            if pair in edges and not same_pose(edges[pair], edge):
+                raise InputError(f"{bag.path}: /tf_static gives {pair[0]} -> {pair[1]} twice "
+                                 f"with different transforms ({pose_gap(edges[pair], edge)})")
+            edges.setdefault(pair, edge)
+    return edges
 
 
 def static_chain(edges: dict[tuple[str, str], Rigid3], start: str, goal: str) -> Rigid3 | None:
