@@ -517,3 +517,23 @@ def test_a_map_recording_metric_as_a_string_is_refused_when_loaded(tiny_map, tmp
         SceneMap.load(map_dir).info.metric  # noqa: B018 - what `serve` reports
     assert str(err.value) == f"{map_dir / META}: 'dataset.metric' must be true or false, " \
                              "got 'false'"
+
+
+@pytest.mark.parametrize("same_file", [True, False])
+def test_a_tum_list_stamp_given_twice(scene, tmp_path, same_file):
+    """rgb.txt listing one timestamp on two lines: the same image twice is read once; two
+    images at one instant are refused, naming both lines."""
+    dataset, frames = scene
+    root = tum_folder(frames, tmp_path / "tum")
+    lines = (root / "rgb.txt").read_text().splitlines()
+    stamp, rel = lines[2].split()
+    other = lines[3].split()[1]
+    lines.insert(3, f"{stamp} {rel if same_file else other}")
+    (root / "rgb.txt").write_text("\n".join(lines) + "\n")
+    if same_file:
+        assert [f.name for f in load_dataset(root).frames("all")] == \
+            [f"{frame_stamp(f):.6f}" for f in frames]
+        return
+    with pytest.raises(InputError, match=rf"rgb.txt:4: timestamp {stamp} repeats line 3 "
+                                         "with another file"):
+        load_dataset(root)

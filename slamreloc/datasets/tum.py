@@ -26,17 +26,27 @@ def is_tum(root: Path) -> bool:
 
 
 def _read_list(path: Path, n_fields: int) -> list[list[str]]:
+    """The `timestamp file` rows of rgb.txt / depth.txt. A timestamp on two lines naming the
+    same file is one row read twice (read once); naming different files it is an InputError
+    naming both lines: which image is that instant's is not for the reader to guess."""
     rows = []
+    seen: dict[float, tuple[int, str]] = {}  # stamp -> (its first line, its file)
     for i, line in enumerate(read_text(path, "list").splitlines(), 1):
         if not line.strip() or line.lstrip().startswith("#"):
             continue
         parts = line.split()
         if len(parts) != n_fields:
             raise InputError(f"{path}:{i}: expected {n_fields} fields, got {len(parts)}")
-        parse_stamp(parts[0], f"{path}:{i}")
+        stamp = parse_stamp(parts[0], f"{path}:{i}")
         rel = PurePosixPath(parts[1])
         if rel.is_absolute() or ".." in rel.parts:
             raise InputError(f"{path}:{i}: {parts[1][:80]!r} points outside the dataset folder")
+        first, listed = seen.setdefault(stamp, (i, parts[1]))
+        if first != i:
+            if listed != parts[1]:
+                raise InputError(f"{path}:{i}: timestamp {parts[0]} repeats line {first} with "
+                                 f"another file ({parts[1][:80]!r}, not {listed[:80]!r})")
+            continue
         rows.append(parts)
     return rows
 
