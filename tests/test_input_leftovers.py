@@ -537,3 +537,25 @@ def test_a_tum_list_stamp_given_twice(scene, tmp_path, same_file):
     with pytest.raises(InputError, match=rf"rgb.txt:4: timestamp {stamp} repeats line 3 "
                                          "with another file"):
         load_dataset(root)
+
+
+@pytest.mark.parametrize("change", [False, True])
+def test_a_camera_that_changes_mid_bag_is_refused(scene, tmp_path, change):
+    """Every CameraInfo of the bag is read: the same camera repeated is the bag's camera; one
+    message describing another camera is refused, naming it (it was ignored: only the first
+    message was read)."""
+    from tests.rosbag_support import INFO_TOPIC
+
+    dataset, frames = scene
+    msgs = Messages(2)
+    cam = frames[0].camera
+    other = replace(cam, fx=cam.fx * 1.1) if change else cam
+    infos = [msgs.camera_info(frame_stamp(f), cam if i < 2 else other)
+             for i, f in enumerate(frames)]
+    bag = write_bag(dataset, frames, tmp_path / "run", camera_info=False,
+                    extra={INFO_TOPIC: infos})
+    if not change:
+        assert load_rosbag(bag).frames("all")[0].camera == cam
+        return
+    with pytest.raises(InputError, match="message 2 describes another camera than message 0"):
+        load_rosbag(bag)

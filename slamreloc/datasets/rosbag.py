@@ -487,15 +487,29 @@ def camera_from_info(msg: Any, size: tuple[int, int], source: str) -> Camera:
         raise InputError(f"{source}: {err}") from None
 
 
+def _intrinsics(camera: Camera) -> str:
+    return " ".join(f"{v:g}" for v in (camera.fx, camera.fy, camera.cx, camera.cy))
+
+
 def _camera(bag: _Bag, topic: str | None, image: str, size: tuple[int, int]) -> Camera:
     if topic is None:
         expected = "/".join(("", _namespace(image), "camera_info")).replace("//", "/")
         raise InputError(f"{bag.path}: no sensor_msgs/CameraInfo for image topic {image}: add "
                          f"{expected} to the bag, or name one with `topic` camera_info=NAME")
-    msg = bag.first(topic)
-    if msg is None:
-        raise InputError(f"{bag.path}: camera_info topic {topic} has no messages")
-    return camera_from_info(msg, size, f"{bag.path}: camera_info topic {topic}")
+    source = f"{bag.path}: camera_info topic {topic}"
+    camera = None
+    for i, (_, msg) in enumerate(bag.messages(topic)):  # one camera for the whole bag
+        this = camera_from_info(msg, size, f"{source}, message {i}" if i else source)
+        if camera is None:
+            camera = this
+        elif this != camera:
+            raise InputError(f"{source}: message {i} describes another camera than message 0 "
+                             f"(fx fy cx cy {_intrinsics(this)} against "
+                             f"{_intrinsics(camera)}, or its distortion): one camera per bag "
+                             "(split the bag where it changes)")
+    if camera is None:
+        raise InputError(f"{source} has no messages")
+    return camera
 
 
 # --- poses -------------------------------------------------------------------------------------
