@@ -16,7 +16,7 @@ from slamreloc.types import Camera
 class KissIcpConfig:
     """voxel_m: kiss-icp's map voxel (metres; on RedKitchen 0.07 registers a frame in 12-22 ms
     against 36-50 at 0.05, and the live-mapping stream keeps its ATE, 4.6 cm either way,
-    where 0.10 (6 ms) drifts to 6.8 cm: BENCHMARKS.md, "SLAM that learns its own map");
+    where 0.10 (6 ms) drifts to 6.8 cm: docs/history.md, "Live mapping speed");
     `depth_camera`: the camera that took the depth where it is not registered
     to the image (`Frame.depth_camera`, any pixel size: scaled to the depth map), None:
     registered depth, use the RGB camera; fitness cells are `fitness_cell_m` (metres) wide,

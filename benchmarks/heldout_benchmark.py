@@ -1,0 +1,153 @@
+"""Held-out localization on RedKitchen: the shared 600 frames in folds along the trajectory,
+each block of 200 frames localized in a map of the other 400, so no query was seen by any
+setting chosen on the shared seq-02 queries (BENCHMARKS.md, "Held-out folds").
+
+    python benchmarks/heldout_benchmark.py DATA --work DIR [--folds A B C] [--methods ...]
+
+DATA: the 7-Scenes RedKitchen folder (seq-01 = 400 frames, seq-02 = 200, sfm_pgt/poses.txt).
+Blocks: A = seq-01 frames 0-199, B = seq-01 200-399, C = seq-02 (the shared queries). Fold X:
+a map of the two other blocks (`slamreloc map`, SfM poses, today's defaults), the X frames
+localized by each method (`slamreloc evaluate --method`), scored against SfM and against the
+dataset's own poses (dSLAM, `--reference`, fitted on the map's training cameras). Fold C is
+the shared seq-02 figure; A and B are out of sample.
+
+Each fold is a folder of links (the data stays where it is): DIR/fold_X/seq-01 the map's
+frames, DIR/fold_X/seq-02 the queries, renumbered, with `poses_sfm.txt` and `poses_dslam.txt`
+naming them as renumbered. Prints a markdown table; writes DIR/heldout.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+BLOCKS = {"A": ("seq-01", 0, 200), "B": ("seq-01", 200, 400), "C": ("seq-02", 0, 200)}
+SFM = "sfm_pgt/poses.txt"
+
+
+def cpu_kind() -> str:
+    flags = open("/proc/cpuinfo").read()
+    kind = ("AMX" if "amx_tile" in flags else "AVX512-BF16" if "avx512_bf16" in flags
+            else "AVX2-only")
+    model = next((line.split(":", 1)[1].strip() for line in flags.splitlines()
+                  if line.startswith("model name")), platform.processor())
+    return f"{model}, {os.cpu_count()} cores, {kind}"
+
+
+def read_named_poses(path: Path) -> dict[str, str]:
+    """name -> the rest of its line ('tx ty tz qx qy qz qw') of a named pose file."""
+    out = {}
+    for line in path.read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            name, rest = line.split(maxsplit=1)
+            out[name] = rest
+    return out
+
+
+def dslam_line(pose_txt: Path) -> str:
+    """A 7-Scenes 4x4 world_from_cam as 'tx ty tz qx qy qz qw' (the named pose format)."""
+    import numpy as np
+
+    from slamreloc.geometry import matrix_to_quat
+
+    m = np.loadtxt(pose_txt)
+    q = matrix_to_quat(m[:3, :3])  # (x, y, z, w)
+    return " ".join(f"{v:.7f}" for v in (*m[:3, 3], *q))
+
+
+def make_fold(data: Path, held: str, out: Path) -> Path:
+    """The fold's dataset folder (links, renumbered frames) and its two pose files."""
+    sfm = read_named_poses(data / SFM)
+    root = out / f"fold_{held}"
+    if root.exists():
+        return root
+    lines = {"sfm": [], "dslam": []}
+    for role, blocks in (("seq-01", [b for b in BLOCKS if b != held]), ("seq-02", [held])):
+        folder = root / role
+        folder.mkdir(parents=True)
+        n = 0
+        for b in blocks:
+            seq, first, end = BLOCKS[b]
+            for k in range(first, end):
+                src = data / seq / f"frame-{k:06d}"
+                dst = folder / f"frame-{n:06d}"
+                for suffix in (".color.jpg", ".color.png", ".depth.png", ".pose.txt"):
+                    if Path(f"{src}{suffix}").exists():
+                        Path(f"{dst}{suffix}").symlink_to(Path(f"{src}{suffix}").resolve())
+                name = f"{role}/frame-{n:06d}"
+                lines["sfm"].append(f"{name} {sfm[f'{seq}/frame-{k:06d}']}")
+                lines["dslam"].append(f"{name} {dslam_line(Path(f'{src}.pose.txt'))}")
+                n += 1
+    (root / "TrainSplit.txt").write_text("sequence1\n")
+    (root / "TestSplit.txt").write_text("sequence2\n")
+    for ref, rows in lines.items():
+        (root / f"poses_{ref}.txt").write_text("# name tx ty tz qx qy qz qw\n"
+                                               + "\n".join(rows) + "\n")
+    return root
+
+
+def cli(*args) -> float:
+    """Run `slamreloc ARGS`; its wall seconds (exits with its error on failure)."""
+    t0 = time.perf_counter()
+    res = subprocess.run([sys.executable, "-m", "slamreloc.cli", *map(str, args)],
+                         capture_output=True, text=True)
+    if res.returncode:
+        sys.exit(f"slamreloc {' '.join(map(str, args))}:\n{res.stderr}")
+    return time.perf_counter() - t0
+
+
+def scores(report: Path) -> dict:
+    r = json.loads(report.read_text())
+    dslam = next(iter(r["references"].values()))
+    pick = (lambda d: {k: d["recall"][k] for k in ("1cm1deg", "2cm2deg", "5cm5deg")})  # noqa
+    return {"sfm": pick(r), "dslam": pick(dslam),
+            "sfm_median_cm": 100 * r["median_translation_m"],
+            "ms_per_query": r["timing_ms"]["total"]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("data", type=Path)
+    ap.add_argument("--work", type=Path, required=True)
+    ap.add_argument("--folds", nargs="+", default=["A", "B", "C"], choices=list(BLOCKS))
+    ap.add_argument("--methods", nargs="+", default=["regressor", "matching"])
+    args = ap.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    result = {"cpu": cpu_kind(), "folds": {}}
+    for held in args.folds:
+        root = make_fold(args.data, held, args.work)
+        m = args.work / f"map_{held}"
+        fold = {}
+        if not (m / "slamreloc_map.json").exists():
+            fold["map_s"] = round(cli("map", root, "--poses", root / "poses_sfm.txt", "--out",
+                                      m), 1)
+        for method in args.methods:
+            report = args.work / f"ev_{held}_{method}.json"
+            cli("evaluate", m, root, "--method", method, "--poses", root / "poses_sfm.txt",
+                "--reference", root / "poses_dslam.txt", "--report", report)
+            fold[method] = scores(report)
+            print(held, method, json.dumps(fold[method]), flush=True)
+        result["folds"][held] = fold
+    (args.work / "heldout.json").write_text(json.dumps(result, indent=1))
+    print(f"\n{result['cpu']}\n")
+    print("| fold (queries) | method | SfM 1cm1deg | 2cm2deg | 5cm5deg | dSLAM 5cm5deg | "
+          "SfM median | ms/query |")
+    print("|---|---|---|---|---|---|---|---|")
+    for held, fold in result["folds"].items():
+        seq, first, end = BLOCKS[held]
+        for method in args.methods:
+            s = fold[method]
+            print(f"| {held} ({seq} {first}-{end - 1}) | {method} | "
+                  f"{100 * s['sfm']['1cm1deg']:.1f} % | {100 * s['sfm']['2cm2deg']:.1f} % | "
+                  f"{100 * s['sfm']['5cm5deg']:.1f} % | {100 * s['dslam']['5cm5deg']:.1f} % | "
+                  f"{s['sfm_median_cm']:.2f} cm | {s['ms_per_query']:.0f} |")
+
+
+if __name__ == "__main__":
+    main()
