@@ -29,7 +29,7 @@ import torch
 
 from slamreloc.features import make_extractor
 from slamreloc.features.matcher import LOCALIZER_DB_CHUNK, match_descriptors
-from slamreloc.geometry import Rigid3, project
+from slamreloc.geometry import Rigid3, project, reprojection_px
 from slamreloc.localize.guided import GuidedConfig, GuidedMatcher
 from slamreloc.localize.localizer import REGRESSOR_PNP, Localization
 from slamreloc.localize.pnp import PnPConfig, PoseEstimate, estimate_pose, refine_from
@@ -97,6 +97,11 @@ class LiveLocalization(Localization):
 
     source: str = ""
     reference: Reference | None = None
+
+
+def _not_localized(n: int, source: str = "") -> LiveLocalization:
+    """The result for a frame of `n` keypoints that was not localized."""
+    return LiveLocalization(PoseEstimate(None, 0, n, np.zeros(n, bool)), {}, n, source=source)
 
 
 class LiveMap:
@@ -241,7 +246,7 @@ class LiveMap:
         t0 = time.perf_counter()
         live = self.database()
         n = len(feats)
-        result = LiveLocalization(PoseEstimate(None, 0, n, np.zeros(n, bool)), {}, n)
+        result = _not_localized(n)
         if (len(live.database.points) < 4 or n < 4
                 or (allowed is not None and not allowed.any())):
             return result
@@ -265,11 +270,10 @@ class LiveMap:
         if conf is not None:
             n_keep = max(round(self.config.keep_fraction * len(conf)), min(len(conf), 50))
             keep = np.argsort(-conf, kind="stable")[:n_keep]
-        if near is not None and self._agreeing(near, feats.keypoints[keep], points[keep],
-                                               camera) < self.config.regressor_inliers:
-            n = len(feats)
-            return LiveLocalization(PoseEstimate(None, 0, n, np.zeros(n, bool)), {}, n,
-                                    source="regressor")
+        if near is not None and np.sum(reprojection_px(
+                near, feats.keypoints[keep], points[keep], camera.pinhole.params(),
+                min_depth_m=1e-3) <= self.config.loop_gate_px) < self.config.regressor_inliers:
+            return _not_localized(len(feats), "regressor")
         est = estimate_pose(feats.keypoints[keep], points[keep], camera.pinhole, REGRESSOR_PNP)
         result = LiveLocalization(est, {}, len(feats), source="regressor")
         if not est.success:
@@ -286,16 +290,6 @@ class LiveMap:
             result.reference = self._reference(live, rows, refined, p2d, camera)
         return result
 
-    def _agreeing(self, cam_from_world: Rigid3, keypoints: np.ndarray, points: np.ndarray,
-                  camera: Camera) -> int:
-        """How many world points reproject within `loop_gate_px` of their keypoints from
-        `cam_from_world` (in front of the camera)."""
-        in_cam = cam_from_world.transform(points)
-        front = in_cam[:, 2] > 1e-3
-        uv = project(in_cam[front], *camera.pinhole.params())
-        return int((np.linalg.norm(uv - keypoints[front], axis=1) <= self.config.loop_gate_px)
-                   .sum())
-
     def _by_database(self, feats, camera, live, allowed, near) -> LiveLocalization:
         db = live.database
         index = None
@@ -305,8 +299,7 @@ class LiveMap:
         elif allowed is not None:
             index = np.flatnonzero(allowed[db.frame_index])
         if index is not None and len(index) < 4:
-            return LiveLocalization(PoseEstimate(None, 0, len(feats), np.zeros(len(feats), bool)),
-                                    {}, len(feats), source="database")
+            return _not_localized(len(feats), "database")
         desc = self._descriptors(index)
         m = match_descriptors(feats.descriptors, desc, self.config.ratio, mutual=False,
                               db_points=db.points if index is None else db.points[index],
