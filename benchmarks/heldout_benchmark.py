@@ -2,7 +2,7 @@
 each block of 200 frames localized in a map of the other 400, so no query was seen by any
 setting chosen on the shared seq-02 queries (BENCHMARKS.md, "Held-out folds").
 
-    python benchmarks/heldout_benchmark.py DATA --work DIR [--folds A B C] [--methods ...]
+    python -m benchmarks.heldout_benchmark DATA --work DIR [--folds A B C] [--methods ...]
 
 DATA: the 7-Scenes RedKitchen folder (seq-01 = 400 frames, seq-02 = 200, sfm_pgt/poses.txt).
 Blocks: A = seq-01 frames 0-199, B = seq-01 200-399, C = seq-02 (the shared queries). Fold X:
@@ -20,24 +20,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+from benchmarks.run_benchmark import cpu_kind
+
 BLOCKS = {"A": ("seq-01", 0, 200), "B": ("seq-01", 200, 400), "C": ("seq-02", 0, 200)}
 SFM = "sfm_pgt/poses.txt"
-
-
-def cpu_kind() -> str:
-    flags = open("/proc/cpuinfo").read()
-    kind = ("AMX" if "amx_tile" in flags else "AVX512-BF16" if "avx512_bf16" in flags
-            else "AVX2-only")
-    model = next((line.split(":", 1)[1].strip() for line in flags.splitlines()
-                  if line.startswith("model name")), platform.processor())
-    return f"{model}, {os.cpu_count()} cores, {kind}"
 
 
 def read_named_poses(path: Path) -> dict[str, str]:

@@ -1,7 +1,7 @@
 """Live mapping on RedKitchen (`slam --out` with no prior map): the targets of BENCHMARKS.md,
 "SLAM that learns its own map".
 
-    python benchmarks/live_map_benchmark.py DATA --work DIR --offline-map MAP [--stages ...]
+    python -m benchmarks.live_map_benchmark DATA --work DIR --offline-map MAP [--stages ...]
 
 DATA: the 7-Scenes RedKitchen folder (seq-01 = frames 0-399, seq-02 = 400-599, with
 sfm_pgt/poses.txt); MAP: `slamreloc map DATA --out MAP` (seq-01, the dataset's poses), the
@@ -27,8 +27,6 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import os
-import platform
 import random
 import signal
 import subprocess
@@ -38,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.run_benchmark import cpu_kind
 from slamreloc.cli import jobs
 from slamreloc.datasets import load_dataset, read_image
 from slamreloc.geometry import read_named_trajectory
@@ -49,15 +48,6 @@ from slamreloc.slam.events import EventKind
 from slamreloc.slam.metrics import ate_rmse
 
 SFM = "sfm_pgt/poses.txt"
-
-
-def cpu_kind() -> str:
-    flags = open("/proc/cpuinfo").read()
-    kind = ("AMX" if "amx_tile" in flags else "AVX512-BF16" if "avx512_bf16" in flags
-            else "AVX2-only")
-    model = next((line.split(":", 1)[1].strip() for line in flags.splitlines()
-                  if line.startswith("model name")), platform.processor())
-    return f"{model}, {os.cpu_count()} cores, {kind}"
 
 
 class PlaceClock:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import time
 from dataclasses import replace
@@ -57,6 +58,14 @@ def cpu_name() -> str:
             return next(ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name"))
     except (OSError, StopIteration):
         return platform.processor() or platform.machine()
+
+
+def cpu_kind() -> str:
+    """The CPU's model, cores and bf16 kind as torch will use it (AMX, AVX512-BF16, or why not:
+    `runtime.precision.bf16_kind`, which also names an AVX2 restriction)."""
+    from slamreloc.runtime.precision import bf16_kind
+
+    return f"{cpu_name()}, {os.cpu_count()} cores, {bf16_kind('cpu')[1]}"
 
 
 def get_map(dataset_dir: Path, poses: Path | None, out: Path, config: MapConfig,

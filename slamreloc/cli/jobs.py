@@ -26,7 +26,7 @@ from slamreloc.geometry import (
     tum_line,
     write_tum_trajectory,
 )
-from slamreloc.io.fileio import check_outputs, write_json
+from slamreloc.io.fileio import check_outputs, reads_as, write_json
 from slamreloc.io.jsonio import read_json
 from slamreloc.localize.evaluate import (
     EvaluationConfig,
@@ -97,20 +97,16 @@ def recorded_inputs(map_dir: Path) -> dict[str, Path | None]:
     return MapMeta.read(map_dir).recorded_inputs()
 
 
-def is_report_file(path: Path) -> bool:
-    """Whether `path` reads as a report a command may replace: a JSON object that is not a
-    map's own file (a map's metadata is a JSON object too); any other file is the user's."""
+def read_report(path: Path) -> dict:
+    """A report a command may replace: a JSON object that is not a map's own file (a map's
+    metadata is a JSON object too)."""
     if is_map(path.parent):
-        return False
-    try:
-        read_json(path, "report")
-    except InputError:
-        return False
-    return True
+        raise InputError(f"{path}: a file of the map {path.parent}")
+    return read_json(path, "report")
 
 
 # `check_outputs`' `files` entry of a --report
-REPORT_FILE = (is_report_file, "a JSON report outside any map folder")
+REPORT_FILE = reads_as(read_report, "a JSON report outside any map folder")
 
 
 def sidecar(trajectory: Path | None) -> Path | None:

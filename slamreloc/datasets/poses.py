@@ -42,7 +42,7 @@ from slamreloc.geometry import (
     read_names_sidecar,
     read_tum_trajectory,
 )
-from slamreloc.io.fileio import open_regular, read_text
+from slamreloc.io.fileio import open_regular, reads_as, read_text
 from slamreloc.io.limits import limits
 from slamreloc.io.numbers import number_problem
 from slamreloc.types import Frame
@@ -97,34 +97,11 @@ class FrameKey:
         return FrameKey(frame.name, image, frame.timestamp, frame.sequence)
 
 
-def is_names_file(path: Path) -> bool:
-    """Whether `path` reads as a frame-names file (`stamp name` lines: the `names_sidecar`
-    that `evaluate --trajectory` and `export --tum` write beside a TUM file), which those
-    commands may replace; any other file there is the user's."""
-    try:
-        read_names_sidecar(path)
-    except InputError:
-        return False
-    return True
-
-
-# `check_outputs`' `files` entry of a TUM output's names sidecar
-NAMES_FILE = (is_names_file, "a frame-names file ('stamp name' lines)")
-
-
-def is_tum_file(path: Path) -> bool:
-    """Whether `path` reads as a TUM trajectory (`timestamp tx ty tz qx qy qz qw` lines), which
-    a command writing one (`--trajectory`, `export --tum`) may replace; any other file there
-    (a dataset's pose file, a map's file) is the user's."""
-    try:
-        read_tum_trajectory(path)
-    except InputError:
-        return False
-    return True
-
-
-# `check_outputs`' `files` entry of a TUM trajectory output
-TUM_FILE = (is_tum_file, "a TUM trajectory ('timestamp tx ty tz qx qy qz qw' lines)")
+# `check_outputs`' `files` entries: a TUM trajectory output (`--trajectory`, `export --tum`)
+# and the frame-names sidecar written beside it (`names_sidecar`) may replace only their kind
+NAMES_FILE = reads_as(read_names_sidecar, "a frame-names file ('stamp name' lines)")
+TUM_FILE = reads_as(read_tum_trajectory,
+                    "a TUM trajectory ('timestamp tx ty tz qx qy qz qw' lines)")
 
 
 def _refuse_repeated_names(path: Path) -> None:

@@ -131,6 +131,19 @@ def _check_writable(out: Path, option: str) -> None:
                          f"{err.strerror or err})") from None
 
 
+def reads_as(read: Callable[[Path], object], kind: str) -> tuple[Callable[[Path], bool], str]:
+    """`check_outputs`' `files` entry of an output that may replace only a file of its own
+    `kind`: one that `read` reads without an InputError (any other file there is the user's)."""
+    def is_own(path: Path) -> bool:
+        try:
+            read(path)
+        except InputError:
+            return False
+        return True
+
+    return is_own, kind
+
+
 def check_outputs(outputs: dict[str, str | Path | None],
                   inputs: dict[str, str | Path | None],
                   folders: tuple[str, ...] | dict[str, Callable[[Path], bool] | None] = (),
