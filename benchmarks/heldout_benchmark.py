@@ -3,13 +3,16 @@ each block of 200 frames localized in a map of the other 400, so no query was se
 setting chosen on the shared seq-02 queries (BENCHMARKS.md, "Held-out folds").
 
     python -m benchmarks.heldout_benchmark DATA --work DIR [--folds A B C] [--methods ...]
+        [--map-poses sfm|dslam]
 
 DATA: the 7-Scenes RedKitchen folder (seq-01 = 400 frames, seq-02 = 200, sfm_pgt/poses.txt).
 Blocks: A = seq-01 frames 0-199, B = seq-01 200-399, C = seq-02 (the shared queries). Fold X:
 a map of the two other blocks (`slamreloc map`, SfM poses, today's defaults), the X frames
 localized by each method (`slamreloc evaluate --method`), scored against SfM and against the
 dataset's own poses (dSLAM, `--reference`, fitted on the map's training cameras). Fold C is
-the shared seq-02 figure; A and B are out of sample.
+the shared seq-02 figure; A and B are out of sample. `--map-poses dslam`: the maps are trained
+on the dataset's own poses instead (so their labels come from depth), every query is refined
+by depth ICP (`evaluate --depth`), and the scores are against dSLAM first, SfM second.
 
 Each fold is a folder of links (the data stays where it is): DIR/fold_X/seq-01 the map's
 frames, DIR/fold_X/seq-02 the queries, renumbered, with `poses_sfm.txt` and `poses_dslam.txt`
@@ -93,12 +96,12 @@ def cli(*args) -> float:
     return time.perf_counter() - t0
 
 
-def scores(report: Path) -> dict:
+def scores(report: Path, own: str = "sfm", other: str = "dslam") -> dict:
+    """The report's recalls against its own poses (`own`) and its one reference (`other`)."""
     r = json.loads(report.read_text())
-    dslam = next(iter(r["references"].values()))
+    ref = next(iter(r["references"].values()))
     pick = (lambda d: {k: d["recall"][k] for k in ("1cm1deg", "2cm2deg", "5cm5deg")})  # noqa
-    return {"sfm": pick(r), "dslam": pick(dslam),
-            "sfm_median_cm": 100 * r["median_translation_m"],
+    return {own: pick(r), other: pick(ref), f"{own}_median_cm": 100 * r["median_translation_m"],
             "ms_per_query": r["timing_ms"]["total"]}
 
 
@@ -108,36 +111,42 @@ def main() -> None:
     ap.add_argument("--work", type=Path, required=True)
     ap.add_argument("--folds", nargs="+", default=["A", "B", "C"], choices=list(BLOCKS))
     ap.add_argument("--methods", nargs="+", default=["regressor", "matching"])
+    ap.add_argument("--map-poses", choices=["sfm", "dslam"], default="sfm",
+                    help="the poses the maps are trained on (dslam: with depth ICP)")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    result = {"cpu": cpu_kind(), "folds": {}}
+    own, other = ("sfm", "dslam") if args.map_poses == "sfm" else ("dslam", "sfm")
+    suffix = "" if own == "sfm" else "_dslam"
+    result = {"cpu": cpu_kind(), "map_poses": own, "folds": {}}
     for held in args.folds:
         root = make_fold(args.data, held, args.work)
-        m = args.work / f"map_{held}"
+        m = args.work / f"map_{held}{suffix}"
+        # dSLAM: the frames' own pose.txt (so `map` labels from depth); the named file scores
+        poses = [] if own == "dslam" else ["--poses", root / "poses_sfm.txt"]
         fold = {}
         if not (m / "slamreloc_map.json").exists():
-            fold["map_s"] = round(cli("map", root, "--poses", root / "poses_sfm.txt", "--out",
-                                      m), 1)
+            fold["map_s"] = round(cli("map", root, *poses, "--out", m), 1)
         for method in args.methods:
-            report = args.work / f"ev_{held}_{method}.json"
-            cli("evaluate", m, root, "--method", method, "--poses", root / "poses_sfm.txt",
-                "--reference", root / "poses_dslam.txt", "--report", report)
-            fold[method] = scores(report)
+            report = args.work / f"ev_{held}_{method}{suffix}.json"
+            cli("evaluate", m, root, "--method", method, *poses, "--reference",
+                root / f"poses_{other}.txt", "--report", report,
+                *(["--depth"] if own == "dslam" else []))
+            fold[method] = scores(report, own, other)
             print(held, method, json.dumps(fold[method]), flush=True)
         result["folds"][held] = fold
-    (args.work / "heldout.json").write_text(json.dumps(result, indent=1))
-    print(f"\n{result['cpu']}\n")
-    print("| fold (queries) | method | SfM 1cm1deg | 2cm2deg | 5cm5deg | dSLAM 5cm5deg | "
-          "SfM median | ms/query |")
+    (args.work / f"heldout{suffix}.json").write_text(json.dumps(result, indent=1))
+    print(f"\n{result['cpu']}; maps on {own} poses\n")
+    print(f"| fold (queries) | method | {own} 1cm1deg | 2cm2deg | 5cm5deg | {other} 5cm5deg | "
+          f"{own} median | ms/query |")
     print("|---|---|---|---|---|---|---|---|")
     for held, fold in result["folds"].items():
         seq, first, end = BLOCKS[held]
         for method in args.methods:
             s = fold[method]
             print(f"| {held} ({seq} {first}-{end - 1}) | {method} | "
-                  f"{100 * s['sfm']['1cm1deg']:.1f} % | {100 * s['sfm']['2cm2deg']:.1f} % | "
-                  f"{100 * s['sfm']['5cm5deg']:.1f} % | {100 * s['dslam']['5cm5deg']:.1f} % | "
-                  f"{s['sfm_median_cm']:.2f} cm | {s['ms_per_query']:.0f} |")
+                  f"{100 * s[own]['1cm1deg']:.1f} % | {100 * s[own]['2cm2deg']:.1f} % | "
+                  f"{100 * s[own]['5cm5deg']:.1f} % | {100 * s[other]['5cm5deg']:.1f} % | "
+                  f"{s[f'{own}_median_cm']:.2f} cm | {s['ms_per_query']:.0f} |")
 
 
 if __name__ == "__main__":

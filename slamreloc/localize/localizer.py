@@ -96,11 +96,13 @@ class RegressorLocalizer(Localizer):
         prediction within the RANSAC threshold of it, confident or not; off by default, as
         it gained too little for its time (docs/history.md, "Fine accuracy").
         guided: from the regressor's pose, match the query keypoints to the map's database
-        near it (`guided_matching`) and run the final refinement on the database's world
-        points, which are as precise as the labels. It runs on maps whose labels agree with
-        their images (`GuidedConfig.max_label_error_px`). None, a map whose labels do not, or
-        one shipped without its database (with a warning): the pose stays RANSAC's on the
-        regressed points, and the database is never read. What it gains and costs:
+        near it and near their regressed points (`localize.guided`) and run the final
+        refinement on the database's world points, which are as precise as the labels; where
+        the regressed points alone find no pose, RANSAC runs on the rows near them. It runs
+        on maps whose labels agree with their images (`GuidedConfig.max_label_error_px`).
+        None, a map whose labels do not, or one shipped without its database (with a
+        warning): the pose stays RANSAC's on the regressed points, and the database is never
+        read. What it gains and costs:
         BENCHMARKS.md, "Localization on RedKitchen, against both references"."""
         super().__init__(scene_map, pnp, device)
         self.model = scene_map.regressor.to(self.device).eval()
@@ -155,6 +157,13 @@ class RegressorLocalizer(Localizer):
         keep = self._confident(confidence)
         t2 = time.perf_counter()
         est = estimate_pose(feats.keypoints[keep], points[keep], camera.pinhole, self.pnp)
+        used = np.arange(len(feats))[keep]  # the keypoint behind each of RANSAC's points
+        if not est.success and self.guided is not None:
+            # too few regressed points agree on a pose: the rows near them, chosen by
+            # descriptor (no pose needed), give RANSAC points as precise as the labels
+            used, rows = self.guided.near_points(feats, points)
+            est = estimate_pose(feats.keypoints[used], self.guided.db.points[rows]
+                                .astype(np.float64), camera.pinhole, self.pnp)
         if est.success and self.refine_on_all:
             # Regressed points scatter by a few pixels; RANSAC needs the confident share to
             # find the pose, but near it every prediction that agrees adds its constraint
@@ -164,7 +173,7 @@ class RegressorLocalizer(Localizer):
                 est = replace(est, cam_from_world=refined)
         n_guided = 0
         if est.success and self.guided is not None:
-            p2d, p3d = self.guided.correspondences(est.cam_from_world, feats, camera)
+            p2d, p3d = self.guided.correspondences(est.cam_from_world, feats, camera, points)
             refined = refine_from(est.cam_from_world, p2d, p3d, camera.pinhole, self.pnp,
                                   max_error_px=self.guided.config.radius_px)
             if refined is not None:
@@ -172,7 +181,7 @@ class RegressorLocalizer(Localizer):
         t3 = time.perf_counter()
         inlier_confidence = None
         if est.success and confidence is not None:
-            inlier_confidence = float(np.median(confidence[keep][est.inlier_mask]))
+            inlier_confidence = float(np.median(confidence[used][est.inlier_mask]))
         return Localization(est, {"regressor": 1000 * (t2 - t1), "pnp": 1000 * (t3 - t2)},
                             len(feats), inlier_confidence, n_guided)
 
