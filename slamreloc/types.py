@@ -163,10 +163,14 @@ MAX_INTRINSIC = 1e7  # pixels: beyond any real camera (a 65536-pixel image at 0.
 
 
 def _show(v) -> str:
-    if isinstance(v, (int, float, np.number)) and not isinstance(v, bool):
-        return f"{float(v):g}" if abs(float(v)) < 1e16 or not float(v).is_integer() \
-            else str(int(v))
-    return repr(v)[:40]
+    """A value for an error message, short: numbers as `:g` (1e+300, never 301 digits; an
+    integer beyond float range by its leading digits and exponent), others by repr."""
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.number)):
+        return repr(v)[:40]
+    if isinstance(v, (int, np.integer)) and abs(int(v)) >= 10 ** 16:
+        digits = str(abs(int(v)))
+        return f"{'-' if v < 0 else ''}{digits[0]}.{digits[1:4]}e+{len(digits) - 1}"
+    return f"{float(v):g}"
 
 
 def camera_problem(width, height, fx, fy, cx, cy) -> str | None:

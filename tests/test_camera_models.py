@@ -110,6 +110,27 @@ def test_bad_camera_strings_are_one_line_errors(text, problem, tmp_path):
     assert stderr.count("\n") == 1
 
 
+@pytest.mark.parametrize("values, shown", [
+    (("1e300", "262", "160", "120"), "fx must be a finite number within +-1e+07 pixels, got "
+                                     "1e+300"),
+    (("262", "-1e300", "160", "120"), "fy must be a finite number within +-1e+07 pixels, got "
+                                      "-1e+300"),
+    (("262", "262", "1e16", "120"), "cx must be a finite number within +-1e+07 pixels, got "
+                                    "1e+16"),
+])
+def test_huge_intrinsics_are_shown_short(values, shown, tmp_path):
+    """A number in an error is printed short (`1e+300`), never as its 300-digit expansion."""
+    from slamreloc.types import camera_problem
+
+    assert camera_problem(1, 1, *map(float, values)) == shown
+    assert camera_problem(10 ** 400, 1, 262, 262, 160, 120) == \
+        "width must be a whole number of pixels in 1..65536, got 1.000e+400"
+    image = tmp_path / "q.png"
+    cv2.imwrite(str(image), np.zeros((48, 64, 3), np.uint8))
+    status, stderr = run_cli(["localize", str(tmp_path), str(image), "--intrinsics", *values])
+    assert status == 2 and stderr == f"error: --intrinsics: {shown}\n"
+
+
 @pytest.fixture(scope="module")
 def lens_maps(scene_dir, small_map, tmp_path_factory):
     """The small scene rendered through each lens, and a map of each. The distorted maps train

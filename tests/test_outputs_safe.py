@@ -70,7 +70,7 @@ INPUT_TARGETS = ["map", f"map/{META}", "map/regressor.npz", "ds", "ds/seq-02",
                  "ds/seq-01/frame-000000.pose.txt", "recorded", "recorded/TrainSplit.txt",
                  "recorded/seq-01/frame-000001.pose.txt", "recorded_poses.txt"]
 OTHER_TARGETS = ["foreign", "model_and_more", "fifo", "notes.txt/r.json", "fifo/r.json",
-                 "notes.txt/a/b"]
+                 "notes.txt/a/b", "foreign/images/a.png", "foreign/notes.txt"]
 TARGETS = INPUT_TARGETS + OTHER_TARGETS
 
 # (command, argv with OUT for the target; R: a harmless report path)
@@ -87,6 +87,7 @@ COMMANDS = {
     "slam trajectory": ["slam", "{ds}", "--map", "{map}", "--report", "R",
                         "--trajectory", "OUT"],
     "evaluate report": ["evaluate", "{map}", "{ds}", "--report", "OUT"],
+    "evaluate plot": ["evaluate", "{map}", "{ds}", "--report", "R", "--plot", "OUT"],
 }
 # the map command has no map among its inputs: an existing map folder is its kind of output,
 # replaced (its files, the recorded dataset and pose file are refused as not a map folder)
@@ -144,6 +145,32 @@ def test_the_examples_of_issue_43(world):
     assert "the dataset the map records" in line
     line = _refused(world, _argv(world, "slam report", "notes.txt/r.json"))
     assert "--report" in line and f"its parent {world / 'notes.txt'} is a file" in line
+
+
+def test_ply_and_plot_replace_only_files_they_wrote(world, tmp_path):
+    """export --ply and evaluate --plot replace their own earlier output (marked in the PLY
+    header / the PNG's text), never a foreign PLY, PNG or JSON, and --plot must name a .png
+    before any work (attack round 4: another map's slamreloc_map.json and a dataset's frame
+    image were replaced)."""
+    ply, plot, report = tmp_path / "p.ply", tmp_path / "p.png", tmp_path / "r.json"
+    export = ["export", str(world / "map"), "--ply", str(ply)]
+    evaluate = ["evaluate", str(world / "map"), str(world / "ds"), "--report", str(report),
+                "--plot", str(plot)]
+    for argv in (export, export, evaluate, evaluate):
+        code, err = run_cli(argv)
+        assert code == 0, (argv, err)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "x.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
+    (other / "x.png").write_bytes(plot.read_bytes().replace(b"slamreloc", b"elsewhere"))
+    (other / "x.json").write_text("{}")
+    for argv in ([*export[:2], "--ply", str(other / "x.ply")],
+                 [*export[:2], "--ply", str(other / "x.json")],
+                 [*evaluate[:5], "--plot", str(other / "x.png")]):
+        line = _refused(other, argv)
+        assert "refusing to replace it" in line, line
+    line = _refused(tmp_path, [*evaluate[:5], "--plot", str(tmp_path / "p.json")])
+    assert "--plot" in line and ".png" in line
 
 
 def test_a_colmap_model_folder_is_replaced(world, tmp_path):

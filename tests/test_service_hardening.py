@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import socket
 import threading
 import time
@@ -29,7 +30,8 @@ from slamreloc.map.format import DATABASE, META, PROVENANCE, SURFACE, sha256_fil
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import ERROR_METADATA_KEY, map_name_problem
 from slamreloc.service import server as server_module
-from slamreloc.service.maps import MapRegistry, ServedMap
+from slamreloc.service import maps as maps_module
+from slamreloc.service.maps import MapRegistry, ServedMap, folder_stamp
 from slamreloc.service.server import (
     MIN_WATCH_S,
     SERVICE_NAME,
@@ -296,7 +298,17 @@ def test_silent_sessions_are_cancelled_and_not_counted(slow_server):
             with pytest.raises(grpc.RpcError) as ended:
                 next(call)
             assert ended.value.code() == grpc.StatusCode.CANCELLED
-    updates = _session(running.address, [pb.SessionRequest(open=pb.SessionOpen())], 30)
+    # the client may see the cancellation before the server's handler has given its slot
+    # back (gRPC orders neither): the slots must come free, within a few seconds
+    deadline = time.monotonic() + 10
+    while True:
+        try:
+            updates = _session(running.address, [pb.SessionRequest(open=pb.SessionOpen())], 30)
+            break
+        except grpc.RpcError as err:
+            if err.code() != grpc.StatusCode.RESOURCE_EXHAUSTED or time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
     assert [u.WhichOneof("message") for u in updates] == ["opened", "closed"]
 
 
@@ -555,3 +567,103 @@ def test_wire_timestamp_uses_the_file_rule(server):
     errors = [u.error for u in updates if u.WhichOneof("message") == "error"]
     assert errors and errors[0].kind == pb.BAD_REQUEST
     assert "timestamps are seconds" in errors[0].message and "nanoseconds" in errors[0].message
+
+
+# ---- round 4 #8: a depth map too small names its field once ----------------------------------
+@pytest.mark.parametrize("learn", [True, False])
+def test_a_depth_map_too_small_names_its_field_once(server, learn):
+    depth = pb.Depth(encoding=pb.Depth.FLOAT32_METRES, width=10, height=10,
+                     data=np.ones((10, 10), "<f4").tobytes())
+    camera = pb.Camera(pinhole=pb.PinholeCamera(width=W, height=H, fx=50, fy=50, cx=W / 2,
+                                                cy=H / 2))
+    frame = pb.SessionFrame(image=pb.Image(encoded=_image()), depth=depth, camera=camera,
+                            odometry_world_from_cam=pb.Transform(qw=1))
+    opening = (pb.SessionOpen(learn=True) if learn else
+               pb.SessionOpen(map="m", odometry="client"))
+    updates = _session(server.address, [pb.SessionRequest(open=opening),
+                                        pb.SessionRequest(frame=frame)])
+    errors = [u.error for u in updates if u.WhichOneof("message") == "error"]
+    assert errors and errors[0].kind == pb.BAD_DEPTH, updates
+    assert errors[0].message.startswith("frame.depth: depth is 10x10 pixels"), errors[0].message
+    assert errors[0].message.count("frame.depth") == 1, errors[0].message
+    request = pb.LocalizeRequest(image=pb.Image(encoded=_image()), depth=depth)
+    _, kind, details, _ = _call(server.address, "Localize", request)
+    assert kind == "BAD_DEPTH" and details.startswith("depth: depth is 10x10 pixels"), details
+    assert not details.startswith("depth: depth: "), details
+
+
+# ---- round 4 #6: a reload takes no folder that a link or another served map owns --------------
+def _reload(address: str, name: str):
+    return _call(address, "ReloadMap", pb.ReloadMapRequest(map=name))
+
+
+def test_reload_refuses_a_link_or_the_folder_of_another_served_map(tiny_map, tmp_path):
+    """A map folder replaced by a symbolic link (to another served map's folder), and a link
+    served from the start switched to another served map's folder: FAILED_PRECONDITION, one
+    line, no server path; the map loaded keeps serving, the server keeps answering. A link
+    switched to a folder of its own is reloaded (a `current` link moved to a new version)."""
+    b, c, v1, v2 = (copy_map(tiny_map, tmp_path / n) for n in ("b", "c", "v1", "v2"))
+    cur = tmp_path / "cur"
+    cur.symlink_to(v1, target_is_directory=True)
+    running = start_server({"b": b, "c": c, "cur": cur}, ServeConfig(port=0, watch_s=0))
+    try:
+        registry, address = running.registry, running.address
+        version = registry.get("b").version
+        shutil.rmtree(b)
+        b.symlink_to(c, target_is_directory=True)
+        status, kind, details, _ = _reload(address, "b")
+        assert (status, kind) == ("FAILED_PRECONDITION", "FAILED_PRECONDITION"), details
+        assert details.startswith(f"map 'b' not reloaded, still serving version {version}: "
+                                  "its folder was replaced by a symbolic link"), details
+        assert str(tmp_path) not in details and "\n" not in details, details
+        assert registry.get("b").folder == tmp_path.resolve() / "b"
+        assert _call(address, "Health", pb.HealthRequest())[0] == "OK"
+        request = pb.LocalizeRequest(map="b", image=pb.Image(encoded=_image()))
+        assert _call(address, "Localize", request)[0] == "OK"
+        assert _reload(address, "c")[0] == "OK"  # the map it points at is its own
+
+        cur.unlink()
+        cur.symlink_to(c, target_is_directory=True)
+        status, kind, details, _ = _reload(address, "cur")
+        assert (status, kind) == ("FAILED_PRECONDITION", "FAILED_PRECONDITION"), details
+        assert "its folder now is the folder of the map 'c' this server serves" in details
+        assert registry.get("cur").folder == v1.resolve()
+        cur.unlink()
+        cur.symlink_to(v2, target_is_directory=True)
+        assert _reload(address, "cur")[0] == "OK"
+        assert registry.get("cur").folder == v2.resolve()
+        assert sorted(m.name for m in registry.all()) == ["b", "c", "cur"]
+    finally:
+        running.stop()
+
+
+def test_the_watch_refuses_a_map_folder_replaced_by_a_link(tiny_map, tmp_path, monkeypatch):
+    """The same refusal by the watch: reported once (not at every look), the map loaded keeps
+    serving; the folder restored is reloaded."""
+    b, c = copy_map(tiny_map, tmp_path / "b"), copy_map(tiny_map, tmp_path / "c")
+    warned: list[str] = []
+    monkeypatch.setattr(maps_module.warnings, "warn",
+                        lambda message, *_, **__: warned.append(str(message))
+                        if "'b'" in str(message) else None)
+    running = start_server({"b": b, "c": c}, ServeConfig(port=0, watch_s=MIN_WATCH_S))
+    try:
+        shutil.rmtree(b)
+        b.symlink_to(c, target_is_directory=True)
+        deadline = time.monotonic() + 20
+        while not warned and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(20 * MIN_WATCH_S)  # more looks: no more reports
+        assert len(warned) == 1, warned
+        assert warned[0].startswith("map 'b' not reloaded") and "symbolic link" in warned[0]
+        assert running.registry.get("b").folder == tmp_path.resolve() / "b"
+        assert _call(running.address, "Health", pb.HealthRequest())[0] == "OK"
+        b.unlink()
+        copy_map(tiny_map, b)
+        deadline = time.monotonic() + 20
+        while (running.registry.get("b").stamp != folder_stamp(b)
+               and time.monotonic() < deadline):
+            time.sleep(0.05)
+        assert running.registry.get("b").stamp == folder_stamp(b)
+        assert len(warned) == 1, warned
+    finally:
+        running.stop()

@@ -247,3 +247,35 @@ def test_a_save_blocks_no_other_client(learning, frames, monkeypatch):  # noqa: 
             assert answers[-1].name == "held"
             monkeypatch.undo()
     assert "held" in {m.name for m in client.list_maps()}
+
+
+def test_a_learned_map_replaced_by_a_link_to_another_is_not_reloaded(learning,
+                                                                       frames):  # noqa: F811
+    """Round 4 #6: session 1 saves `lb`, session 2 `lc`; DIR/lb replaced on disk by a link to
+    DIR/lc: ReloadMap("lb") is refused (typed, no server path), `lb` keeps serving what it
+    served and two names never serve one folder; session 2 still saves `lc`; session 1's
+    save of `lb` is refused while the link is there (a save never writes through a link),
+    and taken once the operator removed it."""
+    running, folder, client, session = learning
+    first = session.save("lb")
+    with client.session(odometry="auto", learn=True) as other:
+        for f in frames[:N_LEARN]:
+            other.send(f.image, camera=f.camera, depth=f.depth, timestamp=f.timestamp)
+        other.save("lc")
+        shutil.rmtree(folder / "lb")
+        (folder / "lb").symlink_to(folder / "lc", target_is_directory=True)
+        err = refused(lambda: client.reload_map("lb"), "FAILED_PRECONDITION")
+        assert err.code == grpc.StatusCode.FAILED_PRECONDITION
+        assert "map 'lb' not reloaded" in str(err) and "symbolic link" in str(err), err
+        assert str(folder) not in str(err), err
+        listed = {m.name: m for m in client.list_maps()}
+        assert listed["lb"].version == first.map_version
+        assert client.health().serving
+        again = other.save("lc")  # its owner is not locked out
+        assert {m.name: m.version for m in client.list_maps()}["lc"] == again.map_version
+        err = refused(lambda: session.save("lb"), "FAILED_PRECONDITION")
+        assert "not a map" in str(err), err
+        (folder / "lb").unlink()
+        saved = session.save("lb")
+        assert (folder / "lb" / META).is_file() and not (folder / "lb").is_symlink()
+        assert {m.name: m.version for m in client.list_maps()}["lb"] == saved.map_version

@@ -141,10 +141,54 @@ def test_a_damaged_surface_is_refused_naming_the_file(small_map, tmp_path):
      "must both be"),
     ({"points": np.full((5, 3), np.nan, np.float32), "normals": np.zeros((5, 3), np.float32)},
      "non-finite"),
+    ({"points": np.zeros((5, 3), np.float32), "normals": np.zeros((5, 3), np.float16)},
+     r"'normals' must be unit vectors .*5 of 5 are not, row 0 has length 0"),
+    ({"points": np.zeros((2, 3), np.float32),
+      "normals": np.array([[0, 0, 1], [0, 0, 1.01]], np.float32)},
+     "1 of 2 are not, row 1 has length 1.01"),
 ])
 def test_malformed_surface_arrays_are_named(arrays, message):
     with pytest.raises(InputError, match=message):
         Surface.from_arrays(arrays, "m/surface.npz")
+
+
+def test_stored_normals_within_float16_rounding_are_taken():
+    rng = np.random.default_rng(0)
+    nrm = rng.normal(size=(10000, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    surface = Surface.from_arrays({"points": np.zeros((10000, 3), np.float32),
+                                   "normals": nrm.astype(np.float16)}, "m/surface.npz")
+    assert len(surface.normals) == 10000
+
+
+def test_zero_normals_in_a_relisted_surface_are_refused(small_map, scene_dir, tmp_path):
+    """surface.npz with every normal 0 and its checksum updated in the metadata: `evaluate
+    --depth` refuses the map in one line naming the file, before any ICP."""
+    import json
+    import shutil
+
+    from slamreloc.map.format import META, sha256_file
+
+    copy = tmp_path / "map"
+    shutil.copytree(small_map.root, copy)
+    with np.load(copy / SURFACE) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays["normals"] = np.zeros_like(arrays["normals"])
+    (copy / SURFACE).unlink()
+    np.savez(copy / SURFACE, **arrays)
+    meta = json.loads((copy / META).read_text())
+    meta["files"][SURFACE] = sha256_file(copy / SURFACE)
+    (copy / META).write_text(json.dumps(meta))
+    with pytest.raises(InputError, match=f"{SURFACE}: surface 'normals' must be unit vectors"):
+        SceneMap.load(copy).surface
+    res = _cli("evaluate", copy, scene_dir, "--split", "query", "--depth", "--report",
+               tmp_path / "r.json")
+    assert res.returncode == 2, res.stderr
+    assert res.stderr.strip().splitlines() == [
+        f"error: {copy / SURFACE}: surface 'normals' must be unit vectors (length 1 within "
+        f"0.001); {len(arrays['normals'])} of {len(arrays['normals'])} are not, row 0 has "
+        "length 0"]
+    assert not (tmp_path / "r.json").exists()
 
 
 def _cli(*args):

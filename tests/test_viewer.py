@@ -320,6 +320,40 @@ def test_bad_input_is_one_line_error(viewer_case, tmp_path):
         "line 1 column 2 (char 1))"]
 
 
+def test_inputs_that_are_not_files_or_folders_are_named(viewer_case, tmp_path):
+    """A named pipe or a device given as a report, trajectory or dataset: one line saying
+    what it is (not "not found"), exit 2, the pipe never opened for a blocking read."""
+    import os
+
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    png = tmp_path / "img.png"
+    png.write_bytes(b"not read")
+    for path, kind in ((fifo, "a named pipe"), (Path(os.devnull), "a device")):
+        with pytest.raises(InputError, match=f"{path}: report is not a regular file \\({kind}"):
+            load_scene_data(ViewerInputs(viewer_case.map_dir, reports=[path]))
+        with pytest.raises(InputError,
+                           match=f"{path}: trajectory is not a regular file \\({kind}"):
+            load_scene_data(ViewerInputs(viewer_case.map_dir, [path]))
+        with pytest.raises(InputError, match=f"{path}: dataset exists and is {kind}, not a "
+                                             "folder"):
+            load_scene_data(ViewerInputs(viewer_case.map_dir, dataset=path))
+    with pytest.raises(InputError, match="img.png: dataset exists and is a file, not a folder"):
+        load_scene_data(ViewerInputs(viewer_case.map_dir, dataset=png))
+    with pytest.raises(InputError, match="nope: dataset folder not found"):
+        load_scene_data(ViewerInputs(viewer_case.map_dir, dataset=tmp_path / "nope"))
+    with pytest.raises(InputError, match="missing.json: report file not found"):
+        load_scene_data(ViewerInputs(viewer_case.map_dir, reports=[tmp_path / "missing.json"]))
+    for option in ("--report", "--trajectory", "--dataset"):
+        run = subprocess.run([sys.executable, "-m", "slamreloc.cli", "view",
+                              str(viewer_case.map_dir), "--port", "0", option, str(fifo)],
+                             capture_output=True, text=True, timeout=120, cwd=ROOT)
+        assert run.returncode == 2, (option, run.stderr)
+        lines = run.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"error: {fifo}: ") and \
+            "a named pipe" in lines[0], (option, lines)
+
+
 def test_trajectory_first_column_may_be_names(viewer_case, tmp_path):
     named = tmp_path / "named.txt"
     lines = viewer_case.trajectory.read_text().splitlines()

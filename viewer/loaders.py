@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from slamreloc.errors import InputError
+from slamreloc.io.fileio import check_folder
 from slamreloc.map.scene_map import SceneMap
 from slamreloc.viewer.data import SceneData, ViewerInputs
 from slamreloc.viewer.images import open_dataset
@@ -23,8 +24,8 @@ def load_scene_data(inputs: ViewerInputs) -> SceneData:
     """Read every input; InputError on the first bad one."""
     reports = [(Path(p), read_json(p)) for p in inputs.reports]
     trajectories = [read_trajectory(p) for p in inputs.trajectories]
-    if inputs.dataset is not None and not Path(inputs.dataset).is_dir():
-        raise InputError(f"{inputs.dataset}: dataset folder not found")
+    if inputs.dataset is not None:
+        check_folder(Path(inputs.dataset), "dataset")
     reference = None
     if inputs.poses is not None:
         from slamreloc.datasets import apply_poses, read_reference

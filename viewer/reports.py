@@ -8,6 +8,7 @@ from pathlib import Path
 
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
+from slamreloc.io.fileio import open_regular
 from slamreloc.io.jsonio import Json
 from slamreloc.io.jsonio import read_json as read_json_file
 from slamreloc.viewer.data import (EvalReport, FrameView, PseudoLabelReport, QueryView,
@@ -24,8 +25,9 @@ def read_json(path: str | Path) -> dict:
     `1e400` (infinite once read) is refused here, naming the file and the field, not left to
     fail in whatever converts it later."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: report not found")
+    # missing, or there and not a regular file (a named pipe, a device, a folder): one line
+    # naming its kind, read without blocking (`open_regular`), before the JSON reader's own
+    open_regular(path, "report").close()
     data = read_json_file(path, "JSON")
     check_numbers(data, path)
     return data

@@ -10,6 +10,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.geometry import nearest_stamps, read_named_trajectory
+from slamreloc.io.fileio import open_regular
 from slamreloc.viewer.data import Trajectory
 from slamreloc.viewer.images import frames_by_name
 
@@ -21,6 +22,9 @@ def read_trajectory(path: str | Path, kind: str | None = None) -> Trajectory:
     files), and the sidecar `<stem>.names.txt` that `evaluate --trajectory` writes names
     numeric stamps."""
     path = Path(path)
+    # missing, or there and not a regular file (a named pipe, a device, a folder): one line
+    # naming its kind, checked without blocking (`open_regular`)
+    open_regular(path, "trajectory").close()
     tum = read_named_trajectory(path)
     if not tum.poses:
         raise InputError(f"{path}: no poses in the trajectory file")

@@ -35,6 +35,7 @@ from slamreloc.localize.evaluate import (
     query_frames,
     write_tum,
 )
+from slamreloc.localize.plots import PLOT_FILE
 from slamreloc.map.format import check_is_map, is_map
 from slamreloc.map.scene_map import SceneMap
 from slamreloc.map.surface import IcpConfig, read_frame_depth, refine_with_depth
@@ -53,12 +54,14 @@ def evaluate(map_dir: Path, dataset_dir: Path, report: Path, split: str = "test"
     training cameras; `guided`: `EvaluationConfig`. Everything is read and checked before the
     work."""
     check_is_map(map_dir)  # what the inputs are, then where the outputs may go
+    if plot is not None and Path(plot).suffix.lower() != ".png":
+        raise InputError(f"{plot}: --plot writes a PNG picture: give a path ending in .png")
     check_outputs({"--report": report, "--trajectory": trajectory,
                    "--trajectory's names file": sidecar(trajectory), "--plot": plot},
                   {"the map": map_dir, "the dataset": dataset_dir, "--poses": poses,
                    **{f"--reference {p}": p for p in references}, **recorded_inputs(map_dir)},
                   files={"--report": REPORT_FILE, "--trajectory": TUM_FILE,
-                         "--trajectory's names file": NAMES_FILE})
+                         "--trajectory's names file": NAMES_FILE, "--plot": PLOT_FILE})
     scene_map = SceneMap.load(map_dir)
     labels = reference_labels(list(references))
     dataset = load_dataset(dataset_dir, poses)

@@ -12,6 +12,7 @@ from slamreloc.datasets.rosbag import is_rosbag, load_rosbag
 from slamreloc.datasets.sevenscenes import is_sevenscenes, load_sevenscenes
 from slamreloc.datasets.tum import is_tum, load_tum
 from slamreloc.errors import InputError
+from slamreloc.io.fileio import check_folder
 
 __all__ = ["Dataset", "ReferencePoses", "apply_poses", "load_dataset", "read_depth",
            "read_image", "read_intrinsics", "read_pose", "read_poses", "read_reference",
@@ -50,7 +51,7 @@ def _load_layout(root: Path) -> Dataset:
     if is_rosbag(root):
         return load_rosbag(root)
     if not root.is_dir():
-        raise InputError(f"{root}: dataset folder not found")
+        check_folder(root, "dataset")
     if is_tum(root):
         return load_tum(root)
     if is_colmap(root):

@@ -115,6 +115,17 @@ def _stat(path: Path) -> os.stat_result | None:
         return os.lstat(path) if os.path.lexists(path) else None
 
 
+def check_folder(path: Path, what: str) -> None:
+    """InputError unless `path` is a folder (a symbolic link to one is followed): "WHAT folder
+    not found", or what is there instead ("WHAT exists and is a named pipe, not a folder");
+    nothing is opened or read."""
+    st = _stat(Path(path))
+    if st is None:
+        raise InputError(f"{path}: {what} folder not found")
+    if not stat.S_ISDIR(st.st_mode):
+        raise InputError(f"{path}: {what} exists and is {_kind(st.st_mode)}, not a folder")
+
+
 def _check_writable(out: Path, option: str) -> None:
     """InputError naming `option` unless a file can be created where `out` goes: a probe
     created in the nearest existing folder of its path and removed
@@ -140,6 +151,22 @@ def reads_as(read: Callable[[Path], object], kind: str) -> tuple[Callable[[Path]
         except InputError:
             return False
         return True
+
+    return is_own, kind
+
+
+def marked_file(signature: bytes, marker: bytes, kind: str
+                ) -> tuple[Callable[[Path], bool], str]:
+    """`check_outputs`' `files` entry of a binary output slamreloc marks as its own: a file
+    may be replaced only if it starts with `signature` and holds `marker` in its first 4 KB
+    (a PLY header's comment, a PNG's text chunk); any other file there is the user's."""
+    def is_own(path: Path) -> bool:
+        try:
+            with open(path, "rb") as f:
+                head = f.read(4096)
+        except OSError:
+            return False
+        return head.startswith(signature) and marker in head
 
     return is_own, kind
 
@@ -186,6 +213,16 @@ def check_outputs(outputs: dict[str, str | Path | None],
             kind = "a file" if parent.is_file() else "not a folder"
             raise InputError(f"{out}: {option} cannot be written there: its parent {parent} is "
                              f"{kind}")
+        for what, src in ins.items():
+            if target == src:
+                problem = f"is {what}, which this command only reads"
+            elif src.is_dir() and target.is_relative_to(src):
+                problem = f"lies inside {what} ({src}), which this command only reads"
+            elif src.is_relative_to(target):
+                problem = f"would hold {what} ({src}), which this command only reads"
+            else:
+                continue
+            raise InputError(f"{out}: {option} {problem}; write it elsewhere")
         want_dir = option in own
         if os.path.islink(out):  # /dev/stdout, or a link to /proc/self/fd/1: never renamed over
             link = os.readlink(out)
@@ -216,16 +253,6 @@ def check_outputs(outputs: dict[str, str | Path | None],
             if (tmp.exists() or tmp.is_symlink()) and not tmp.is_file():
                 raise InputError(f"{out}: {option} cannot be written: its temporary path {tmp} "
                                  "exists and is not a regular file")
-        for what, src in ins.items():
-            if target == src:
-                problem = f"is {what}, which this command only reads"
-            elif src.is_dir() and target.is_relative_to(src):
-                problem = f"lies inside {what} ({src}), which this command only reads"
-            elif src.is_relative_to(target):
-                problem = f"would hold {what} ({src}), which this command only reads"
-            else:
-                continue
-            raise InputError(f"{out}: {option} {problem}; write it elsewhere")
         _check_writable(Path(out), option)
 
 

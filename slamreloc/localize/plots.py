@@ -6,12 +6,17 @@ from pathlib import Path
 
 import numpy as np
 
-from slamreloc.io.fileio import atomic_file
+from slamreloc.io.fileio import atomic_file, marked_file
 from slamreloc.types import Frame
+
+# the PNG text chunk that marks a plot `evaluate` wrote (and may replace)
+PLOT_SOFTWARE = "slamreloc evaluate"
+PLOT_FILE = marked_file(b"\x89PNG", PLOT_SOFTWARE.encode(), "a PNG plot slamreloc wrote")
 
 
 def plot_evaluation(path: Path, results_by_method: dict, frames: list[Frame]) -> None:
-    """results_by_method: method -> list of evaluate.QueryResult (same frame order)."""
+    """A PNG at `path` (marked as slamreloc's: `PLOT_FILE`); results_by_method: method -> list
+    of evaluate.QueryResult (same frame order)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -42,6 +47,6 @@ def plot_evaluation(path: Path, results_by_method: dict, frames: list[Frame]) ->
     fig.tight_layout()
     try:
         with atomic_file(path) as tmp:
-            fig.savefig(tmp, dpi=110)
+            fig.savefig(tmp, dpi=110, format="png", metadata={"Software": PLOT_SOFTWARE})
     finally:
         plt.close(fig)

@@ -19,12 +19,16 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import atomic_file
+from slamreloc.io.fileio import atomic_file, marked_file
 from slamreloc.geometry import Rigid3, matrix_to_quat, write_tum_trajectory
 from slamreloc.io.images import pixel_colours, read_image
 from slamreloc.runtime.progress import track
 from slamreloc.types import aspect_problem
 from slamreloc.map.scene_map import SceneMap, rows_by_frame
+
+# the PLY header's comment that marks a file `export` wrote (and may replace)
+PLY_COMMENT = "slamreloc map points"
+PLY_FILE = marked_file(b"ply\n", PLY_COMMENT.encode(), "a PLY file of slamreloc map points")
 
 GREY = 128
 
@@ -235,7 +239,7 @@ def write_ply(path: Path, points: ExportPoints) -> None:
         vertex[axis] = points.xyz[:, i]
     for i, channel in enumerate(("red", "green", "blue")):
         vertex[channel] = points.rgb[:, i]
-    header = ("ply\nformat binary_little_endian 1.0\ncomment slamreloc map points, map frame, "
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment {PLY_COMMENT}, map frame, "
               f"metres\nelement vertex {len(vertex)}\nproperty float x\nproperty float y\n"
               "property float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\n"
               "end_header\n")
@@ -266,7 +270,7 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
     if colmap is None and ply is None and tum is None:
         raise InputError("export: nothing to write (give `colmap` DIR, `ply` FILE or `tum` FILE)")
     check_is_map(map_dir)
-    from slamreloc.datasets.poses import NAMES_FILE
+    from slamreloc.datasets.poses import NAMES_FILE, TUM_FILE
     from slamreloc.geometry import names_sidecar
     from slamreloc.map.meta import MapMeta
 
@@ -275,7 +279,8 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
                   {"the map": map_dir, "`dataset`": dataset_dir,
                    **MapMeta.read(map_dir).recorded_inputs()},
                   folders={"`colmap`": (is_colmap_model, "a COLMAP model")},
-                  files={"`tum`'s names file": NAMES_FILE})
+                  files={"`tum`": TUM_FILE, "`tum`'s names file": NAMES_FILE,
+                         "`ply`": PLY_FILE})
     scene_map = SceneMap.load(map_dir, regressor=False)
     dataset = None
     if dataset_dir is not None:

@@ -174,8 +174,12 @@ class SceneMap:
         return ((self.root / self.info.weights_file).stat().st_size
                 + (self.root / META).stat().st_size)
 
-    def database_bytes(self) -> int:
-        return (self.root / DATABASE).stat().st_size
+    def database_bytes(self) -> int | None:
+        """The size of database.npz; None for a map shipped without it (`has_database`)."""
+        try:
+            return (self.root / DATABASE).stat().st_size
+        except FileNotFoundError:
+            return None
 
     @property
     def lists_database(self) -> bool:

@@ -58,6 +58,8 @@ class IcpConfig:
     max_turn_deg: float = 15.0
 
 
+# |length - 1| a stored normal may have: float16 rounding of a unit vector stays within 5e-4
+NORMAL_TOLERANCE = 1e-3
 DEGENERATE = 1e-3  # an ICP direction whose curvature is below this share of the largest
 
 
@@ -89,6 +91,14 @@ class Surface:
             raise InputError(f"{source}: surface arrays must be floating point")
         if not (np.isfinite(pts).all() and np.isfinite(nrm).all()):
             raise InputError(f"{source}: surface has non-finite values")
+        # ICP weighs each residual by its normal: a zero or scaled normal would refine poses
+        # against a wrong plane without a word
+        lengths = np.linalg.norm(nrm.astype(np.float64), axis=1)
+        bad = np.flatnonzero(np.abs(lengths - 1) > NORMAL_TOLERANCE)
+        if len(bad):
+            raise InputError(f"{source}: surface 'normals' must be unit vectors (length 1 within "
+                             f"{NORMAL_TOLERANCE:g}); {len(bad)} of {len(nrm)} are not, row "
+                             f"{bad[0]} has length {lengths[bad[0]]:.3g}")
         return Surface(pts.astype(np.float32), nrm.astype(np.float32))
 
 

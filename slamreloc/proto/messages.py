@@ -279,5 +279,6 @@ def depth_from_msg(msg: pb.Depth, registered_size: tuple[int, int] | None,
             raise InputError(f"registered depth is {depth.shape[1]}x{depth.shape[0]}, the image "
                              f"is {w}x{h} (give the depth camera if it is not registered)")
         return depth
-    except InputError as err:
-        raise ServiceError(_bound_kind(err, pb.BAD_DEPTH), f"{what}: {err}") from None
+    except InputError as err:  # the image checks name the field themselves
+        text = str(err) if str(err).startswith(f"{what}: ") else f"{what}: {err}"
+        raise ServiceError(_bound_kind(err, pb.BAD_DEPTH), text) from None

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import queue
 import threading
 import time
@@ -47,6 +48,29 @@ def _same_folder(a: Path, b: Path) -> bool:
         return False
 
 
+def _resolved(path) -> Path:
+    """`path` with its links followed (as far as they resolve)."""
+    try:
+        return Path(path).resolve()
+    except (OSError, RuntimeError):
+        return Path(os.path.abspath(path))
+
+
+def _overlap(a: Path, b: Path) -> bool:
+    """Whether the resolved paths are the same, or one lies inside the other."""
+    return a == b or a.is_relative_to(b) or b.is_relative_to(a)
+
+
+def _relation(a: Path, b: Path) -> str:
+    """How `a` stands to `b` (which `_overlap`), in words."""
+    return "is" if a == b else "lies inside" if a.is_relative_to(b) else "would hold"
+
+
+def _folder_now(path: Path) -> tuple[bool, Path]:
+    """(whether `path` is a symbolic link, the folder it resolves to), now."""
+    return Path(path).is_symlink(), _resolved(path)
+
+
 class LoadCancelled(Exception):
     """A map load given up because the server stops."""
 
@@ -64,6 +88,8 @@ class ServedMap:
     version: str  # sha256 of the metadata and of every file's contents as read, 12 hex
     stamp: tuple[int, int, int]
     loaded_at: float  # Unix seconds
+    folder: Path | None = None  # the folder `path` resolved to when it was loaded
+    linked: bool = False  # whether `path` was a symbolic link when it was loaded
     _pool: queue.SimpleQueue = field(default_factory=queue.SimpleQueue, repr=False)
 
     @staticmethod
@@ -85,6 +111,7 @@ class ServedMap:
         for attempt in range(3):
             step()
             stamp = folder_stamp(path)
+            linked, folder = Path(path).is_symlink(), _resolved(path)
             try:
                 scene_map = SceneMap.load(path)
                 step()
@@ -103,7 +130,7 @@ class ServedMap:
                     raise
                 continue
             return ServedMap(name, path, scene_map, content_version(scene_map), stamp,
-                             time.time())
+                             time.time(), folder, linked)
         raise AssertionError("unreachable")
 
     @contextmanager
@@ -238,6 +265,7 @@ class MapRegistry:
             if load is None:
                 if not force and folder_stamp(old.path) in (old.stamp, (0, 0, 0)):
                     return old, False
+                self._check_folder(old.name, *_folder_now(old.path))
                 load = self._loading[old.name] = _Load(old.name, old.path, self._stop)
         if not load.done.wait(self.load_timeout_s):
             with self._reload_lock:
@@ -248,10 +276,14 @@ class MapRegistry:
         with self._reload_lock:
             if self._loading.get(old.name) is load:
                 del self._loading[old.name]
-                if load.error is None:
-                    current, new = self._maps.get(old.name, old), load.result
+                if load.error is None:  # the folder as the load found it, and as it is now
+                    new = load.result
+                    self._check_folder(old.name, new.linked, new.folder)
+                    self._check_folder(old.name, *_folder_now(old.path))
+                    current = self._maps.get(old.name, old)
                     if new.version == current.version:  # same content: keep the loaded map
-                        new = replace(current, stamp=new.stamp)
+                        new = replace(current, stamp=new.stamp, folder=new.folder,
+                                      linked=new.linked)
                     self._maps = {**self._maps, old.name: new}  # one assignment: readers see
                     # the old map or the new one
         if isinstance(load.error, LoadCancelled):
@@ -264,6 +296,31 @@ class MapRegistry:
             raise load.error
         now = self.get(old.name)
         return now, now.version != old.version
+
+    def _check_folder(self, name: str, linked: bool, folder: Path) -> None:
+        """ServiceError FAILED_PRECONDITION (the map served keeps serving) unless the map `name`
+        may be reloaded from its path as it is now (`linked`: a symbolic link; `folder`: where
+        it resolves): a path that was no link when the map was loaded has not become one (a
+        map folder replaced by a link to another), and a folder that resolves elsewhere than
+        when it was loaded is not, does not hold and does not lie inside the folder of a map
+        served under another name (two names would serve one folder, and a session could
+        save neither). A path served as a link from the start may be pointed at another map
+        folder of its own (a `current` link switched to a new version)."""
+        current = self._maps[name]
+        problem = None
+        if linked and not current.linked:
+            problem = "its folder was replaced by a symbolic link"
+        elif current.folder is None or folder != current.folder:
+            for m in self._maps.values():
+                other = m.folder or _resolved(m.path)
+                if m.name != name and _overlap(folder, other):
+                    problem = (f"its folder now {_relation(folder, other)} the folder of the map "
+                               f"{quoted(m.name)} this server serves")
+                    break
+        if problem is not None:
+            raise ServiceError(pb.FAILED_PRECONDITION, f"map {quoted(name)} not reloaded, still "
+                               f"serving version {current.version}: {problem}; a map is "
+                               "reloaded only from a folder of its own (restore it)")
 
     def register(self, name: str, path: Path) -> ServedMap:
         """Serve the map folder `path` as `name` (a map a session saved): added where `name` is

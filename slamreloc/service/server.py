@@ -53,7 +53,7 @@ from slamreloc.proto.messages import (
     saved_map_name_problem,
 )
 from slamreloc.service.localize import localize
-from slamreloc.service.maps import MapRegistry
+from slamreloc.service.maps import MapRegistry, _overlap, _relation, _resolved
 from slamreloc.service.sessions import Session
 from slamreloc.slam.live_map import LiveMapConfig
 
@@ -537,12 +537,14 @@ class RelocalizerService:
         name, nor an input a served map records (its dataset, its pose file); it is absent, or
         a map this server serves as NAME (given as MAP, or saved before) or wrote itself - a
         map left in the folder by an earlier run or another server is not replaced (give it as
-        MAP to save over it); never a symbolic link nor anything that is not a map."""
+        MAP to save over it); never a symbolic link nor anything that is not a map. A served
+        map's folder is the one it was loaded from (`ServedMap.folder`), whatever links were
+        made on disk since (a reload refuses them: `MapRegistry._check_folder`)."""
         said = f"save.name {quoted(name)}"
         maps = self.registry.all()
         own = False  # NAME is served from `path`
         for m in maps:
-            folder = _resolved(m.path)
+            folder = m.folder or _resolved(m.path)  # the folder it is served from (loaded)
             if m.name == name:
                 if folder != path:
                     raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: a map of that name is "
@@ -590,25 +592,6 @@ def _session_message(kind: str | None) -> str:
     """A SessionRequest's content, in words, for a refusal."""
     return {"open": "a second SessionOpen", "frame": "a frame", "save": "a SessionSave",
             None: "an empty SessionRequest (neither open, frame nor save)"}.get(kind, str(kind))
-
-
-def _resolved(path) -> Path:
-    """`path` with its links followed (as far as they resolve)."""
-    try:
-        return Path(path).resolve()
-    except (OSError, RuntimeError):
-        return Path(os.path.abspath(path))
-
-
-def _overlap(a: Path, b: Path) -> bool:
-    """Whether the resolved paths are the same, or one lies inside the other."""
-    return a == b or a.is_relative_to(b) or b.is_relative_to(a)
-
-
-def _relation(a: Path, b: Path) -> str:
-    """How `a` stands to `b` (which `_overlap`), in words."""
-    return "is" if a == b else "lies inside" if a.is_relative_to(b) else "would hold"
-
 
 
 def save_refusal(name: str, err: OSError) -> ServiceError:

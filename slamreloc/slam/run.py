@@ -127,7 +127,10 @@ def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = Sl
     if plugins is None and out is not None:
         plugins = _live_plugins(dataset, map_dir, out, config)
     elif plugins is None:  # each frame's depth comes with its camera (FrameData.depth_camera)
-        plugins = [load_plugin("relocalization", map_dir=map_dir, **config.plugin_options)]
+        from slamreloc.map.scene_map import SceneMap
+
+        scene_map = SceneMap.load(map_dir)
+        plugins = [load_plugin("relocalization", scene_map=scene_map, **config.plugin_options)]
     for plugin in plugins:  # before the run: images its features would not fit in memory for
         localizer = getattr(plugin, "localizer", None)
         if localizer is not None:
@@ -160,13 +163,16 @@ def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = Sl
                 f"{mapper.out}: the session was interrupted after {len(backend.frames)} frames; "
                 + ("the map as it stood is saved there" if written else
                    "no map was written (no training round had ended)")) from None
-    prior = None
+    prior = None  # a map a session learned is in that session's frame
     if mapper is not None:
         prior = mapper.live_map.prior
-    elif map_dir is not None:  # a map a session learned is in that session's frame
-        from slamreloc.map.scene_map import SceneMap
+    elif map_dir is not None:  # the plugin's map where it holds one, else read again
+        prior = next((p.localizer.map for p in plugins
+                      if getattr(getattr(p, "localizer", None), "map", None) is not None), None)
+        if prior is None:
+            from slamreloc.map.scene_map import SceneMap
 
-        prior = SceneMap.load(map_dir, regressor=False)
+            prior = SceneMap.load(map_dir, regressor=False)
     report = build_report(backend, processed, jumps, plugins, config, t_backend,
                           own_frame=mapper is not None and prior is None,
                           map_from_truth=learned_map_frame(prior, dataset))
