@@ -111,7 +111,7 @@ class ServedMap:
         for attempt in range(3):
             step()
             stamp = folder_stamp(path)
-            linked, folder = Path(path).is_symlink(), _resolved(path)
+            linked, folder = _folder_now(path)
             try:
                 scene_map = SceneMap.load(path)
                 step()
