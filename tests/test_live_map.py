@@ -308,4 +308,7 @@ def test_sigterm_at_start_up_is_one_line(kidnap_scene, tmp_path):
     _, err = proc.communicate(timeout=120)
     lines = [line for line in err.splitlines() if line.strip()]
     assert proc.returncode in (130, -signal.SIGTERM), err  # -15: before our handler is set
-    assert len(lines) <= 1 and "Traceback" not in err, err
+    if proc.returncode == 130:  # wherever it landed (an import, a dataclass): one line
+        assert len(lines) == 1 and lines[0].startswith("interrupted"), err
+    else:
+        assert not lines, err

@@ -6,12 +6,15 @@ from __future__ import annotations
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import NoReturn
 
 from slamreloc.cli.commands import _flags, app, with_flags
 from slamreloc.errors import Interrupted, SlamrelocError, is_out_of_memory
 from slamreloc.runtime.progress import stop_bars
 
 __all__ = ["_flags", "app", "main", "with_flags"]
+
+INTERRUPTED = 130  # the exit status of a command cut short by Ctrl-C or SIGTERM
 
 
 @contextmanager
@@ -142,7 +145,9 @@ def _run_app() -> int | None:
         message = " ".join(err.format_message().split()).rstrip(".")
         print(f"error: {message} (see {where} --help)", file=sys.stderr)
         return 2
-    except typer.Abort:
+    except typer.Abort as err:  # how typer on plain click answers a Ctrl-C
+        if _after_interrupt(err):
+            return INTERRUPTED
         print("error: aborted", file=sys.stderr)
         return 1
 
@@ -159,6 +164,23 @@ def _after_interrupt(err: BaseException) -> bool:
     return False
 
 
+def _end_interrupted(message: str = "interrupted") -> NoReturn:
+    """One `interrupted` line, then exit status 130 at once: the command's own cleanup has
+    run (its `finally` blocks and context managers while the interruption unwound), and so do
+    the atexit handlers here; the interpreter's shutdown does not. That shutdown would not
+    keep the status: a library cut short mid-import (open3d's native module) ends it with
+    status 1, and CPython 3.11 ends a `python -m` run by SIGINT (status -2) once a
+    KeyboardInterrupt has passed through exec() of a string (dataclasses, scipy's imports)."""
+    import atexit
+    import os
+
+    print(message, file=sys.stderr)
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(INTERRUPTED)
+
+
 def main() -> None:
     import warnings
 
@@ -170,11 +192,12 @@ def main() -> None:
                 status = _run_app()
         finally:
             stop_bars()  # a bar left up by a failure: erased before the error line
+        if status == INTERRUPTED:  # typer's answer to a Ctrl-C it caught, said nothing of
+            _end_interrupted()
         if isinstance(status, int) and status:
             sys.exit(status)
     except Interrupted as err:
-        print(f"interrupted: {with_flags(' '.join(str(err).split()))}", file=sys.stderr)
-        sys.exit(130)
+        _end_interrupted(f"interrupted: {with_flags(' '.join(str(err).split()))}")
     except (SlamrelocError, ValueError, OSError) as err:
         # one line, whatever the message holds (some libraries' messages span lines)
         message = with_flags(' '.join(str(err).split())) or type(err).__name__
@@ -182,14 +205,11 @@ def main() -> None:
         sys.exit(2)
     except Exception as err:  # an allocation that failed is one line too
         if _after_interrupt(err):  # e.g. a library's import cut short by Ctrl-C / SIGTERM
-            print("interrupted", file=sys.stderr)
-            sys.exit(130)
+            _end_interrupted()
         if not is_out_of_memory(err):
             raise
         print(f"error: out of memory ({type(err).__name__}: {' '.join(str(err).split())[:200]})"
               if str(err) else "error: out of memory", file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        sys.exit(130)
-
+        _end_interrupted()
