@@ -30,10 +30,12 @@ def cli(*args):
 
 @pytest.fixture(scope="module")
 def live_session(kidnap_scene, tmp_path_factory):
-    """`slam --out` with no map on the kidnap sequence: (report, map folder, workdir)."""
+    """`slam --out` with no map on the kidnap sequence: (report, map folder, workdir). Its
+    rounds run on the tracker's thread every 10 keyframes (`--learn-every`), so what the map
+    knows at each kidnap does not depend on how busy the machine is."""
     out = tmp_path_factory.mktemp("live")
     res = cli("slam", kidnap_scene, *LIVE, "--out", out / "map", "--report", out / "r.json",
-              "--trajectory", out / "t.txt")
+              "--trajectory", out / "t.txt", "--learn-every", "10")
     assert res.returncode == 0, res.stderr
     return json.loads((out / "r.json").read_text()), out / "map", out
 
@@ -156,6 +158,18 @@ def test_slam_needs_a_map_or_an_out(kidnap_scene, tmp_path):
     assert res.stderr.strip().count("\n") == 0 and "--map or --out" in res.stderr
 
 
+@pytest.mark.parametrize("args, says", [
+    (["--learn-every", "5"], "--learn-every applies only with --out"),
+    (["--out", "m", "--learn-every", "0"], "--learn-every must be >= 1"),
+])
+def test_learn_every_needs_out_and_a_count(kidnap_scene, tmp_path, args, says):
+    args = [tmp_path / a if a == "m" else a for a in args]
+    res = cli("slam", kidnap_scene, "--map", tmp_path / "none", *args,
+              "--report", tmp_path / "r.json")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and says in res.stderr, res.stderr
+    assert not (tmp_path / "m").exists()
+
+
 def test_out_refuses_a_foreign_folder(kidnap_scene, tmp_path):
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("keep me")
@@ -199,6 +213,34 @@ def test_learner_rounds_scratch_then_bounded_warm_windows():
     learner.submit(desc, pts, final=True)
     learner.wait()
     assert not learner.rounds[-1].scratch and learner.rounds[-1].n_rows == 5000
+
+
+def test_learner_on_the_submitting_thread_is_reproducible():
+    """`background=False` (`slam --learn-every`): each submission's round has ended when
+    `submit` returns, no thread is started, and the same submissions give the same model."""
+    import threading
+
+    from slamreloc.regressor.model import RegressorConfig
+    from slamreloc.regressor.train import TrainConfig
+    from slamreloc.slam.learner import BackgroundLearner, LearnerConfig
+
+    rng = np.random.default_rng(1)
+    desc = rng.standard_normal((3000, 32)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    pts = rng.uniform(-1, 1, (3000, 3)).astype(np.float32)
+    config = LearnerConfig(warm_epochs=1, scratch_epochs=1, round_rows=1000, min_rows=500,
+                           train=TrainConfig(batch_size=256), background=False)
+    models = []
+    for _ in range(2):
+        threads = threading.active_count()
+        learner = BackgroundLearner(RegressorConfig(in_dim=32, hidden=(64, 32)), config)
+        for n in (1000, 2000, 3000):
+            learner.submit(desc[:n], pts[:n])
+            assert learner.rounds[-1].n_rows == min(n, 1000) or learner.rounds[-1].scratch
+        assert len(learner.rounds) == 3 and not learner.running
+        assert threading.active_count() == threads
+        models.append(learner.model)
+    assert all(torch_equal(a, b) for a, b in zip(*(m.parameters() for m in models)))
 
 
 def test_learner_failure_reaches_the_tracker():

@@ -343,6 +343,11 @@ def slam(
     save_every: Annotated[Optional[float], typer.Option(
         help="seconds between writes of the --out map (0: only at the end; default 30); only "
              "with --out")] = None,
+    learn_every: Annotated[Optional[int], typer.Option(
+        help="train the --out map on the tracker's thread, one round every N keyframes: the "
+             "session is reproducible (its map does not depend on the machine's speed) and "
+             "tracking waits for each round; default: rounds in the background, each as soon "
+             "as the last ended; only with --out")] = None,
     sift_upsample: Annotated[bool, typer.Option(
         "--sift-upsample", help="the --out map's SIFT starts at twice the image's resolution: "
         "more keypoints on small images (under about 640x480); only with --out learning from "
@@ -373,12 +378,17 @@ def slam(
     from slamreloc.cli import jobs
 
     check_slam_options(map_dir, out, save_every, sift_upsample, kidnap_every, kidnap_skip,
-                       kidnap_from)
+                       kidnap_from, learn_every)
     live = None
-    if sift_upsample:
+    if sift_upsample or learn_every is not None:
+        from dataclasses import replace
+
         from slamreloc.slam.live_map import LiveMapConfig
 
-        live = LiveMapConfig(feature_options={"upsample": True})
+        live = LiveMapConfig(feature_options={"upsample": True} if sift_upsample else {})
+        if learn_every is not None:
+            live = replace(live, train_every=learn_every,
+                           learner=replace(live.learner, background=False))
     jobs.slam(dataset, map_dir, report, split, kidnap_every,
               20 if kidnap_skip is None else kidnap_skip, odometry, trajectory, poses=poses,
               out=out, save_every_s=30.0 if save_every is None else save_every,
@@ -387,7 +397,7 @@ def slam(
 
 def check_slam_options(map_dir: Path | None, out: Path | None, save_every: float | None,
                        sift_upsample: bool, kidnap_every: int, kidnap_skip: int | None,
-                       kidnap_from: int | None) -> None:
+                       kidnap_from: int | None, learn_every: int | None = None) -> None:
     """InputError for an option given where it has no effect (None / False: not given): it
     would be ignored without a word. One line naming both options."""
     if out is None and save_every is not None:
@@ -400,6 +410,12 @@ def check_slam_options(map_dir: Path | None, out: Path | None, save_every: float
     if sift_upsample and map_dir is not None:
         raise InputError("--sift-upsample has no effect with --map: the --out map extends "
                          "--map and keeps its features; leave --sift-upsample out")
+    if learn_every is not None and out is None:
+        raise InputError("--learn-every applies only with --out (the rounds of the map learned "
+                         "while tracking): give --out, or leave --learn-every out")
+    if learn_every is not None and learn_every < 1:
+        raise InputError(f"--learn-every must be >= 1 (keyframes between rounds), got "
+                         f"{learn_every}")
     if kidnap_from is not None and kidnap_from < 0:
         raise InputError(f"--kidnap-from must be >= 0, got {kidnap_from}")
     for flag, value in (("--kidnap-skip", kidnap_skip), ("--kidnap-from", kidnap_from)):

@@ -13,11 +13,14 @@ a reader has either the old model or the new one, never a half-trained one.
   `round_rows` in all, so its cost does not grow with the map and a new place is learned
   within a round or two.
 - A scratch round (normalisation, prototypes and regions fitted anew, on every row, at most
-  `scratch_steps` optimisation steps) runs when there is no model yet or the rows have grown by
-  `regrow` times since the last one: a model's regions and output scaling are fitted to the
-  part of the scene it first saw.
-- The final round (`submit(..., final=True)`, at the end of a session) trains every row, warm,
-  for `final_epochs`, on the keyframes' final placement.
+  `scratch_steps` optimisation steps) runs when there is no model yet, when the rows have
+  grown by `regrow` times since the last one, or when the last warm round ended far above the
+  last scratch round's training distance (`refit_ratio`): a model's regions, prototypes and
+  output scaling are fitted to the part of the scene it first saw, and warm rounds cannot
+  teach it places far outside that part.
+- The final round (`submit(..., final=True)`, at the end of a session) trains every row for
+  `final_epochs`, on the keyframes' final placement: warm, or from scratch where the last warm
+  round fitted badly.
 """
 
 from __future__ import annotations
@@ -36,7 +39,8 @@ from slamreloc.regressor.train import TrainConfig, train_regressor
 @dataclass(frozen=True)
 class LearnerConfig:
     """Epochs per round (warm-started and from scratch) and the growth that forces a scratch
-    round; `train`: the rest of the training settings (`TrainConfig`)."""
+    round; `train`: the rest of the training settings (`TrainConfig`); `background`: rounds on
+    the learner's thread (live) or on the submitting one (reproducible)."""
 
     warm_epochs: int = 4
     scratch_epochs: int = 6
@@ -45,12 +49,20 @@ class LearnerConfig:
     final_epochs: int = 12
     warm_lr_scale: float = 0.5
     regrow: float = 2.0
+    # a warm round that ends above `refit_ratio` times the last scratch round's training
+    # distance, and above `refit_floor_m`, has met places the model's regions and prototypes do
+    # not cover: the next round (the final one too) starts from scratch
+    refit_ratio: float = 3.0
+    refit_floor_m: float = 0.05
     min_rows: int = 500  # fewer labelled rows: no round yet
     # torch threads of the rounds (set on the learner's own thread: OpenMP's count is per
     # thread), so that the tracker keeps the other cores; 0: torch's default
     threads: int = 1
     train: TrainConfig = field(default_factory=lambda: TrainConfig(lr_halvings=2))
     device: str = "cpu"
+    # False: each submission's round runs on the submitting thread before `submit` returns, so
+    # the rounds, and the map, do not depend on the machine's speed (the tracker waits)
+    background: bool = True
 
 
 @dataclass(frozen=True)
@@ -85,6 +97,8 @@ class BackgroundLearner:
         self.trained_rows = 0  # rows in the database when the published model's round began
         self._seen = initial_rows if initial is not None else 0  # rows trained on so far
         self._scratch_rows = 0 if initial is None else None  # rows at the last scratch round
+        self._scratch_loss_m: float | None = None  # its final training distance
+        self._stale = False  # the last warm round fitted badly: the next starts from scratch
         self._pending: tuple[np.ndarray, np.ndarray, bool] | None = None
         self._rng = np.random.default_rng(config.train.seed)
         self._lock = threading.Lock()
@@ -109,12 +123,17 @@ class BackgroundLearner:
         with self._lock:
             if self._stopping.is_set():
                 return
-            self._pending = (descriptors, points, final)
-            if self.running:
+            if self.config.background:
+                self._pending = (descriptors, points, final)
+                if not self.running:
+                    self._thread = threading.Thread(target=self._run, name="slamreloc-learner",
+                                                    daemon=True)
+                    self._thread.start()
                 return
-            self._thread = threading.Thread(target=self._run, name="slamreloc-learner",
-                                            daemon=True)
-            self._thread.start()
+        try:
+            self._round(descriptors, points, final)
+        except _Stopped:
+            pass
 
     def check(self) -> None:
         """Raise the failure of a round, if one failed."""
@@ -163,13 +182,15 @@ class BackgroundLearner:
         c = self.config
         start = time.perf_counter()
         n = len(points)
-        scratch = self.model is None or (not final and self._scratch_rows is not None
-                                         and n >= c.regrow * self._scratch_rows)
+        scratch = self.model is None or self._stale or (
+            not final and self._scratch_rows is not None and n >= c.regrow * self._scratch_rows)
         rows = np.arange(n)
         if scratch:
             model = SceneCoordinateRegressor(self.model_config)
             steps_per_epoch = max(1, n // c.train.batch_size)
             epochs = max(1, min(c.scratch_epochs, c.scratch_steps // steps_per_epoch))
+            if final:  # the map that is saved: as long as a final warm round
+                epochs = max(epochs, c.final_epochs)
             train = replace(c.train, epochs=epochs)
         else:
             model = copy.deepcopy(self.model).requires_grad_(True)
@@ -185,8 +206,11 @@ class BackgroundLearner:
         self.version += 1
         self.trained_rows = n
         self._seen = n
+        loss = stats["final_loss_m"]
         if scratch:
-            self._scratch_rows = n
+            self._scratch_rows, self._scratch_loss_m = n, loss
+        self._stale = (not scratch and loss is not None and self._scratch_loss_m is not None
+                       and loss > max(c.refit_ratio * self._scratch_loss_m, c.refit_floor_m))
         end = time.perf_counter()
         self.busy_s += end - start
         r = Round(start - self._t0, end - self._t0, len(rows), scratch, stats["final_loss_m"],
