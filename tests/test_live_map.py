@@ -243,6 +243,33 @@ def test_learner_on_the_submitting_thread_is_reproducible():
     assert all(torch_equal(a, b) for a, b in zip(*(m.parameters() for m in models)))
 
 
+def test_a_warm_round_that_fits_badly_makes_the_next_one_scratch():
+    """Rows grown by less than `regrow`, but in a place far outside the first one's regions:
+    the warm round ends far above the scratch round's training distance, so the next round,
+    the final one included, starts from scratch and fits again."""
+    from slamreloc.regressor.model import RegressorConfig
+    from slamreloc.regressor.train import TrainConfig
+    from slamreloc.slam.learner import BackgroundLearner, LearnerConfig
+
+    rng = np.random.default_rng(2)
+    desc = rng.standard_normal((1800, 32)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    pts = rng.uniform(-1, 1, (1800, 3)).astype(np.float32)
+    pts[1000:] += np.float32([40.0, 0.0, 0.0])  # a new room, 40 m away
+    config = LearnerConfig(warm_epochs=1, scratch_epochs=6, final_epochs=6, round_rows=4000,
+                           min_rows=500, scratch_steps=10_000, background=False,
+                           train=TrainConfig(batch_size=128))
+    learner = BackgroundLearner(RegressorConfig(in_dim=32, hidden=(128, 64), head="clusters",
+                                                n_clusters=16), config)
+    learner.submit(desc[:1000], pts[:1000])
+    learner.submit(desc, pts)  # 1.8x the rows: warm by the growth rule
+    learner.submit(desc, pts, final=True)
+    first, warm, final = learner.rounds
+    assert first.scratch and not warm.scratch and final.scratch
+    assert warm.final_loss_m > 3 * first.final_loss_m
+    assert final.final_loss_m < warm.final_loss_m / 3
+
+
 def test_learner_failure_reaches_the_tracker():
     from slamreloc.regressor.model import RegressorConfig
     from slamreloc.slam.learner import BackgroundLearner, LearnerConfig
