@@ -319,14 +319,22 @@ def test_view_refuses_a_json_that_is_no_report(tiny_map, tmp_path):
                    "not a report of evaluate, slam or pseudo-label")
 
 
-@pytest.mark.parametrize("argv, option", [
-    (["slam", "DATA", "--report", "r.json", "--kidnap-every", "1_0"], "--kidnap-every '1_0'"),
-    (["slam", "DATA", "--report", "r.json", "--kidnap-every= 5"], "--kidnap-every ' 5'"),
-    (["slam", "DATA", "--report", "r.json", "--kidnap-skip", "٣"], "--kidnap-skip '٣'"),
+WHOLE = "is not a whole number (whole numbers are plain ASCII digits with an optional sign"
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["slam", "DATA", "--report", "r.json", "--kidnap-every", "1_0"],
+     f"--kidnap-every: '1_0' {WHOLE}"),
+    (["slam", "DATA", "--report", "r.json", "--kidnap-every= 5"], f"--kidnap-every: ' 5' {WHOLE}"),
+    (["slam", "DATA", "--report", "r.json", "--kidnap-skip", "٣"], f"--kidnap-skip: '٣' {WHOLE}"),
+    (["serve", "MAP", "--workers", "1e3"], f"--workers: '1e3' {WHOLE}"),
+    (["serve", "MAP", "--port", "0x10"], f"--port: '0x10' {WHOLE}"),
+    (["--limit", "max_image_pixels=1e3", "serve", "MAP"], f"'1e3' {WHOLE}"),
     (["localize", "MAP", "a.png", "--intrinsics", "500", "500", "3_20", "240"],
-     "--intrinsics '3_20'"),
+     "--intrinsics: '3_20' is not a number (numbers are plain ASCII decimals"),
 ])
-def test_number_options_follow_the_number_rule(argv, option):
-    """What int() / float() take but the number rule refuses (separators, blanks, other
-    scripts' digits) is refused in an option's value as in a file, before any work."""
-    one_error_line(cli(*argv), option, "number rule")
+def test_number_options_follow_the_number_rule(argv, says):
+    """What int() / float() take but the number rule refuses (an exponent or a hex prefix in a
+    whole number, separators, blanks, other scripts' digits) is refused in an option's value
+    as in a file or a `--limit`, in the same words, before any work."""
+    one_error_line(cli(*argv), says)

@@ -72,7 +72,7 @@ def _repeated_option(args: list[str]) -> str | None:
             for text, kind in zip(values, _value_kinds(param, len(values))):
                 problem = _number_text_problem(text, kind)
                 if problem:
-                    return f"{name} {text!r}: {problem}"
+                    return f"{name}: {text!r} is {problem}"
             if getattr(param, "multiple", False) or getattr(param, "count", False):
                 continue
             first = seen.get(id(param))
@@ -102,17 +102,22 @@ def _value_kinds(param, n: int) -> list[str]:
 
 
 def _number_text_problem(text: str, kind: str) -> str | None:
-    """What Python's int() / float() would take in a number option's value but the project's
-    number rule (`slamreloc.io.numbers`) refuses: digit separators, blanks, other scripts'
-    digits. Values click refuses itself, and nan / inf (each option's own check names its
-    range), are left to them."""
-    if not any(k in kind for k in ("integer", "float")):
+    """Why a number option's value breaks the project's number rule (`slamreloc.io.numbers`),
+    in the words every other refusal by that rule uses: a whole-number option takes plain
+    ASCII digits (not `1e3`, `1_0`, `0x10` or other scripts' digits), a number option plain
+    ASCII decimals. nan / inf in a number option are left to its own check, which names its
+    range. None where the value keeps the rule."""
+    from slamreloc.io.numbers import DECIMAL_WORDS, WHOLE_WORDS, number_problem
+
+    integer = "integer" in kind
+    if not integer and "float" not in kind:
         return None
-    if "_" in text or text != text.strip() or not text.isascii():
-        what = "whole number" if "integer" in kind else "number"
-        return (f"not a {what} by the number rule (plain ASCII digits, no separators or "
-                "blanks)")
-    return None
+    if not integer and text.lower().lstrip("+-") in ("nan", "inf", "infinity"):
+        return None
+    problem = number_problem(text, integer=integer)
+    if problem is None:
+        return None
+    return f"{problem} ({WHOLE_WORDS if integer else DECIMAL_WORDS})"
 
 
 def _run_app() -> int | None:

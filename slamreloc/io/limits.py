@@ -17,7 +17,7 @@ import os
 from dataclasses import dataclass, fields, replace
 
 from slamreloc.errors import InputError
-from slamreloc.io.numbers import number_problem
+from slamreloc.io.numbers import WHOLE_WORDS, number_problem
 
 ENV_PREFIX = "SLAMRELOC_"
 
@@ -60,8 +60,8 @@ def whole_limit(text: str, source: str) -> int:
     exponent, fraction, separator or blank); InputError naming `source`."""
     problem = number_problem(text, integer=True)
     if problem:
-        raise InputError(f"{source}: {text[:40]!r} is {problem} (a bound is a count of "
-                         "pixels, bytes, ... in ASCII digits, such as 50000000)")
+        raise InputError(f"{source}: {text[:40]!r} is {problem} ({WHOLE_WORDS}; a bound "
+                         "is a count of pixels, bytes, ...)")
     value = int(text)
     if value <= 0:
         raise InputError(f"{source}: must be a positive whole number, got {text[:40]}")

@@ -19,6 +19,9 @@ from slamreloc.errors import InputError
 DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 WHOLE = re.compile(r"[+-]?[0-9]+")
 MAX_DIGITS = 400  # characters: beyond them a number is not a value but an attack on int()
+# the rule in words, ending every message that refuses a value by it
+DECIMAL_WORDS = "numbers are plain ASCII decimals such as -1.5 or 2e-3"
+WHOLE_WORDS = "whole numbers are plain ASCII digits with an optional sign, such as 12"
 
 
 def number_problem(text: str, integer: bool = False) -> str | None:
@@ -38,8 +41,7 @@ def parse_number(text: str, source: str, what: str = "value") -> float:
     otherwise (`source` names the file and line, or the option)."""
     problem = number_problem(text)
     if problem:
-        raise InputError(f"{source}: {what} is {problem} ({text[:40]!r}; numbers are plain "
-                         "ASCII decimals such as -1.5 or 2e-3)")
+        raise InputError(f"{source}: {what} is {problem} ({text[:40]!r}; {DECIMAL_WORDS})")
     return float(text)
 
 
@@ -48,5 +50,5 @@ def parse_whole(text: str, source: str, what: str = "value") -> int:
     `source` otherwise."""
     problem = number_problem(text, integer=True)
     if problem:
-        raise InputError(f"{source}: {what} is {problem} ({text[:40]!r})")
+        raise InputError(f"{source}: {what} is {problem} ({text[:40]!r}; {WHOLE_WORDS})")
     return int(text)
