@@ -171,6 +171,27 @@ def marked_file(signature: bytes, marker: bytes, kind: str
     return is_own, kind
 
 
+def resolved(path: str | Path) -> Path:
+    """`path` with its links followed as far as they resolve (made absolute where they do
+    not: a loop, a dangling link)."""
+    try:
+        return Path(path).resolve()
+    except (OSError, RuntimeError):
+        return Path(os.path.abspath(path))
+
+
+def relation(a: Path, b: Path) -> str | None:
+    """How the resolved path `a` stands to the resolved path `b`, in the words of a refusal:
+    "is", "lies inside", "would hold" (b lies inside a), or None where they are apart."""
+    if a == b:
+        return "is"
+    if a.is_relative_to(b):
+        return "lies inside"
+    if b.is_relative_to(a):
+        return "would hold"
+    return None
+
+
 def check_outputs(outputs: dict[str, str | Path | None],
                   inputs: dict[str, str | Path | None],
                   folders: tuple[str, ...] | dict[str, Callable[[Path], bool] | None] = (),
@@ -214,15 +235,12 @@ def check_outputs(outputs: dict[str, str | Path | None],
             raise InputError(f"{out}: {option} cannot be written there: its parent {parent} is "
                              f"{kind}")
         for what, src in ins.items():
-            if target == src:
-                problem = f"is {what}, which this command only reads"
-            elif src.is_dir() and target.is_relative_to(src):
-                problem = f"lies inside {what} ({src}), which this command only reads"
-            elif src.is_relative_to(target):
-                problem = f"would hold {what} ({src}), which this command only reads"
-            else:
+            how = relation(target, src)
+            if how is None or how == "lies inside" and not src.is_dir():
                 continue
-            raise InputError(f"{out}: {option} {problem}; write it elsewhere")
+            where = what if how == "is" else f"{what} ({src})"
+            raise InputError(f"{out}: {option} {how} {where}, which this command only reads; "
+                             "write it elsewhere")
         want_dir = option in own
         if os.path.islink(out):  # /dev/stdout, or a link to /proc/self/fd/1: never renamed over
             link = os.readlink(out)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import queue
 import threading
 import time
@@ -24,6 +23,7 @@ from functools import cached_property
 from pathlib import Path
 
 from slamreloc.errors import InputError
+from slamreloc.io.fileio import relation, resolved
 from slamreloc.localize.localizer import RegressorLocalizer
 from slamreloc.map.format import DATABASE, META, PROVENANCE
 from slamreloc.proto import relocalizer_pb2 as pb
@@ -48,27 +48,9 @@ def _same_folder(a: Path, b: Path) -> bool:
         return False
 
 
-def _resolved(path) -> Path:
-    """`path` with its links followed (as far as they resolve)."""
-    try:
-        return Path(path).resolve()
-    except (OSError, RuntimeError):
-        return Path(os.path.abspath(path))
-
-
-def _overlap(a: Path, b: Path) -> bool:
-    """Whether the resolved paths are the same, or one lies inside the other."""
-    return a == b or a.is_relative_to(b) or b.is_relative_to(a)
-
-
-def _relation(a: Path, b: Path) -> str:
-    """How `a` stands to `b` (which `_overlap`), in words."""
-    return "is" if a == b else "lies inside" if a.is_relative_to(b) else "would hold"
-
-
 def _folder_now(path: Path) -> tuple[bool, Path]:
     """(whether `path` is a symbolic link, the folder it resolves to), now."""
-    return Path(path).is_symlink(), _resolved(path)
+    return Path(path).is_symlink(), resolved(path)
 
 
 class LoadCancelled(Exception):
@@ -312,9 +294,9 @@ class MapRegistry:
             problem = "its folder was replaced by a symbolic link"
         elif current.folder is None or folder != current.folder:
             for m in self._maps.values():
-                other = m.folder or _resolved(m.path)
-                if m.name != name and _overlap(folder, other):
-                    problem = (f"its folder now {_relation(folder, other)} the folder of the map "
+                other = m.folder or resolved(m.path)
+                if m.name != name and relation(folder, other):
+                    problem = (f"its folder now {relation(folder, other)} the folder of the map "
                                f"{quoted(m.name)} this server serves")
                     break
         if problem is not None:

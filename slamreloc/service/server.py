@@ -43,6 +43,7 @@ from google.protobuf.message import DecodeError
 
 from slamreloc import __version__
 from slamreloc.errors import InputError, OutOfMemory, is_out_of_memory
+from slamreloc.io.fileio import relation, resolved
 from slamreloc.map.format import META
 from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
@@ -53,7 +54,7 @@ from slamreloc.proto.messages import (
     saved_map_name_problem,
 )
 from slamreloc.service.localize import localize
-from slamreloc.service.maps import MapRegistry, _overlap, _relation, _resolved
+from slamreloc.service.maps import MapRegistry
 from slamreloc.service.sessions import Session
 from slamreloc.slam.live_map import LiveMapConfig
 
@@ -544,15 +545,15 @@ class RelocalizerService:
         maps = self.registry.all()
         own = False  # NAME is served from `path`
         for m in maps:
-            folder = m.folder or _resolved(m.path)  # the folder it is served from (loaded)
+            folder = m.folder or resolved(m.path)  # the folder it is served from (loaded)
             if m.name == name:
                 if folder != path:
                     raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: a map of that name is "
                                        "served from elsewhere; choose another name")
                 own = True
-            elif _overlap(folder, path):
+            elif relation(path, folder):
                 raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: its folder "
-                                   f"{_relation(path, folder)} the folder of the map "
+                                   f"{relation(path, folder)} the folder of the map "
                                    f"{quoted(m.name)} this server serves; choose another name")
         for m in maps:
             try:
@@ -560,9 +561,9 @@ class RelocalizerService:
             except InputError:
                 recorded = {"an input the map records (unreadable)": m.path}
             for what, source in recorded.items():
-                if source is not None and _overlap(_resolved(source), path):
+                if source is not None and relation(path, resolved(source)):
                     raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: its folder "
-                                       f"{_relation(path, _resolved(source))} {what} (map "
+                                       f"{relation(path, resolved(source))} {what} (map "
                                        f"{quoted(m.name)}); choose another name")
         if path.is_symlink() or (os.path.lexists(path) and not (path / META).is_file()):
             raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: the learned maps' folder "
@@ -610,7 +611,7 @@ def learned_maps_problem(folder: Path, maps: list) -> str | None:
     must not be, nor lie inside, a served map's folder, nor an input a served map records
     (its dataset, its pose file: `MapMeta.recorded_inputs`), where a session's save would
     write. A served map may lie inside it (a map saved there and served again by name)."""
-    where = _resolved(folder)
+    where = resolved(folder)
     for m in maps:
         inputs = {f"the folder of the served map {quoted(m.name)}": m.path}
         inputs.update({f"{what} (map {quoted(m.name)})": p
@@ -618,10 +619,10 @@ def learned_maps_problem(folder: Path, maps: list) -> str | None:
         for what, p in inputs.items():
             if p is None:
                 continue
-            other = _resolved(p)
+            other = resolved(p)
             if where == other or where.is_relative_to(other):
                 said = what if where == other else f"{what}, {p}"
-                return (f"{folder}: `learned_maps` {_relation(where, other)} {said}: a "
+                return (f"{folder}: `learned_maps` {relation(where, other)} {said}: a "
                         "session's save would write there; give a folder of its own")
     return None
 
