@@ -13,6 +13,7 @@ from slamreloc.errors import InputError
 from slamreloc.features.extract import extract_frames
 from slamreloc.features import make_extractor
 from slamreloc.io.fileio import check_outputs
+from slamreloc.map.augment import AugmentConfig, augmented_rows
 from slamreloc.map.labels import LabelConfig, LabelSet, build_labels
 from slamreloc.map.format import SURFACE, is_map
 from slamreloc.map.lock import map_write_lock
@@ -38,6 +39,7 @@ class MapConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
     device: str = "auto"
     surface: SurfaceConfig | None = field(default_factory=SurfaceConfig)  # None: no surface
+    augment: AugmentConfig = field(default_factory=AugmentConfig)  # simulated views (training)
 
 
 def labelled_database(frames: list[Frame], feats: list[Features], labels: LabelSet) -> MapDatabase:
@@ -113,10 +115,21 @@ def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progr
     surface = None if config.surface is None else dataset_surface(dataset, frames,
                                                                   config.surface, progress)
     timings["surface_s"] = time.perf_counter() - t0
+    descriptors, points = db.descriptors, db.points
+    if config.augment.views:
+        t0 = time.perf_counter()
+        more_d, more_p = augmented_rows(frames, feats, labels.points, extractor,
+                                        config.augment, progress)
+        descriptors = np.concatenate([descriptors, more_d])
+        points = np.concatenate([points, more_p])
+        timings["augment_s"] = time.perf_counter() - t0
     model = SceneCoordinateRegressor(RegressorConfig.preset(config.arch, extractor.dim))
     t0 = time.perf_counter()
-    train_stats = train_regressor(model, db.descriptors, db.points, config.train, config.device,
+    train_stats = train_regressor(model, descriptors, points, config.train, config.device,
                                   progress, checkpoint=ckpt, resume=resume)
+    if config.augment.views:
+        train_stats = {**train_stats, "augment": config.augment.to_dict(),
+                       "n_augmented_rows": len(points) - len(db.points)}
     timings["train_s"] = time.perf_counter() - t0
     meta = MapMeta(
         features=FeatureMeta(config.features, extractor.config_dict()),
