@@ -3,7 +3,7 @@ each block of 200 frames localized in a map of the other 400, so no query was se
 setting chosen on the shared seq-02 queries (BENCHMARKS.md, "Held-out folds").
 
     python -m benchmarks.heldout_benchmark DATA --work DIR [--folds A B C] [--methods ...]
-        [--map-poses sfm|dslam]
+        [--map-poses sfm|dslam] [--augment-views N]
 
 DATA: the 7-Scenes RedKitchen folder (seq-01 = 400 frames, seq-02 = 200, sfm_pgt/poses.txt).
 Blocks: A = seq-01 frames 0-199, B = seq-01 200-399, C = seq-02 (the shared queries). Fold X:
@@ -13,6 +13,7 @@ dataset's own poses (dSLAM, `--reference`, fitted on the map's training cameras)
 the shared seq-02 figure; A and B are out of sample. `--map-poses dslam`: the maps are trained
 on the dataset's own poses instead (so their labels come from depth), every query is refined
 by depth ICP (`evaluate --depth`), and the scores are against dSLAM first, SfM second.
+`--augment-views N`: the maps are made with `map --augment-views N` (DIR/map_X_augN).
 
 Each fold is a folder of links (the data stays where it is): DIR/fold_X/seq-01 the map's
 frames, DIR/fold_X/seq-02 the queries, renumbered, with `poses_sfm.txt` and `poses_dslam.txt`
@@ -113,11 +114,16 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", default=["regressor", "matching"])
     ap.add_argument("--map-poses", choices=["sfm", "dslam"], default="sfm",
                     help="the poses the maps are trained on (dslam: with depth ICP)")
+    ap.add_argument("--augment-views", type=int, default=0,
+                    help="`map --augment-views`: simulated views per mapping image")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     own, other = ("sfm", "dslam") if args.map_poses == "sfm" else ("dslam", "sfm")
-    suffix = "" if own == "sfm" else "_dslam"
-    result = {"cpu": cpu_kind(), "map_poses": own, "folds": {}}
+    suffix = ("" if own == "sfm" else "_dslam") + (
+        f"_aug{args.augment_views}" if args.augment_views else "")
+    augment = ["--augment-views", str(args.augment_views)] if args.augment_views else []
+    result = {"cpu": cpu_kind(), "map_poses": own, "augment_views": args.augment_views,
+              "folds": {}}
     for held in args.folds:
         root = make_fold(args.data, held, args.work)
         m = args.work / f"map_{held}{suffix}"
@@ -125,7 +131,7 @@ def main() -> None:
         poses = [] if own == "dslam" else ["--poses", root / "poses_sfm.txt"]
         fold = {}
         if not (m / "slamreloc_map.json").exists():
-            fold["map_s"] = round(cli("map", root, *poses, "--out", m), 1)
+            fold["map_s"] = round(cli("map", root, *poses, *augment, "--out", m), 1)
         for method in args.methods:
             report = args.work / f"ev_{held}_{method}{suffix}.json"
             cli("evaluate", m, root, "--method", method, *poses, "--reference",
