@@ -389,8 +389,6 @@ def slam(
                        kidnap_from, learn_every)
     live = None
     if sift_upsample or learn_every is not None:
-        from dataclasses import replace
-
         from slamreloc.slam.live_map import LiveMapConfig
 
         live = LiveMapConfig(feature_options={"upsample": True} if sift_upsample else {})

@@ -57,26 +57,36 @@ def random_affine(rng: np.random.Generator, width: int, height: int,
     return np.hstack([linear, (centre - linear @ centre)[:, None]])
 
 
-def _view_rows(frame: Frame, feats: Features, points: np.ndarray, extractor: Extractor,
-               affine: np.ndarray, match_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """The (M, D) descriptors of one warped view and the (M, 3) world points they take."""
+def _empty(dim: int) -> tuple[np.ndarray, np.ndarray]:
+    return np.zeros((0, dim), np.float32), np.zeros((0, 3), np.float32)
+
+
+def _frame_rows(frame: Frame, feats: Features, points: np.ndarray, extractor: Extractor,
+                affines: list[np.ndarray], match_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The (M, D) descriptors of one frame's warped views (one per affine map) and the (M, 3)
+    world points they take; the image is read, and its labelled keypoints indexed, once."""
+    labelled = np.flatnonzero(~np.isnan(points[:, 0]))
+    if not len(labelled) or not affines:
+        return _empty(extractor.dim)
+    tree = cKDTree(feats.keypoints[labelled])
     image = read_image(frame.image_path)
     height, width = image.shape[:2]
-    warped = cv2.warpAffine(image, affine, (width, height), flags=cv2.INTER_LINEAR,
-                            borderMode=cv2.BORDER_CONSTANT)
-    view = extractor(warped)
-    if not len(view):
-        return np.zeros((0, extractor.dim), np.float32), np.zeros((0, 3), np.float32)
-    back = cv2.invertAffineTransform(affine)
-    uv = view.keypoints.astype(np.float64) @ back[:, :2].T + back[:, 2]
-    if frame.camera.distorted:
-        uv = frame.camera.undistort(uv)
-    labelled = np.flatnonzero(~np.isnan(points[:, 0]))
-    if not len(labelled):
-        return np.zeros((0, extractor.dim), np.float32), np.zeros((0, 3), np.float32)
-    dist, nearest = cKDTree(feats.keypoints[labelled]).query(uv, distance_upper_bound=match_px)
-    hit = np.isfinite(dist)
-    return view.descriptors[hit], points[labelled[nearest[hit]]]
+    rows = []
+    for affine in affines:
+        view = extractor(cv2.warpAffine(image, affine, (width, height), flags=cv2.INTER_LINEAR,
+                                        borderMode=cv2.BORDER_CONSTANT))
+        if not len(view):
+            continue
+        back = cv2.invertAffineTransform(affine)
+        uv = view.keypoints.astype(np.float64) @ back[:, :2].T + back[:, 2]
+        if frame.camera.distorted:
+            uv = frame.camera.undistort(uv)
+        dist, nearest = tree.query(uv, distance_upper_bound=match_px)
+        hit = np.isfinite(dist)
+        rows.append((view.descriptors[hit], points[labelled[nearest[hit]]]))
+    if not rows:
+        return _empty(extractor.dim)
+    return np.concatenate([d for d, _ in rows]), np.concatenate([p for _, p in rows])
 
 
 def augmented_rows(frames: list[Frame], feats: list[Features], points: list[np.ndarray],
@@ -86,14 +96,14 @@ def augmented_rows(frames: list[Frame], feats: list[Features], points: list[np.n
     `config.views` warped views of every frame; `points[i]`: frame i's labels (NaN where
     unlabelled), aligned with `feats[i].keypoints`."""
     rng = np.random.default_rng(config.seed)
-    jobs = [(i, random_affine(rng, f.camera.width, f.camera.height, config))
-            for i, f in enumerate(frames) for _ in range(config.views)]
+    affines = [[random_affine(rng, f.camera.width, f.camera.height, config)
+                for _ in range(config.views)] for f in frames]
     with ThreadPoolExecutor(2) as pool:
-        results = pool.map(lambda job: _view_rows(frames[job[0]], feats[job[0]],
-                                                  points[job[0]], extractor, job[1],
-                                                  config.match_px), jobs)
-        rows = list(track(results, "simulated views", total=len(jobs), enabled=progress))
+        results = pool.map(lambda i: _frame_rows(frames[i], feats[i], points[i], extractor,
+                                                 affines[i], config.match_px),
+                           range(len(frames)))
+        rows = list(track(results, "simulated views", total=len(frames), enabled=progress))
     if not rows:
-        return np.zeros((0, extractor.dim), np.float32), np.zeros((0, 3), np.float32)
+        return _empty(extractor.dim)
     return (np.concatenate([d for d, _ in rows]).astype(np.float32),
             np.concatenate([p for _, p in rows]).astype(np.float32))

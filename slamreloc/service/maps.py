@@ -294,9 +294,9 @@ class MapRegistry:
             problem = "its folder was replaced by a symbolic link"
         elif current.folder is None or folder != current.folder:
             for m in self._maps.values():
-                other = m.folder or resolved(m.path)
-                if m.name != name and relation(folder, other):
-                    problem = (f"its folder now {relation(folder, other)} the folder of the map "
+                how = None if m.name == name else relation(folder, m.folder or resolved(m.path))
+                if how:
+                    problem = (f"its folder now {how} the folder of the map "
                                f"{quoted(m.name)} this server serves")
                     break
         if problem is not None:

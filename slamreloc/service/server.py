@@ -551,9 +551,9 @@ class RelocalizerService:
                     raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: a map of that name is "
                                        "served from elsewhere; choose another name")
                 own = True
-            elif relation(path, folder):
+            elif how := relation(path, folder):
                 raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: its folder "
-                                   f"{relation(path, folder)} the folder of the map "
+                                   f"{how} the folder of the map "
                                    f"{quoted(m.name)} this server serves; choose another name")
         for m in maps:
             try:
@@ -561,9 +561,10 @@ class RelocalizerService:
             except InputError:
                 recorded = {"an input the map records (unreadable)": m.path}
             for what, source in recorded.items():
-                if source is not None and relation(path, resolved(source)):
+                how = None if source is None else relation(path, resolved(source))
+                if how:
                     raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: its folder "
-                                       f"{relation(path, resolved(source))} {what} (map "
+                                       f"{how} {what} (map "
                                        f"{quoted(m.name)}); choose another name")
         if path.is_symlink() or (os.path.lexists(path) and not (path / META).is_file()):
             raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: the learned maps' folder "
@@ -619,10 +620,10 @@ def learned_maps_problem(folder: Path, maps: list) -> str | None:
         for what, p in inputs.items():
             if p is None:
                 continue
-            other = resolved(p)
-            if where == other or where.is_relative_to(other):
-                said = what if where == other else f"{what}, {p}"
-                return (f"{folder}: `learned_maps` {relation(where, other)} {said}: a "
+            how = relation(where, resolved(p))
+            if how in ("is", "lies inside"):
+                said = what if how == "is" else f"{what}, {p}"
+                return (f"{folder}: `learned_maps` {how} {said}: a "
                         "session's save would write there; give a folder of its own")
     return None
 
