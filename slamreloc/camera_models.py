@@ -21,6 +21,8 @@ at +0.5. Camera strings and COLMAP files are in COLMAP's convention and converte
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from slamreloc.errors import InputError
@@ -59,6 +61,44 @@ def distortion_problem(model: str, distortion) -> str | None:
         if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or \
                 not abs(float(v)) <= MAX_DISTORTION:
             return f"distortion {name} must be a finite number within +-{MAX_DISTORTION:g}"
+    return None
+
+
+def fold_problem(model: str, distortion, width: int, height: int, fx: float, fy: float,
+                 cx: float, cy: float) -> str | None:
+    """Why a lens cannot be undone over its image (None when it can): towards the middle of
+    each image edge, the distorted radius must keep growing with the ideal radius until it
+    reaches that edge (normalised coordinates), so every pixel of the circle inscribed in the
+    image has one direction. A lens that folds back before (a SIMPLE_RADIAL k of -10 on a
+    60-degree view) maps two directions onto one pixel, or none, and undistortion would return
+    a wrong one without a word. The corners beyond that circle are not asked for: calibrations
+    of wide lenses often hold only inside it."""
+    if model == "PINHOLE" or not len(distortion):
+        return None
+    return _fold_problem(model, tuple(float(v) for v in distortion), int(width), int(height),
+                         float(fx), float(fy), float(cx), float(cy))
+
+
+@lru_cache(maxsize=256)
+def _fold_problem(model: str, distortion: tuple[float, ...], width: int, height: int,
+                  fx: float, fy: float, cx: float, cy: float) -> str | None:
+    edges = np.array([[0, cy], [width - 1, cy], [cx, 0], [cx, height - 1]], np.float64)
+    ideal = np.geomspace(1e-4, 1e3, 6000)[:, None]  # ideal radii along a direction (0.3 %)
+    for edge in edges:
+        ray = (edge - [cx, cy]) / [fx, fy]
+        reach = float(np.linalg.norm(ray))
+        if reach == 0:
+            continue
+        unit = ray / reach
+        with np.errstate(all="ignore"):
+            out = distort_normalized(model, distortion, ideal * unit) @ unit
+        beyond = np.flatnonzero(~(out < reach))  # reached (or no longer a number)
+        upto = out[:beyond[0] + 1] if len(beyond) else out
+        if (not len(beyond) or not np.isfinite(upto[-1])
+                or not np.all(np.diff(upto) > 0)):
+            return (f"its distortion {list(distortion)} folds back inside the image (towards "
+                    f"pixel ({edge[0]:g}, {edge[1]:g}) the distorted radius stops growing "
+                    "before the image's edge), so its pixels cannot be undistorted")
     return None
 
 

@@ -246,27 +246,28 @@ class ClientSession:
                 frame.depth.CopyFrom(depth_msg(depth))
         if odometry_world_from_cam is not None:
             frame.odometry_world_from_cam.CopyFrom(transform_msg(odometry_world_from_cam))
-        self._requests.put(pb.SessionRequest(frame=frame))
-        update = self._next()
-        kind = update.WhichOneof("message")
-        if kind == "error":
-            raise RemoteError(grpc.StatusCode.INVALID_ARGUMENT,
-                              pb.ErrorKind.Name(update.error.kind), update.error.message)
-        return update.frame
+        return self._answer(pb.SessionRequest(frame=frame)).frame
 
     def save(self, name: str) -> pb.MapSaved:
         """A learning session's map, saved on the server (in its `--learned-maps` folder) and
         served as the map `name` from then on; saving again replaces it. The session carries
         on. RemoteError where the server refuses (FAILED_PRECONDITION: no `--learned-maps`, no
         training round yet, a name taken; BAD_REQUEST: not a plain map name)."""
-        self._requests.put(pb.SessionRequest(save=pb.SessionSave(name=name)))
+        return self._answer(pb.SessionRequest(save=pb.SessionSave(name=name))).saved
+
+    def _answer(self, request: pb.SessionRequest) -> pb.SessionUpdate:
+        """Send one request and read its answer; a `SessionError` raises RemoteError with the
+        status code of its kind, as unary calls' refusals do."""
+        if self.closed is not None:
+            raise RemoteError(grpc.StatusCode.FAILED_PRECONDITION, "",
+                              "the session is closed: open a new one")
+        self._requests.put(request)
         update = self._next()
-        kind = update.WhichOneof("message")
-        if kind == "error":
+        if update.WhichOneof("message") == "error":
             raise RemoteError(GRPC_CODES.get(update.error.kind,
                                              grpc.StatusCode.INVALID_ARGUMENT),
                               pb.ErrorKind.Name(update.error.kind), update.error.message)
-        return update.saved
+        return update
 
     def close(self) -> pb.SessionClosed:
         if self.closed is None:

@@ -338,8 +338,6 @@ def read_tum_trajectory(path, numeric_stamps: bool = False) -> list[tuple[str, R
     InputError naming both lines (`unique_stamps`): which one is the camera's is not for the
     reader to guess."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: trajectory file not found")
     return unique_stamps([(i, *parse_tum_line(line, f"{path}:{i}", numeric_stamps))
                           for i, line in _content_lines(path, "trajectory")], path)
 
@@ -377,13 +375,10 @@ def unique_stamps(rows: list[tuple[int, str, Rigid3]], path) -> list[tuple[str, 
 def _content_lines(path: Path, what: str) -> list[tuple[int, str]]:
     """(line number, line) of a UTF-8 text file, blank lines and `#` comments skipped;
     an unreadable or binary file is an InputError naming it."""
-    from slamreloc.io.fileio import read_bytes
+    from slamreloc.io.fileio import read_text
     from slamreloc.io.limits import limits
 
-    try:
-        text = read_bytes(path, what, limits().max_text_bytes).decode("utf-8")
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: {what} is not a text file (not UTF-8)") from None
+    text = read_text(path, what, limits().max_text_bytes)
     return [(i, line) for i, line in enumerate(text.splitlines(), 1)
             if line.strip() and not line.lstrip().startswith("#")]
 

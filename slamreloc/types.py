@@ -34,7 +34,10 @@ class Camera:
         object.__setattr__(self, "distortion", tuple(float(v) if isinstance(v, (int, float))
                                                      and not isinstance(v, bool) else v
                                                      for v in self.distortion))
-        problem = problem or lens.distortion_problem(self.model, self.distortion)
+        problem = (problem or centre_problem(self.width, self.height, self.cx, self.cy)
+                   or lens.distortion_problem(self.model, self.distortion)
+                   or lens.fold_problem(self.model, self.distortion, self.width, self.height,
+                                        self.fx, self.fy, self.cx, self.cy))
         if problem:
             raise InputError(f"invalid camera: {problem}")
         if self.model != "OPENCV_FISHEYE" and not any(self.distortion):  # one name per lens
@@ -47,7 +50,9 @@ class Camera:
         InputError naming `source` for anything out of range."""
         model, fx, fy, cx, cy, distortion = lens.colmap_values(model, params, source)
         problem = (camera_problem(width, height, fx, fy, cx, cy)
-                   or lens.distortion_problem(model, distortion))
+                   or centre_problem(width, height, cx, cy)
+                   or lens.distortion_problem(model, distortion)
+                   or lens.fold_problem(model, distortion, width, height, fx, fy, cx, cy))
         if problem:
             raise InputError(f"{source}: {problem}")
         return cls(width, height, fx, fy, cx, cy, model, distortion)
@@ -175,7 +180,8 @@ def _show(v) -> str:
 
 def camera_problem(width, height, fx, fy, cx, cy) -> str | None:
     """What is wrong with pinhole intrinsics (None when nothing): sizes whole numbers in
-    1..65536, fx and fy in [1, 1e7] pixels, cx and cy finite within +-1e7 pixels."""
+    1..65536, fx and fy in [1, 1e7] pixels, cx and cy finite within +-1e7 pixels (a camera
+    of a known size also `centre_problem`)."""
     for name, v in (("width", width), ("height", height)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 < v <= 1 << 16:
             return f"{name} must be a whole number of pixels in 1..65536, got {_show(v)}"
@@ -187,6 +193,17 @@ def camera_problem(width, height, fx, fy, cx, cy) -> str | None:
     if fx < 1 or fy < 1:
         return (f"focal lengths must be positive (at least 1 pixel), got fx={_show(fx)}, "
                 f"fy={_show(fy)}")
+    return None
+
+
+def centre_problem(width: int, height: int, cx: float, cy: float) -> str | None:
+    """What is wrong with a principal point for an image of width x height (None when
+    nothing): it lies within one image size of the image (cx in [-width, 2 width], cy
+    likewise); a crop moves it off centre, never a whole image away."""
+    for name, v, size in (("cx", cx, width), ("cy", cy, height)):
+        if not -size <= v <= 2 * size:
+            return (f"{name} must lie within one image size of the image ({-size}..{2 * size} "
+                    f"pixels for {size}), got {_show(v)}")
     return None
 
 

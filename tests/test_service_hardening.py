@@ -21,22 +21,25 @@ import cv2
 import grpc
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from slamreloc.client import Client, RemoteError
 from slamreloc.errors import InputError
 from slamreloc.geometry import MAX_STAMP_S, read_tum_trajectory
 from slamreloc.map.format import DATABASE, META, PROVENANCE, SURFACE, sha256_file
+from slamreloc.map.scene_map import SceneMap
 from slamreloc.proto import relocalizer_pb2 as pb
-from slamreloc.proto.messages import ERROR_METADATA_KEY, map_name_problem
-from slamreloc.service import server as server_module
+from slamreloc.proto.messages import ERROR_METADATA_KEY, depth_from_msg, map_name_problem
 from slamreloc.service import maps as maps_module
+from slamreloc.service import server as server_module
 from slamreloc.service.maps import MapRegistry, ServedMap, folder_stamp
 from slamreloc.service.server import (
     MIN_WATCH_S,
     SERVICE_NAME,
     ServeConfig,
     certificate_problem,
+    is_loopback,
     start_server,
     token_problem,
 )
@@ -667,3 +670,213 @@ def test_the_watch_refuses_a_map_folder_replaced_by_a_link(tiny_map, tmp_path, m
         assert len(warned) == 1, warned
     finally:
         running.stop()
+
+
+# ---- the fifth attack round ---------------------------------------------------------------
+def test_a_served_map_keeps_the_database_it_was_loaded_with(map_copy):
+    """Finding 1: database.npz removed from the folder of a loaded map: every localizer of
+    that map still has the database (decided at load, never per request), so answers do not
+    change while the version stays the same."""
+    served = ServedMap.load("m", map_copy)
+    with served.localizer() as first:
+        assert first.guided is not None
+    (map_copy / DATABASE).unlink()
+    assert served.scene_map.has_database
+    with served.localizer() as a, served.localizer() as b:  # two concurrent requests
+        assert a.guided is not None and b.guided is not None
+
+
+def test_map_info_counts_the_loaded_rows(map_copy):
+    """Finding 7: num_points is the database's rows as loaded, not what the metadata says;
+    size_bytes is measured at load, not at the first answer."""
+    meta = json.loads((map_copy / META).read_text())
+    meta["labels"]["n_labelled"] = 0
+    (map_copy / META).write_text(json.dumps(meta))
+    served = ServedMap.load("m", map_copy)
+    size = served.size_bytes
+    (map_copy / DATABASE).write_bytes(bytes(1 << 20))
+    info = served.info()
+    assert info.num_points == len(served.scene_map.database.points) > 0
+    assert info.size_bytes == size
+
+
+def test_answers_are_not_bounded_by_the_request_limit(tiny_map, tmp_path):
+    """Finding 2: with a 64 KB request bound, ListMaps of 300 maps with long names (~74 KB)
+    is answered whole."""
+    maps = {}
+    for i in range(300):
+        link = tmp_path / f"l{i}"
+        link.symlink_to(tiny_map)
+        maps[f"{i:03d}" + "n" * 120] = link
+    running = start_server(maps, ServeConfig(port=0, watch_s=0, max_request_bytes=65536))
+    try:
+        status, _, body, _ = _call(running.address, "ListMaps", pb.ListMapsRequest())
+        assert status == "OK"
+        listed = pb.ListMapsResponse()
+        listed.ParseFromString(body)
+        assert len(listed.maps) == 300 and listed.ByteSize() > 65536
+    finally:
+        running.stop()
+
+
+# ---- one metadata rule on every load --------------------------------------------------------
+@pytest.mark.parametrize("where, value, words, cli_too", [
+    (("dataset", "root"), {}, "'dataset.root' must be a string", False),
+    (("dataset",), [1], "'dataset' must be an object", False),
+    (("dataset", "metric"), "yes", "'dataset.metric' must be true or false", False),
+    (("regressor", "config", "prototype_threshold"), -1.5, "prototype_threshold", True),
+    (("regressor", "config", "prototype_threshold"), 1e308, "prototype_threshold", True),
+    (("labels", "median_reproj_error_px"), 1e308, "median_reproj_error_px", True),
+])
+def test_metadata_fields_are_checked_on_every_load(map_copy, where, value, words, cli_too):
+    """Findings 5 and 6: a field the service uses or reports, of the wrong type or range, is
+    refused by every load of a server (start-up and reload alike, with or without
+    `--learned-maps`), one line naming the file and field; the schema's own fields by every
+    reader."""
+    meta = json.loads((map_copy / META).read_text())
+    obj = meta
+    for key in where[:-1]:
+        obj = obj.setdefault(key, {})
+    obj[where[-1]] = value
+    (map_copy / META).write_text(json.dumps(meta))
+    with pytest.raises(InputError) as err:
+        ServedMap.load("m", map_copy)
+    assert words in str(err.value) and "\n" not in str(err.value), err.value
+    if cli_too:
+        with pytest.raises(InputError, match=words):
+            SceneMap.load(map_copy)
+
+
+# ---- names ---------------------------------------------------------------------------------
+def test_a_name_not_in_composed_form_is_refused():
+    """Finding 9: "café" spelt with a combining accent would name a second map that looks
+    like the first: refused, with the composed spelling to give instead."""
+    assert map_name_problem("café") is None
+    problem = map_name_problem("cafe\u0301")
+    assert "NFC" in problem and "'caf\u00e9'" in problem
+
+
+def test_serve_refuses_a_decomposed_name(tiny_map):
+    _one_line_exit_2(["serve", str(tiny_map), "--name", "cafe\u0301", "--port", "0"],
+                     "--name", "NFC")
+
+
+# ---- depth and cameras as sent --------------------------------------------------------------
+def test_png16_depth_of_another_declared_size_is_refused():
+    """Finding 12: a PNG16 depth whose width and height say another size than the PNG's is
+    BAD_DEPTH naming both; 0 x 0 (or the PNG's own size) is read."""
+    png = cv2.imencode(".png", np.full((24, 32), 1500, np.uint16))[1].tobytes()
+    for w, h in ((0, 0), (32, 24)):
+        depth = depth_from_msg(pb.Depth(encoding=pb.Depth.PNG16, width=w, height=h, data=png),
+                               None)
+        assert depth.shape == (24, 32) and np.allclose(depth, 1.5)
+    from slamreloc.proto.messages import ServiceError
+
+    with pytest.raises(ServiceError) as err:
+        depth_from_msg(pb.Depth(encoding=pb.Depth.PNG16, width=99, height=7, data=png), None)
+    assert err.value.kind == pb.BAD_DEPTH
+    assert "32x24" in str(err.value) and "99x7" in str(err.value)
+
+
+def test_a_depth_camera_refusal_quotes_what_was_sent():
+    """Finding 10: a depth camera refused at the 640x480 size it is held at says so, with
+    the values the client sent, not only the scaled ones."""
+    from slamreloc.proto.messages import ServiceError, depth_camera_from_msg
+
+    with pytest.raises(ServiceError) as err:
+        depth_camera_from_msg(pb.PinholeCamera(width=16, height=12, fx=1e7, fy=1e7, cx=8,
+                                               cy=6), "depth_camera")
+    text = str(err.value)
+    assert "16x12 fx=1e+07" in text and "640x480" in text, text
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(k=st.floats(-1000, 1000), f=st.floats(100, 1000))
+def test_a_lens_is_taken_only_where_it_can_be_undone_over_the_image(k, f):
+    """Finding 11: a SIMPLE_RADIAL lens is refused exactly when its distorted radius stops
+    growing before the image's farthest edge (k < 0: it peaks at 2 / (3 sqrt(-3 k)), which
+    must reach 160 / f here); where it is taken, undistorting the edges' middles and
+    distorting them back returns them."""
+    text = f"SIMPLE_RADIAL 320 240 {f!r} 160 120 {k!r}"
+    reach = 160 / f  # normalised radius of the farthest edge's middle
+    peak = 2 / (3 * np.sqrt(-3 * k)) if k < 0 else np.inf
+    try:
+        camera = Camera.parse(text)
+    except InputError as err:
+        assert "folds back inside the image" in str(err)
+        assert peak < reach * 1.001  # near the edge: the sampling decides
+        return
+    assert peak > reach * 0.999
+    edges = np.array([[0.0, 120.0], [319.0, 120.0], [160.0, 0.0], [160.0, 239.0]])
+    assert np.abs(camera.distort(camera.undistort(edges)) - edges).max() < 1e-4
+
+
+# ---- start-up and auth ----------------------------------------------------------------------
+@pytest.mark.parametrize("host, loopback", [
+    ("127.0.0.1", True), ("127.1", True), ("2130706433", True), ("::ffff:127.0.0.1", True),
+    ("[::1]", True), ("localhost", True), ("10.0.0.1", False), ("::ffff:10.0.0.1", False),
+    ("0.0.0.0", False), ("example.org", False)])
+def test_loopback_spellings(host, loopback):
+    """Finding 14: every spelling of a loopback address the resolver reads is loopback."""
+    assert is_loopback(host) is loopback
+
+
+def test_the_bearer_scheme_is_case_insensitive_and_the_token_exact(tiny_map):
+    """Finding 15: `authorization: bearer TOKEN` is accepted (the scheme's case does not
+    matter); the token itself is compared exactly."""
+    running = start_server({"m": tiny_map}, ServeConfig(port=0, watch_s=0, token=TOKEN))
+    try:
+        for value, ok in ((f"bearer {TOKEN}", True), (f"BEARER {TOKEN}", True),
+                          (f"Bearer {TOKEN.upper()}", False), (f"Basic {TOKEN}", False),
+                          (TOKEN, False)):
+            status, *_ = _call(running.address, "Health", pb.HealthRequest(),
+                               metadata=(("authorization", value),))
+            assert (status == "OK") is ok, (value, status)
+    finally:
+        running.stop()
+
+
+# ---- the Python client ----------------------------------------------------------------------
+def test_a_closed_client_session_says_so(tiny_map):
+    """Finding 8: send or save on a closed session raise RemoteError saying it is closed
+    (not a bare StopIteration); closing twice returns the same SessionClosed."""
+    running = start_server({"m": tiny_map}, ServeConfig(port=0, watch_s=0))
+    try:
+        with Client(running.address, timeout_s=30) as client:
+            session = client.session(map="m", odometry="auto")
+            closed = session.close()
+            assert session.close() is closed
+            for call in (lambda: session.send(_image()), lambda: session.save("x")):
+                with pytest.raises(RemoteError) as err:
+                    call()
+                assert err.value.code == grpc.StatusCode.FAILED_PRECONDITION
+                assert "closed" in str(err.value)
+    finally:
+        running.stop()
+
+
+def test_the_client_maps_a_frame_refusal_to_its_kinds_code(monkeypatch):
+    """Finding 8: a frame's SessionError comes back with the status code of its kind, as a
+    save's does (OVERLOADED: RESOURCE_EXHAUSTED), not always INVALID_ARGUMENT. The server's
+    answers are replayed (a server cannot be made to be overloaded on cue)."""
+    from slamreloc.client import ClientSession
+
+    answers = iter([pb.SessionUpdate(opened=pb.SessionOpened(session_id="s"))] + [
+        pb.SessionUpdate(error=pb.SessionError(kind=kind, message="m"))
+        for kind in (pb.OVERLOADED, pb.BAD_IMAGE, pb.INTERNAL, pb.OVERLOADED)])
+    monkeypatch.setattr(ClientSession, "_next", lambda self: next(answers))
+
+    class Stub:
+        def Session(self, requests, metadata=()):  # noqa: N802 - gRPC's method name
+            return iter(())
+
+    client = type("C", (), {"stub": Stub(), "metadata": ()})()
+    session = ClientSession(client, pb.SessionOpen(map="m"))
+    for code in (grpc.StatusCode.RESOURCE_EXHAUSTED, grpc.StatusCode.INVALID_ARGUMENT,
+                 grpc.StatusCode.INTERNAL):
+        with pytest.raises(RemoteError) as err:
+            session.send(np.zeros((8, 8, 3), np.uint8))
+        assert err.value.code == code
+    with pytest.raises(RemoteError) as err:
+        session.save("x")
+    assert err.value.code == grpc.StatusCode.RESOURCE_EXHAUSTED

@@ -274,8 +274,38 @@ def test_a_learned_map_replaced_by_a_link_to_another_is_not_reloaded(learning,
         again = other.save("lc")  # its owner is not locked out
         assert {m.name: m.version for m in client.list_maps()}["lc"] == again.map_version
         err = refused(lambda: session.save("lb"), "FAILED_PRECONDITION")
-        assert "not a map" in str(err), err
+        assert "a symbolic link" in str(err), err
         (folder / "lb").unlink()
         saved = session.save("lb")
         assert (folder / "lb" / META).is_file() and not (folder / "lb").is_symlink()
         assert {m.name: m.version for m in client.list_maps()}["lb"] == saved.map_version
+
+
+def test_a_learned_maps_folder_replaced_while_serving_takes_no_save(learning, tmp_path):
+    """Round 5, finding 4: `--learned-maps` swapped at run time for a link to another folder,
+    another folder, a file, or removed: a save is refused (FAILED_PRECONDITION, no server
+    path), nothing is written anywhere and the folder is not re-created; the same folder put
+    back takes saves again."""
+    running, folder, client, session = learning
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    aside = folder.with_name(folder.name + ".aside")
+    folder.rename(aside)
+    try:
+        for make, words in ((lambda: folder.symlink_to(elsewhere), "symbolic link"),
+                            (folder.mkdir, "another folder"),
+                            (lambda: folder.write_text("x"), "not a folder"),
+                            (lambda: None, "removed")):
+            make()
+            err = refused(lambda: session.save("second"), "FAILED_PRECONDITION")
+            assert words in str(err) and str(folder) not in str(err), err
+            assert not any(elsewhere.iterdir())
+            if folder.is_symlink() or folder.is_file():
+                folder.unlink()
+            elif folder.is_dir():
+                assert not any(folder.iterdir())
+                folder.rmdir()
+        assert not os.path.lexists(folder)  # a save never re-creates it
+    finally:
+        aside.rename(folder)
+    assert session.save("seed").map_version

@@ -43,10 +43,11 @@ def sigterm_as_ctrl_c() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
-def _repeated_option(args: list[str]) -> str | None:
-    """The problem with a command line that gives an option taking one value (or a flag and
-    its `--no-` form) more than once: click keeps the last silently, so `--port 70000 --port
-    18080` would serve on a port nobody asked for twice. None when there is none."""
+def _command_line_problem(args: list[str]) -> str | None:
+    """What click would take silently from a command line, or None: an option taking one value
+    (or a flag and its `--no-` form) given more than once (click keeps the last, so `--port
+    70000 --port 18080` would serve on a port nobody asked for twice), an empty value ('' is
+    the path '.'), a number that breaks the number rule."""
     import typer.main
 
     group = typer.main.get_command(app)  # typer's own click: parameters read by duck typing
@@ -70,6 +71,8 @@ def _repeated_option(args: list[str]) -> str | None:
             if getattr(param, "is_flag", False):
                 values = []
             for text, kind in zip(values, _value_kinds(param, len(values))):
+                if not text.strip():  # '' would become the path '.' or an empty name
+                    return f"{name} is given an empty value: give a value"
                 problem = _number_text_problem(text, kind)
                 if problem:
                     return f"{name}: {text!r} is {problem}"
@@ -132,9 +135,9 @@ def _run_app() -> int | None:
     except ImportError:  # typer before it vendored click
         from click.exceptions import NoArgsIsHelpError
 
-    repeated = _repeated_option(sys.argv[1:])
-    if repeated:
-        print(f"error: {repeated}", file=sys.stderr)
+    problem = _command_line_problem(sys.argv[1:])
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
         return 2
     try:
         return app(standalone_mode=False)

@@ -113,7 +113,13 @@ def map_cmd(
     if arch is not None:
         config.arch = arch.value
     if features == FeatureName.superpoint:
-        config.feature_options = {"weights": str(superpoint_weights or "")}
+        if superpoint_weights is None or not str(superpoint_weights).strip():
+            raise InputError("--features superpoint needs --superpoint-weights FILE (the .pth "
+                             "of SuperPoint; nothing is downloaded)")
+        config.feature_options = {"weights": str(superpoint_weights)}
+    elif superpoint_weights is not None:
+        raise InputError("--superpoint-weights is for --features superpoint; these features "
+                         f"are {features.value}")
     config.train = replace(config.train, precision=precision.value,
                            **({} if epochs is None else {"epochs": epochs}))
     scene_map = build_map(load_dataset(dataset, poses), out, split, config, resume=resume)

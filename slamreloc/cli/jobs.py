@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Iterator
+from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
 
@@ -26,7 +27,7 @@ from slamreloc.geometry import (
     tum_line,
     write_tum_trajectory,
 )
-from slamreloc.io.fileio import check_outputs, reads_as, write_json
+from slamreloc.io.fileio import check_outputs, outputs_together, reads_as, write_json
 from slamreloc.io.jsonio import read_json
 from slamreloc.localize.evaluate import (
     EvaluationConfig,
@@ -37,6 +38,7 @@ from slamreloc.localize.evaluate import (
 )
 from slamreloc.localize.plots import PLOT_FILE
 from slamreloc.map.format import check_is_map, is_map
+from slamreloc.map.lock import map_write_lock
 from slamreloc.map.scene_map import SceneMap
 from slamreloc.map.surface import IcpConfig, read_frame_depth, refine_with_depth
 from slamreloc.runtime.progress import console
@@ -82,13 +84,14 @@ def evaluate(map_dir: Path, dataset_dir: Path, report: Path, split: str = "test"
     refine = depth_refiner(scene_map, dataset) if depth else None
     config = EvaluationConfig(method=method, device=device, guided=guided, progress=progress)
     result = evaluate_map(scene_map, dataset, split, config, refine, scoring)
-    write_json(report, result.report)
-    if trajectory:
-        write_tum(trajectory, result.results)
     if plot:
         from slamreloc.localize.plots import plot_evaluation
-
-        plot_evaluation(plot, {method: result.results}, result.frames)
+    with outputs_together():  # interrupted: all new, or all as they were
+        if plot:
+            plot_evaluation(plot, {method: result.results}, result.frames)
+        if trajectory:
+            write_tum(trajectory, result.results)
+        write_json(report, result.report)
     return result.report
 
 
@@ -255,17 +258,21 @@ def slam(dataset: Path, map_dir: Path | None, report: Path, split: str = "test",
                            save_every_s=save_every_s)
     if live is not None:
         config = replace(config, live=live)
-    result, backend, frames = run_slam(dataset, map_dir, config, plugins, out)
-    if trajectory is not None:
-        world_from_cam = final_trajectory(backend)
-        keep = [i for i, p in enumerate(world_from_cam) if p is not None]
-        stamps = distinct_stamps([f.timestamp for f in frames])  # several sequences: indices
-        write_tum_trajectory(
-            trajectory, [stamps[i] for i in keep], [world_from_cam[i] for i in keep],
-            [f"slamreloc slam {dataset} (split {split}), map frame, camera-to-world",
-             "timestamp tx ty tz qx qy qz qw"], names=[frames[i].name for i in keep])
-        result["trajectory"] = os.path.relpath(trajectory, Path(report).parent)
-    write_json(report, result)
+    # the learned map's write lock for the whole session (as `map --out` holds it): another
+    # command writing that map fails at once, not after this session replaced its work
+    with map_write_lock(out) if out is not None else nullcontext():
+        result, backend, frames = run_slam(dataset, map_dir, config, plugins, out)
+    with outputs_together():  # interrupted: both new, or both as they were
+        if trajectory is not None:
+            world_from_cam = final_trajectory(backend)
+            keep = [i for i, p in enumerate(world_from_cam) if p is not None]
+            stamps = distinct_stamps([f.timestamp for f in frames])  # sequences: indices
+            write_tum_trajectory(
+                trajectory, [stamps[i] for i in keep], [world_from_cam[i] for i in keep],
+                [f"slamreloc slam {dataset} (split {split}), map frame, camera-to-world",
+                 "timestamp tx ty tz qx qy qz qw"], names=[frames[i].name for i in keep])
+            result["trajectory"] = os.path.relpath(trajectory, Path(report).parent)
+        write_json(report, result)
     print_slam_summary(result)
     return result
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
-from slamreloc.io.fileio import read_bytes
+from slamreloc.io import fileio
 from slamreloc.io.images import check_frame_files, image_header, image_size, read_depth, read_image
 from slamreloc.io.numbers import number_problem
 from slamreloc.types import camera_problem
@@ -20,12 +20,9 @@ MAX_TEXT_BYTES = 1 << 20  # a pose or an intrinsics matrix
 
 
 def read_text(path: Path, what: str, limit: int = 1 << 30) -> str:
-    """A text file's contents; a binary or oversized file is an InputError naming it."""
-    data = read_bytes(path, what, limit)
-    try:
-        return data.decode("utf-8")
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: {what} is not a text file (not UTF-8)") from None
+    """A text file's contents (`slamreloc.io.fileio.read_text`); a binary or oversized file
+    is an InputError naming it."""
+    return fileio.read_text(path, what, limit)
 
 
 def _read_matrix(path: Path, what: str, shape: tuple[int, int]) -> np.ndarray:

@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -131,7 +132,9 @@ def _sequence(seq_dir: Path, camera: Camera, registered: bool) -> list[Frame]:
         first[stem] = color
         depth = seq_dir / f"{stem}.depth.png"
         pose_path = seq_dir / f"{stem}.pose.txt"
-        has_depth = depth.is_file()
+        has_depth = os.path.lexists(depth)
+        if has_depth and not depth.is_file():  # a folder, a device, a broken link: not "none"
+            raise InputError(f"{depth}: the frame's depth image is not a regular file")
         check_frame_files(color, (camera.width, camera.height),
                           depth if has_depth else None, check_depth=registered)
         unregistered = has_depth and not registered

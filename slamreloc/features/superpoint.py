@@ -122,8 +122,6 @@ def load_superpoint_state(path: str | Path) -> dict[str, torch.Tensor]:
         raise InputError("SuperPoint needs weights: set weights='' to the path of "
                          "superpoint_v1.pth (nothing is downloaded)")
     p = Path(path).expanduser()
-    if not p.is_file():
-        raise InputError(f"SuperPoint weights {path}: no such file")
     from slamreloc.io.fileio import open_regular
 
     try:

@@ -73,10 +73,12 @@ def read_bytes(path: str | Path, what: str, limit: int) -> bytes:
 
 
 def read_text(path: str | Path, what: str, limit: int) -> str:
-    """`read_bytes` as UTF-8 text; InputError for bytes that are not UTF-8."""
+    """`read_bytes` as UTF-8 text (a leading byte-order mark, which some editors write, is
+    dropped: every text file is read the same way, JSON's too); InputError for bytes that are
+    not UTF-8."""
     data = read_bytes(path, what, limit)
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")
     except UnicodeDecodeError as err:
         raise InputError(f"{path}: {what} is not UTF-8 text (byte {err.start})") from None
 
@@ -229,6 +231,12 @@ def check_outputs(outputs: dict[str, str | Path | None],
                 raise InputError(f"{out}: {inner} would lie inside {outer}; two outputs of one "
                                  "command never overlap")
         seen[target] = option
+        dangling = next((p for p in Path(out).absolute().parents
+                         if os.path.islink(p) and not p.exists()), None)
+        if dangling is not None:  # a folder made there would fail only after the work
+            raise InputError(f"{out}: {option} cannot be written there: its parent {dangling} "
+                             f"is a symbolic link to {os.readlink(dangling)[:200]}, which does "
+                             "not exist")
         parent = next((p for p in target.parents if p.exists()), None)
         if parent is not None and not parent.is_dir():
             kind = "a file" if parent.is_file() else "not a folder"
@@ -272,6 +280,31 @@ def check_outputs(outputs: dict[str, str | Path | None],
                 raise InputError(f"{out}: {option} cannot be written: its temporary path {tmp} "
                                  "exists and is not a regular file")
         _check_writable(Path(out), option)
+
+
+@contextmanager
+def outputs_together() -> Iterator[None]:
+    """Write a command's several outputs as one: a Ctrl-C or SIGTERM that arrives while they
+    are written is held until the block ends, then raised (KeyboardInterrupt), so an
+    interrupted command leaves its outputs all new or all as they were, never a new report
+    beside an old plot. Keep the block to the writing itself (compute before it); off the
+    main thread it only runs the block."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous = {s: signal.signal(s, lambda signum, frame: held.append(signum))
+                for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    if held:
+        raise KeyboardInterrupt
 
 
 @contextmanager

@@ -47,6 +47,17 @@ def _bounded_int(text: str) -> int:
     return int(text)
 
 
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict:
+    """A JSON object whose keys are all different (a key given twice would keep only its last
+    value without a word: which one the writer meant is not for the reader to guess)."""
+    value = dict(pairs)
+    if len(value) != len(pairs):
+        seen: set[str] = set()
+        twice = next(k for k, _ in pairs if k in seen or seen.add(k))
+        raise ValueError(f"key {json.dumps(twice)[:40]} appears twice in one object")
+    return value
+
+
 def _finite_float(text: str) -> float:
     value = float(text)
     if not math.isfinite(value):
@@ -55,8 +66,8 @@ def _finite_float(text: str) -> float:
 
 
 def parse_json(data: bytes | str, source, what: str = "JSON") -> Any:
-    """A parsed JSON value: InputError (naming `source`) on invalid JSON, NaN / Infinity, a
-    number literal that overflows (an integer beyond 64 bits, a float that reads as infinite),
+    """A parsed JSON value: InputError (naming `source`) on invalid JSON, NaN / Infinity, a key
+    given twice in one object, a number literal that overflows (an integer beyond 64 bits, a float that reads as infinite),
     nesting deeper than `max_json_depth` (the parser itself stops at Python's recursion limit,
     ~1000 levels: a RecursionError, refused the same way)."""
     lim = limits()
@@ -65,7 +76,7 @@ def parse_json(data: bytes | str, source, what: str = "JSON") -> Any:
                          f"limit for {what} (max_json_bytes)")
     try:
         value = json.loads(data, parse_constant=_refuse_constant, parse_int=_bounded_int,
-                           parse_float=_finite_float)
+                           parse_float=_finite_float, object_pairs_hook=_unique_keys)
     except RecursionError:
         raise InputError(f"{source}: {what} is nested too deeply") from None
     except ValueError as err:  # JSONDecodeError, UnicodeDecodeError, NaN / Infinity

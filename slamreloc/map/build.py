@@ -23,7 +23,7 @@ from slamreloc.map.write import check_map_target, save_map
 from slamreloc.runtime.progress import console
 from slamreloc.regressor.checkpoint import checkpoint_path
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
-from slamreloc.regressor.train import TrainConfig, train_regressor
+from slamreloc.regressor.train import TrainConfig, resolve_device, train_regressor
 from slamreloc.rgbd import registered_depths
 from slamreloc.map.scene_map import MapDatabase, SceneMap
 from slamreloc.map.surface import SurfaceConfig, dataset_surface
@@ -84,6 +84,10 @@ def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progr
                resume: bool) -> SceneMap:
     _check_target(dataset, out)
     check_map_target(out)  # fail before the work, not after it
+    try:
+        resolve_device(config.device)  # a device that is not there: now, not after features
+    except ValueError as err:
+        raise InputError(str(err)) from None
     ckpt = checkpoint_path(out)
     if resume and not ckpt.is_file():
         raise InputError(f"{ckpt}: no training checkpoint to resume from")

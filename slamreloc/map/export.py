@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import atomic_file, marked_file
+from slamreloc.io.fileio import atomic_file, marked_file, outputs_together
 from slamreloc.geometry import Rigid3, matrix_to_quat, write_tum_trajectory
 from slamreloc.io.images import pixel_colours, read_image
 from slamreloc.runtime.progress import track
@@ -290,14 +290,16 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
         check_dataset_of_map(scene_map, dataset_dir, dataset)
     root, images = frame_images(scene_map, dataset)
     summary = {"frames": len(scene_map.database.frame_names)}
+    points = None
     if colmap is not None or ply is not None:
         points = export_points(scene_map, images, progress)
         summary.update(points=len(points.xyz), observations=len(points.row_point),
                        coloured_from_images=bool(images))
+    with outputs_together():  # interrupted: all new, or all as they were
         if colmap is not None:
             write_colmap(scene_map, Path(colmap), points, images, root)
         if ply is not None:
             write_ply(Path(ply), points)
-    if tum is not None:
-        write_training_poses(scene_map, Path(tum))
+        if tum is not None:
+            write_training_poses(scene_map, Path(tum))
     return summary

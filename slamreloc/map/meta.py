@@ -51,6 +51,8 @@ from slamreloc.types import Camera, camera_problem
 
 Json = Any  # a parsed JSON value: dict, list, str, int, float, bool or None
 MAX_META_BYTES = 64 << 20
+# a median label reprojection error beyond this many pixels describes no labels an image holds
+MAX_LABEL_ERROR_PX = 1e4
 _HEADER = ("format", "format_version", "slamreloc_version")
 _TRAILER = ("files", "frame_names")
 _STAMPED = (*_HEADER, "version", *_TRAILER)  # what `stamped` sets (`version`: format 1's key)
@@ -476,8 +478,8 @@ def _check_schema(meta: dict, version: int, path) -> None:
     if need(labels, "n_labelled", int, "labels.") < 0:
         raise InputError(f"{path}: 'labels.n_labelled' must not be negative")
     _check_optional(labels, "median_reproj_error_px", "labels.", path,
-                    "a number of pixels >= 0 or null",
-                    lambda v: _is_number(v) and math.isfinite(v) and v >= 0)
+                    f"a number of pixels in [0, {MAX_LABEL_ERROR_PX:g}] or null",
+                    lambda v: _is_number(v) and 0 <= v <= MAX_LABEL_ERROR_PX)
     train = meta.get("train")
     if isinstance(train, dict):
         _check_optional(train, "precision", "train.", path,
@@ -576,5 +578,6 @@ def _check_regressor_config(cfg: dict, path) -> None:
     if not isinstance(cfg.get("prototype_init", True), bool):
         raise InputError(f"{path}: '{where}prototype_init' must be true or false")
     thr = cfg.get("prototype_threshold", 0.0)
-    if not _is_number(thr) or not math.isfinite(thr):
-        raise InputError(f"{path}: '{where}prototype_threshold' must be a finite number")
+    if not _is_number(thr) or not -1 <= thr <= 1:
+        raise InputError(f"{path}: '{where}prototype_threshold' must be a cosine in [-1, 1], "
+                         f"got {_short(thr)}")

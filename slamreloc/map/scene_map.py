@@ -196,9 +196,10 @@ class SceneMap:
         return (PROVENANCE not in (self.info.files or {})
                 and (path.exists() or path.is_symlink()))
 
-    @property
+    @cached_property
     def has_database(self) -> bool:
         """Whether the folder holds its training database (a map can be shipped without it:
-        the regressor then localizes without the guided refinement)."""
+        the regressor then localizes without the guided refinement). Decided once, at the
+        first ask: a map held in memory (a served one) does not change with its folder."""
         path = self.root / DATABASE
         return path.exists() or path.is_symlink()  # a pipe or a folder there is refused on use

@@ -10,6 +10,8 @@ through `Camera` (the same checks as `--intrinsics` / `--camera`), poses through
 
 from __future__ import annotations
 
+import unicodedata
+
 import cv2
 import grpc
 import numpy as np
@@ -39,6 +41,10 @@ def map_name_problem(name: str) -> str | None:
     bad = next((c for c in name if not c.isprintable() or c.isspace()), None)
     if bad is not None:
         return f"holds {bad!a}: printable characters without spaces only"
+    composed = unicodedata.normalize("NFC", name)
+    if composed != name:  # two spellings of one visible name would name two maps
+        return (f"is not in Unicode's composed form (NFC), so it looks like another name: "
+                f"give it as {quoted(composed)}")
     return None
 
 
@@ -221,9 +227,14 @@ def depth_camera_from_msg(msg: pb.PinholeCamera, what: str) -> Camera:
     ratio is checked against each depth map by `check_depth_camera`."""
     try:
         cam = Camera(msg.width, msg.height, msg.fx, msg.fy, msg.cx, msg.cy)
-        return cam.scaled_to(*DEPTH_REFERENCE_SIZE)
     except (InputError, ValueError, ZeroDivisionError) as err:
         raise ServiceError(pb.BAD_CAMERA, f"{what}: {err}") from None
+    try:
+        return cam.scaled_to(*DEPTH_REFERENCE_SIZE)
+    except (InputError, ValueError, ZeroDivisionError) as err:
+        w, h = DEPTH_REFERENCE_SIZE
+        raise ServiceError(pb.BAD_CAMERA, f"{what}: {msg.width}x{msg.height} fx={msg.fx:g} "
+                           f"fy={msg.fy:g} is held scaled to {w}x{h}, and there {err}") from None
 
 
 def check_depth_camera(msg: pb.PinholeCamera, depth: np.ndarray, what: str) -> None:
@@ -256,6 +267,11 @@ def depth_from_msg(msg: pb.Depth, registered_size: tuple[int, int] | None,
             if header.channels != 1 or header.bits != 16:
                 raise InputError(f"a 16-bit single-channel PNG is needed, got {header.channels} "
                                  f"channel(s) of {header.bits} bits")
+            if (msg.width or msg.height) and (msg.width, msg.height) != (header.width,
+                                                                         header.height):
+                raise InputError(f"the PNG is {header.width}x{header.height}, width and height "
+                                 f"say {msg.width}x{msg.height} (give the PNG's, or leave "
+                                 "both 0)")
             raw = decode_image(msg.data, what, cv2.IMREAD_ANYDEPTH, "depth")
             if raw.ndim != 2 or raw.dtype != np.uint16:
                 raise InputError(f"a 16-bit single-channel PNG is needed, got {raw.dtype} "

@@ -102,6 +102,9 @@ class ServedMap:
                 step()
                 _ = scene_map.surface
                 _ = scene_map.info.metric  # what info() answers: refused here, not per call
+                # the recorded inputs a save must keep clear of: checked on every load, as
+                # at start-up with `--learned-maps`
+                _ = scene_map.info.recorded_inputs()
                 if scene_map.provenance_unverified:  # documented: read without a checksum
                     warnings.warn(f"map {quoted(name)}: {path / PROVENANCE} is not listed in "
                                   f"{META}: served without checking its checksum (rewrite the "
@@ -111,8 +114,10 @@ class ServedMap:
                 if attempt == 2 or folder_stamp(path) == stamp:
                     raise
                 continue
-            return ServedMap(name, path, scene_map, content_version(scene_map), stamp,
-                             time.time(), folder, linked)
+            served = ServedMap(name, path, scene_map, content_version(scene_map), stamp,
+                               time.time(), folder, linked)
+            _ = served.size_bytes  # measured now, as loaded
+            return served
         raise AssertionError("unreachable")
 
     @contextmanager
@@ -144,7 +149,8 @@ class ServedMap:
         return pb.MapInfo(
             name=self.name, path=str(self.path), version=self.version,
             feature=m.info.feature_name, camera=m.camera.colmap_string(),
-            metric=m.info.metric, num_points=m.info.n_labelled,
+            metric=m.info.metric,
+            num_points=len(m.database.points) if m.has_database else m.info.n_labelled,
             size_bytes=self.size_bytes,
             loaded_at=self.loaded_at, has_surface=m.surface is not None)
 

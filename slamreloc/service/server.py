@@ -28,6 +28,7 @@ import ipaddress
 import os
 import signal
 import socket
+import stat
 import sys
 import threading
 import time
@@ -160,12 +161,20 @@ def token_problem(token: str) -> str | None:
 
 
 def is_loopback(host: str) -> bool:
+    """Whether `host` names this machine only: localhost, 127.0.0.0/8 in any form the system
+    reads (127.1, 2130706433), ::1, or IPv4-mapped ::ffff:127.0.0.1."""
     if host in LOOPBACK_NAMES:
         return True
+    bare = host.strip("[]")
     try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
+        ip = ipaddress.ip_address(bare)
     except ValueError:
-        return False
+        try:  # the short IPv4 forms the resolver also takes
+            ip = ipaddress.IPv4Address(socket.inet_aton(bare))
+        except OSError:
+            return False
+    mapped = getattr(ip, "ipv4_mapped", None)
+    return ip.is_loopback or (mapped is not None and mapped.is_loopback)
 
 
 def listen_address(host: str, port: int) -> str:
@@ -268,8 +277,15 @@ class RelocalizerService:
         self.localizing = 0  # Localize calls running or waiting for a worker
         self.requests = 0
         self._save_lock = threading.Lock()  # one learned map written and registered at a time
+        self.stopping = threading.Event()  # set by `RunningServer.stop`: no save starts writing
         self._written: set[Path] = set()  # the learned maps' folders this server wrote
         self.learning: set[Session] = set()  # learning sessions open (their learner threads)
+        # the learned maps' folder as it was at start-up (resolved, and its identity on disk):
+        # a save writes there only while that same folder is still there
+        self._learned: tuple[Path, tuple[int, int]] | None = None
+        if config.learned_maps is not None:
+            st = os.stat(config.learned_maps)
+            self._learned = (Path(config.learned_maps).resolve(), (st.st_dev, st.st_ino))
 
     @staticmethod
     def pool_size(config: ServeConfig, n_maps: int) -> int:
@@ -291,7 +307,9 @@ class RelocalizerService:
         given = [v for k, v in context.invocation_metadata() if k == "authorization"]
         if len(given) != 1 or not isinstance(given[0], str):
             return False
-        return hmac.compare_digest(given[0].encode(), f"Bearer {self.config.token}".encode())
+        scheme, _, token = given[0].partition(" ")  # the scheme's case does not matter
+        return (scheme.lower() == "bearer"
+                and hmac.compare_digest(token.encode(), self.config.token.encode()))
 
     def _unary(self, parse, handle):
         """A unary method: count, authenticate, parse the bytes, answer or refuse."""
@@ -505,13 +523,16 @@ class RelocalizerService:
         if problem:
             raise ServiceError(pb.BAD_REQUEST, f"save.name {quoted(name)} {problem}")
         try:
-            path = Path(self.config.learned_maps).resolve() / name
+            path = self._learned[0] / name
             self._check_target(name, path)  # before the wait: a refusal needs no round
             session.train_for_save()
             if not self._save_lock.acquire(blocking=False):
                 raise ServiceError(pb.OVERLOADED, f"save.name {quoted(name)}: another "
                                    "session's map is being written; try again when it is done")
             try:
+                if self.stopping.is_set():  # a save either ends written and logged, or not begun
+                    raise ServiceError(pb.FAILED_PRECONDITION, f"save.name {quoted(name)}: "
+                                       "the server is stopping; nothing was written")
                 self._check_target(name, path)  # again: the maps may have changed meanwhile
                 saved = session.write(path)
                 if saved is None:
@@ -542,6 +563,11 @@ class RelocalizerService:
         map's folder is the one it was loaded from (`ServedMap.folder`), whatever links were
         made on disk since (a reload refuses them: `MapRegistry._check_folder`)."""
         said = f"save.name {quoted(name)}"
+        problem = self._learned_folder_problem()
+        if problem:
+            _log(f"map {quoted(name)} not saved: {self.config.learned_maps} {problem}")
+            raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: the server's folder of "
+                               f"learned maps {problem}; ask its operator")
         maps = self.registry.all()
         own = False  # NAME is served from `path`
         for m in maps:
@@ -567,14 +593,34 @@ class RelocalizerService:
                                        f"{how} {what} (map "
                                        f"{quoted(m.name)}); choose another name")
         if path.is_symlink() or (os.path.lexists(path) and not (path / META).is_file()):
+            what = ("a symbolic link (never written through)" if path.is_symlink()
+                    else "something that is not a map")
             raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: the learned maps' folder "
-                               "holds something of that name that is not a map; choose "
-                               "another name")
+                               f"holds {what} of that name; choose another name")
         if os.path.lexists(path) and not own and path not in self._written:
             raise ServiceError(pb.FAILED_PRECONDITION, f"{said}: the learned maps' folder "
                                "holds a map of that name that this server does not serve "
                                "(left by an earlier run or another server); the operator gives "
                                "it as MAP to serve it and save over it, or choose another name")
+
+    def _learned_folder_problem(self) -> str | None:
+        """Why the learned maps' folder can no longer take a save, or None: it must be the very
+        folder the server started with (not removed, nor replaced by another folder, a link
+        or a file: a save never writes elsewhere, nor re-creates it)."""
+        folder = Path(self.config.learned_maps)
+        try:
+            st = os.lstat(folder)
+        except FileNotFoundError:
+            return "was removed since the server started"
+        except OSError as err:
+            return f"cannot be read ({err.strerror or type(err).__name__})"
+        if stat.S_ISLNK(st.st_mode):
+            return "was replaced by a symbolic link since the server started"
+        if not stat.S_ISDIR(st.st_mode):
+            return "was replaced by something that is not a folder since the server started"
+        if (st.st_dev, st.st_ino) != self._learned[1]:
+            return "was replaced by another folder since the server started"
+        return None
 
     def handler(self) -> grpc.GenericRpcHandler:
         def unary(parse, handle):
@@ -769,7 +815,11 @@ class RunningServer:
 
     def stop(self, grace_s: float | None = 1.0) -> None:
         """Stop serving - the watch and any map load too, waited for - and give the process
-        back the thread counts it had before."""
+        back the thread counts it had before. A learned map being written is finished (and
+        logged) first; a save that has not begun writing is refused."""
+        self.service.stopping.set()
+        with self.service._save_lock:  # held only while a map is written and registered
+            pass
         self.registry.close()
         self.server.stop(grace_s).wait()
         self.service.deadlines.close()
@@ -826,8 +876,10 @@ def start_server(maps: dict[str, Path], config: ServeConfig = ServeConfig()) -> 
             registry.close()
             raise InputError(problem)
     service = RelocalizerService(registry, config)
+    # only what is received is bounded: an answer (a long session's trajectory, the list of
+    # many maps) is the server's own and must reach the client whole
     options = [("grpc.max_receive_message_length", config.max_request_bytes),
-               ("grpc.max_send_message_length", config.max_request_bytes),
+               ("grpc.max_send_message_length", -1),
                ("grpc.so_reuseport", 0)]
     n_maps = len(registry.names) + (config.max_sessions if config.learned_maps else 0)
     pool = futures.ThreadPoolExecutor(RelocalizerService.pool_size(config, n_maps),
