@@ -68,16 +68,24 @@ def load_tum(root: Path) -> Dataset:
           if (root / "groundtruth.txt").is_file() else [])
     depth_t = np.array([float(r[0]) for r in depth])
     gt_t = np.array([float(stamp) for stamp, _ in gt])
-    width, height = image_size(root / rgb[0][1])
-    if (root / "intrinsics.txt").is_file():
-        k = read_intrinsics(root / "intrinsics.txt")
-        camera = Camera(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
-    else:
-        camera = Camera(width, height, 525.0, 525.0, 319.5, 239.5)
     names = [Path(rel).stem for _, rel in rgb]
     if len(set(names)) != len(names):
         dup = next(n for n in names if names.count(n) > 1)
         raise InputError(f"{root / 'rgb.txt'}: image {dup!r} is listed more than once")
+    width, height = image_size(root / rgb[0][1])
+    own = (root / "intrinsics.txt").is_file()
+    try:
+        if own:
+            k = read_intrinsics(root / "intrinsics.txt")
+            camera = Camera(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+        else:  # the TUM RGB-D benchmark's default camera, for its 640x480 images
+            camera = Camera(width, height, 525.0, 525.0, 319.5, 239.5)
+    except InputError as err:
+        if own:
+            raise InputError(f"{root / 'intrinsics.txt'}: {err} (the images are "
+                             f"{width}x{height})") from None
+        raise InputError(f"{root / rgb[0][1]}: {err}: the default TUM camera (525 525 319.5 "
+                         "239.5) is for 640x480 images; give intrinsics.txt") from None
     frames = []
     for stamp, rel in rgb:
         t = float(stamp)
