@@ -67,9 +67,10 @@ def _finite_float(text: str) -> float:
 
 def parse_json(data: bytes | str, source, what: str = "JSON") -> Any:
     """A parsed JSON value: InputError (naming `source`) on invalid JSON, NaN / Infinity, a key
-    given twice in one object, a number literal that overflows (an integer beyond 64 bits, a float that reads as infinite),
-    nesting deeper than `max_json_depth` (the parser itself stops at Python's recursion limit,
-    ~1000 levels: a RecursionError, refused the same way)."""
+    given twice in one object, a number literal that overflows (an integer beyond 64 bits, a
+    float that reads as infinite), nesting deeper than `max_json_depth` (the parser itself
+    stops at Python's recursion limit, ~1000 levels: a RecursionError, refused the same
+    way)."""
     lim = limits()
     if len(data) > lim.max_json_bytes:
         raise InputError(f"{source}: {len(data)} bytes, over the {lim.max_json_bytes} byte "

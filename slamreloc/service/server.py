@@ -603,6 +603,13 @@ class RelocalizerService:
                                "(left by an earlier run or another server); the operator gives "
                                "it as MAP to serve it and save over it, or choose another name")
 
+    def finish_saves(self) -> None:
+        """From now on no save begins writing; one that is writing is waited for (the save
+        lock is held only while a map is written and registered)."""
+        self.stopping.set()
+        with self._save_lock:
+            pass
+
     def _learned_folder_problem(self) -> str | None:
         """Why the learned maps' folder can no longer take a save, or None: it must be the very
         folder the server started with (not removed, nor replaced by another folder, a link
@@ -817,9 +824,7 @@ class RunningServer:
         """Stop serving - the watch and any map load too, waited for - and give the process
         back the thread counts it had before. A learned map being written is finished (and
         logged) first; a save that has not begun writing is refused."""
-        self.service.stopping.set()
-        with self.service._save_lock:  # held only while a map is written and registered
-            pass
+        self.service.finish_saves()
         self.registry.close()
         self.server.stop(grace_s).wait()
         self.service.deadlines.close()
