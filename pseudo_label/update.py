@@ -68,6 +68,21 @@ def _truth_poses(dataset: Dataset, frames: list[Frame], truth: Dataset | None
     return (poses if all(p is not None for p in poses) else None), source
 
 
+def _refuse_own_frames(old: SceneMap, dataset: Dataset, split: str, frames: list) -> None:
+    """InputError when every frame of the split is one the map was built from, in the dataset
+    the map records: nothing would be registered that the map does not hold already (the
+    map's own labels come back as "pseudo-labels" at 0 cm)."""
+    own = set(old.database.frame_names)
+    if not all(f.name in own for f in frames):
+        return
+    recorded = [p for key, p in old.info.recorded_inputs().items()
+                if p is not None and "pose file" not in key]
+    if any(p.resolve() == Path(dataset.root).resolve() for p in recorded):
+        raise InputError(f"{dataset.root}: split '{split}' holds only frames the map was built "
+                         f"from ({len(frames)}): pseudo-labelling learns frames a map lacks "
+                         "(choose another split)")
+
+
 def pseudo_label(old: SceneMap, dataset: Dataset, split: str | None = None,
                  config: PseudoLabelConfig = PseudoLabelConfig(), truth: Dataset | None = None,
                  progress: bool = True) -> PseudoLabels:
@@ -82,6 +97,7 @@ def pseudo_label(old: SceneMap, dataset: Dataset, split: str | None = None,
     if len(frames_in) < 2:
         raise InputError(f"{dataset.root}: split '{split}' has {len(frames_in)} frames; "
                          "pseudo-labelling needs a sequence")
+    _refuse_own_frames(old, dataset, split, frames_in)
     frames = _frames_for_registration(frames_in)
     truth_world_from_cam, reference = _truth_poses(dataset, frames_in, truth)
     timings = {}

@@ -21,6 +21,8 @@ at +0.5. Camera strings and COLMAP files are in COLMAP's convention and converte
 
 from __future__ import annotations
 
+import re
+
 from functools import lru_cache
 
 import numpy as np
@@ -94,6 +96,11 @@ def _fold_problem(model: str, distortion: tuple[float, ...], width: int, height:
             out = distort_normalized(model, distortion, ideal * unit) @ unit
         beyond = np.flatnonzero(~(out < reach))  # reached (or no longer a number)
         upto = out[:beyond[0] + 1] if len(beyond) else out
+        if (model == "OPENCV_FISHEYE" and not len(beyond) and np.all(np.diff(upto) > 0)
+                and reach > distort_normalized(model, distortion, 1e6 * unit[None]) @ unit):
+            return (f"towards pixel ({edge[0]:g}, {edge[1]:g}) the image reaches beyond what "
+                    "the fisheye lens sees (more than 90 degrees off its axis: a field of view "
+                    f"over 180 degrees at fx={fx:g}, fy={fy:g}); check the focal lengths")
         if (not len(beyond) or not np.isfinite(upto[-1])
                 or not np.all(np.diff(upto) > 0)):
             return (f"its distortion {list(distortion)} folds back inside the image (towards "
@@ -124,14 +131,15 @@ def colmap_values(model: str, params, source: str) -> tuple[str, float, float, f
 def split_camera_string(text: str, source: str) -> tuple[str, int, int, list[float]]:
     """(model, width, height, parameters) of `"OPENCV 640 480 fx fy cx cy k1 k2 p1 p2"`, a
     line of COLMAP's cameras.txt with or without its camera id."""
-    words = text.split()
+    # the words as COLMAP's reader splits them: ASCII blanks (a no-break space is no separator)
+    words = [w for w in re.split(r"[ \t]+", text.strip(" \t\r\n")) if w]
     if words and words[0].isdigit() and len(words) > 1 and words[1] in PARAMS:
         words = words[1:]  # a cameras.txt line: CAMERA_ID MODEL WIDTH HEIGHT PARAMS
-    if len(words) < 3 or words[0].upper() not in PARAMS:
+    if len(words) < 3 or words[0] not in PARAMS:  # COLMAP's names, upper case, as cameras.txt
         raise InputError(f"{source}: expected 'MODEL WIDTH HEIGHT PARAMS...' with MODEL one of "
                          f"{', '.join(MODELS)}, got {text[:60]!r}")
-    # one rule for numbers in text (slamreloc.io.numbers)
-    if number_problem(words[1], integer=True) or number_problem(words[2], integer=True):
+    # one rule for numbers in text (slamreloc.io.numbers); a size is plain digits, unsigned
+    if not all(w.isascii() and w.isdigit() for w in words[1:3]):
         raise InputError(f"{source}: width and height must be whole numbers (plain decimal "
                          f"digits), got {text[:60]!r}")
     for word in words[3:]:

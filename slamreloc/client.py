@@ -20,6 +20,7 @@ to map frame, metres). A refusal raises `RemoteError` with the server's ErrorKin
 from __future__ import annotations
 
 import queue
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -78,9 +79,8 @@ def image_msg(image) -> pb.Image:
     """A path or bytes (an encoded image file), or a uint8 array (H, W) / (H, W, 3) RGB."""
     if isinstance(image, (str, Path)):
         from slamreloc.io.fileio import read_bytes
-        from slamreloc.io.limits import limits
 
-        return pb.Image(encoded=read_bytes(image, "image", limits().max_image_bytes))
+        return pb.Image(encoded=read_bytes(image, "image", "max_image_bytes"))
     if isinstance(image, (bytes, bytearray, memoryview)):
         return pb.Image(encoded=bytes(image))
     arr = np.ascontiguousarray(image)
@@ -114,7 +114,9 @@ def _camera(camera: Camera | str | None) -> pb.Camera | None:
 
 class Client:
     """A connection to a server. `token`: sent as `authorization: Bearer TOKEN`; `tls_ca`: the
-    PEM certificate(s) to trust for a TLS server; `timeout_s` per unary call."""
+    PEM certificate(s) to trust for a TLS server; `timeout_s`: the longest wait for a unary
+    call's answer and for a session frame's (a save and a close wait as long as the server
+    takes: it bounds them itself)."""
 
     def __init__(self, address: str = "127.0.0.1:50051", token: str | None = None,
                  tls_ca: Path | bytes | None = None, timeout_s: float = 60.0,
@@ -204,6 +206,24 @@ def confirmed_frames(results: list[pb.FrameResult]) -> list[int]:
     return [e.frame for r in results for e in r.events if e.kind in CONFIRMING]
 
 
+def _unexpected(update: pb.SessionUpdate, wanted: str) -> RemoteError:
+    got = update.WhichOneof("message") or "an empty answer"
+    return RemoteError(grpc.StatusCode.UNKNOWN, "", f"the server answered {got} where "
+                       f"{wanted} was due")
+
+
+def _expected(update: pb.SessionUpdate, wanted: str) -> pb.SessionUpdate:
+    """`update` if it is the answer `wanted`; RemoteError for a refusal (its kind's status
+    code) or any other answer."""
+    kind = update.WhichOneof("message")
+    if kind == "error":
+        raise RemoteError(GRPC_CODES.get(update.error.kind, grpc.StatusCode.INVALID_ARGUMENT),
+                          pb.ErrorKind.Name(update.error.kind), update.error.message)
+    if kind != wanted:
+        raise _unexpected(update, wanted)
+    return update
+
+
 class ClientSession:
     """A session in lock-step: `send` one frame, get its `pb.FrameResult`; `close` ends it and
     returns the final trajectory (`pb.SessionClosed`). A refused frame raises RemoteError and
@@ -216,17 +236,44 @@ class ClientSession:
         self._requests.put(pb.SessionRequest(open=opening))
         self._updates = client.stub.Session(iter(self._requests.get, self._END),
                                             metadata=client.metadata)
+        # the stream's answers, read by a thread of their own so that each wait is bounded by
+        # the client's `timeout_s`, as a unary call is
+        self._timeout_s = client.timeout_s
+        self._answers: queue.Queue = queue.Queue()
+        threading.Thread(target=self._read, name="slamreloc-session", daemon=True).start()
         first = self._next()
         if first.WhichOneof("message") != "opened":
-            raise RemoteError(grpc.StatusCode.UNKNOWN, "", f"unexpected first answer: {first}")
+            self._updates.cancel()
+            raise _unexpected(first, "opened")
         self.opened: pb.SessionOpened = first.opened
         self.closed: pb.SessionClosed | None = None
 
-    def _next(self) -> pb.SessionUpdate:
+    def _read(self) -> None:
         try:
-            return next(self._updates)
+            for update in self._updates:
+                self._answers.put(update)
+            self._answers.put(None)  # the server ended the stream
         except grpc.RpcError as err:
-            raise RemoteError.from_rpc(err) from None
+            self._answers.put(err)
+
+    def _next(self, bounded: bool = True) -> pb.SessionUpdate:
+        """The next answer; RemoteError where the stream failed, ended without one, or (where
+        `bounded`) none came within the client's `timeout_s` (the stream is then cancelled)."""
+        try:
+            update = self._answers.get(timeout=self._timeout_s if bounded else None)
+        except queue.Empty:
+            self._updates.cancel()
+            raise RemoteError(grpc.StatusCode.DEADLINE_EXCEEDED, "", f"no answer within "
+                              f"{self._timeout_s:g} s (the client's timeout_s); the session "
+                              "is cancelled") from None
+        if update is None:
+            self._answers.put(None)  # every later read ends the same way
+            raise RemoteError(grpc.StatusCode.UNAVAILABLE, "", "the server ended the session "
+                              "without an answer")
+        if isinstance(update, grpc.RpcError):
+            self._answers.put(update)
+            raise RemoteError.from_rpc(update)
+        return update
 
     def send(self, image, camera: Camera | str | None = None, depth: np.ndarray | None = None,
              odometry_world_from_cam: Rigid3 | None = None, timestamp: float = 0.0,
@@ -256,24 +303,22 @@ class ClientSession:
         return self._answer(pb.SessionRequest(save=pb.SessionSave(name=name))).saved
 
     def _answer(self, request: pb.SessionRequest) -> pb.SessionUpdate:
-        """Send one request and read its answer; a `SessionError` raises RemoteError with the
-        status code of its kind, as unary calls' refusals do."""
+        """Send one request and read its answer, which must be the one it asks for (a frame's
+        `frame`, a save's `saved`); a `SessionError` raises RemoteError with the status code of
+        its kind, as unary calls' refusals do, and any other answer RemoteError UNKNOWN."""
         if self.closed is not None:
             raise RemoteError(grpc.StatusCode.FAILED_PRECONDITION, "",
                               "the session is closed: open a new one")
         self._requests.put(request)
-        update = self._next()
-        if update.WhichOneof("message") == "error":
-            raise RemoteError(GRPC_CODES.get(update.error.kind,
-                                             grpc.StatusCode.INVALID_ARGUMENT),
-                              pb.ErrorKind.Name(update.error.kind), update.error.message)
-        return update
+        save = request.HasField("save")  # the server bounds a save's wait for its round
+        return _expected(self._next(bounded=not save), "saved" if save else "frame")
 
     def close(self) -> pb.SessionClosed:
+        """End the session: its final trajectory (`pb.SessionClosed`); RemoteError where the
+        server refuses or ends the stream without it."""
         if self.closed is None:
             self._requests.put(self._END)
-            update = self._next()
-            self.closed = update.closed
+            self.closed = _expected(self._next(bounded=False), "closed").closed
         return self.closed
 
     def __enter__(self) -> ClientSession:

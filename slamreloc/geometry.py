@@ -288,7 +288,8 @@ def parse_tum_line(line: str, source: str = "trajectory",
     The quaternion must be a unit quaternion (`unit_quaternion`)."""
     parts = line.split()
     if len(parts) != 8:
-        raise InputError(f"{source}: expected 8 fields 'name tx ty tz qx qy qz qw', "
+        first = "timestamp" if numeric_stamp else "name"
+        raise InputError(f"{source}: expected 8 fields '{first} tx ty tz qx qy qz qw', "
                          f"got {len(parts)}")
     if numeric_stamp:
         parse_stamp(parts[0], source)
@@ -372,13 +373,23 @@ def unique_stamps(rows: list[tuple[int, str, Rigid3]], path) -> list[tuple[str, 
     return out
 
 
+def refuse_json_text(text: str, path, what: str) -> None:
+    """InputError `FILE: not a WHAT file (it is JSON, such as a report)` for text that starts
+    as JSON does: a report or a map's metadata given where lines of poses belong would
+    otherwise fail on some line with a message about its fields."""
+    head = text.lstrip()[:1]
+    if head in ("{", "["):
+        raise InputError(f"{path}: not a {what} file (it is JSON, such as a report; a {what} "
+                         "file holds one pose per line)")
+
+
 def _content_lines(path: Path, what: str) -> list[tuple[int, str]]:
     """(line number, line) of a UTF-8 text file, blank lines and `#` comments skipped;
     an unreadable or binary file is an InputError naming it."""
     from slamreloc.io.fileio import read_text
-    from slamreloc.io.limits import limits
 
-    text = read_text(path, what, limits().max_text_bytes)
+    text = read_text(path, what, "max_text_bytes")
+    refuse_json_text(text, path, what)
     return [(i, line) for i, line in enumerate(text.splitlines(), 1)
             if line.strip() and not line.lstrip().startswith("#")]
 

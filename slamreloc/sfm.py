@@ -40,6 +40,7 @@ import numpy as np
 from slamreloc.camera_models import MODELS, PARAMS, colmap_head
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import check_outputs, write_json
+from slamreloc.map.lock import map_write_lock
 from slamreloc.io.video import is_video, video_frames
 from slamreloc.runtime.progress import console, make_progress
 from slamreloc.types import Camera
@@ -70,6 +71,8 @@ SELECTIONS = ("auto", "all", "parallax")
 # them the tests': 0.75 deg registered 4 of them, 1 and 1.5 deg 3, 2 deg 1 (all 30 photos: 2 of
 # the 4 run). A moving camera's frames are further apart than this: a video's are all kept
 MIN_PARALLAX_DEG = 0.75
+DEFAULT_FPS = 2.0  # frames sampled per second of a video
+DEFAULT_OVERLAP = 10  # sequential matching: each image with the next 10
 # COLMAP's incremental mapper starts a model from a pair whose points' median triangulation
 # angle is at least init_min_tri_angle (16 deg), halved twice when no model starts: 4 deg
 PARALLAX_START_DEG = 4.0
@@ -101,16 +104,16 @@ class SfmConfig:
     # incremental in more than 15; but on 20-40 synthetic images global positioning failed or
     # returned a wrong model (0.2 px reprojection error, 8 deg off), incremental did not
     mapper: str = "auto"
-    overlap: int = 10  # sequential matching: each image with the next `overlap`
+    overlap: int | None = None  # sequential matching: each image with the next N (None: 10)
     max_features: int = 4096
     max_image_size: int = 1600  # pixels, longer side, for extraction
-    fps: float = 2.0  # video: frames sampled per second
+    fps: float | None = None  # video: frames sampled per second (None: 2)
     split: str = "all"  # dataset input: which frames
     scale: float | None = None
     scale_from_depth: bool = False
     min_registered: float = 0.5  # fewer registered images than this share is an error
     select: str = "auto"  # auto (parallax for a video, else all) | all | parallax
-    min_parallax: float = MIN_PARALLAX_DEG  # degrees, for select "parallax"
+    min_parallax: float | None = None  # degrees, select "parallax" (None: MIN_PARALLAX_DEG)
 
     def __post_init__(self) -> None:
         if self.select not in SELECTIONS:
@@ -128,12 +131,34 @@ class SfmConfig:
         if self.scale is not None and self.scale_from_depth:
             raise InputError("`scale` and `scale_from_depth`: give one of them")
         initial_camera(self, None)  # a bad --camera fails before any work
+        if self.min_parallax is not None and self.select == "all":
+            raise InputError("`min_parallax` is for `select` parallax; `select` all keeps every "
+                             "image (leave `min_parallax` out)")
+        if self.overlap is not None and self.matching == "exhaustive":
+            raise InputError("`overlap` is for sequential matching; `matching` exhaustive "
+                             "matches every pair (leave `overlap` out)")
         for name, low, high in (("overlap", 1, 1000), ("max_features", 100, 1 << 16),
                                 ("max_image_size", 64, 1 << 16), ("fps", 1e-3, 1000),
                                 ("min_registered", 0.0, 1.0), ("min_parallax", 0.01, 60.0)):
             v = getattr(self, name)
-            if not low <= v <= high:
+            if v is not None and not low <= v <= high:
                 raise InputError(f"`{name}` must be in {low}..{high}, got {v}")
+
+
+    @property
+    def video_fps(self) -> float:
+        """Frames sampled per second of a video: `fps`, else 2."""
+        return DEFAULT_FPS if self.fps is None else self.fps
+
+    @property
+    def sequential_overlap(self) -> int:
+        """Sequential matching pairs each image with the next this many: `overlap`, else 10."""
+        return DEFAULT_OVERLAP if self.overlap is None else self.overlap
+
+    @property
+    def parallax_deg(self) -> float:
+        """`select` parallax keeps an image at this median triangulation angle (degrees)."""
+        return MIN_PARALLAX_DEG if self.min_parallax is None else self.min_parallax
 
 
 @dataclass
@@ -302,8 +327,8 @@ def _selector(config: SfmConfig, kind: str, camera: Camera | None) -> KeyframeSe
     if text and len(text.split()) > 1:
         camera = Camera.parse(text, "`camera`")
     if camera is None:
-        return KeyframeSelector(config.min_parallax)
-    return KeyframeSelector(config.min_parallax, camera.fx, camera.width)
+        return KeyframeSelector(config.parallax_deg)
+    return KeyframeSelector(config.parallax_deg, camera.fx, camera.width)
 
 
 def _report_selection(selector: KeyframeSelector | None, what: str, progress: bool) -> dict:
@@ -323,9 +348,8 @@ def checked_image(path: Path) -> tuple[bytes, np.ndarray]:
     naming the file otherwise."""
     from slamreloc.io.fileio import read_bytes
     from slamreloc.io.images import decode_rgb
-    from slamreloc.io.limits import limits
 
-    data = read_bytes(path, "image", limits().max_image_bytes)
+    data = read_bytes(path, "image", "max_image_bytes")
     return data, decode_rgb(data, path)  # `check_encoded_image`'s rules, every reader's
 
 
@@ -363,7 +387,7 @@ def _collect_video(path: Path, images_dir: Path, config: SfmConfig,
     names, sizes = [], {}
     folder = images_dir / path.stem
     folder.mkdir(parents=True)
-    frames = video_frames(path, config.fps)  # a file FFmpeg cannot open fails here
+    frames = video_frames(path, config.video_fps)  # a file FFmpeg cannot open fails here
     selector = _selector(config, "video", None)
     with make_progress() if progress else _NoBar() as bar:
         task = bar.add_task("decoding video", total=None, rate="")
@@ -382,7 +406,7 @@ def _collect_video(path: Path, images_dir: Path, config: SfmConfig,
                 raise InputError(f"{images_dir / name}: could not write a video frame")
             names.append(name)
             sizes.setdefault((rgb.shape[1], rgb.shape[0]), name)
-    return SfmInput("video", names, notes={"video": str(path), "fps": config.fps,
+    return SfmInput("video", names, notes={"video": str(path), "fps": config.video_fps,
                                            **_report_selection(selector, "frames", progress)},
                     sizes=sizes)
 
@@ -518,7 +542,8 @@ def initial_camera(config: SfmConfig, given: Camera | None,
 def _quiet_colmap() -> None:
     import pycolmap
 
-    pycolmap.logging.minloglevel = 2  # warnings and errors only; slamreloc shows progress
+    # fatal lines only: slamreloc shows progress, and says what failed in its own error
+    pycolmap.logging.minloglevel = 3
 
 
 def run_sfm(source: Path, out: Path, config: SfmConfig = SfmConfig(),
@@ -528,7 +553,15 @@ def run_sfm(source: Path, out: Path, config: SfmConfig = SfmConfig(),
     if not source.exists():
         raise InputError(f"{source}: not found (a folder of images, a video or a dataset)")
     check_outputs({"`out`": out}, {"the input": source}, folders={"`out`": None})
-    if is_video(source) or source.is_dir() and not _looks_like_dataset(source):
+    video = is_video(source)
+    if config.fps is not None and not video:
+        raise InputError(f"{source}: `fps` samples a video, and this is not one (leave `fps` "
+                         "out)")
+    if config.min_parallax is not None and config.select == "auto" and not video:
+        raise InputError(f"{source}: `min_parallax` is for `select` parallax, which `select` "
+                         "auto uses for a video only (give `select` parallax, or leave "
+                         "`min_parallax` out)")
+    if video or source.is_dir() and not _looks_like_dataset(source):
         # a video or a folder of images: no depth, no camera, no splits
         if config.scale_from_depth:
             raise InputError(f"{source}: `scale_from_depth` needs depth, and a video or a "
@@ -540,6 +573,11 @@ def run_sfm(source: Path, out: Path, config: SfmConfig = SfmConfig(),
         if config.split != SfmConfig.split:
             raise InputError(f"{source}: `split` chooses a dataset's frames; a video or a "
                              "folder of images has none (leave it out)")
+    with map_write_lock(out, "this dataset"):  # a second writer fails at once, not at the end
+        return _run_into(source, out, config, progress)
+
+
+def _run_into(source: Path, out: Path, config: SfmConfig, progress: bool) -> dict:
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(f"{out}: exists and is not empty; choose a new folder")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -572,6 +610,10 @@ def _run(source: Path, root: Path, config: SfmConfig, progress: bool) -> dict:
     inp = collect_images(source, images_dir, config, progress)
     if len(inp.names) < 2:
         raise InputError(f"{source}: SfM needs at least 2 images, found {len(inp.names)}")
+    if config.overlap is not None and config.matching == "auto" and not inp.sequential:
+        raise InputError(f"{source}: `overlap` is for sequential matching, and `matching` auto "
+                         "matches these unordered images exhaustively (give `matching` "
+                         "sequential, or leave `overlap` out)")
     timings["import_s"] = time.perf_counter() - t0
     model, params = initial_camera(config, inp.camera, inp.sizes)
     # a dataset's camera is a calibration: kept unless --camera asks for another model
@@ -705,7 +747,7 @@ def _failure(source: Path, inp: SfmInput, config: SfmConfig, matching: str, n_re
     selected = "selection" in inp.notes
     widest, neighbours = pairs.get("widest_deg"), pairs.get("neighbours_deg")
     # near-duplicates: what selection drops (and would have, had it been asked for)
-    duplicates = (not selected and neighbours is not None and neighbours < config.min_parallax
+    duplicates = (not selected and neighbours is not None and neighbours < config.parallax_deg
                   and pairs["neighbours_motion"] < MIN_MOTION)
     if widest is not None and (widest < PARALLAX_START_DEG or duplicates):
         near = "" if neighbours is None else f", neighbouring ones at {neighbours:.2f} deg"
@@ -717,7 +759,7 @@ def _failure(source: Path, inp: SfmInput, config: SfmConfig, matching: str, n_re
                   "or around the scene, not only turning)"]
         if duplicates:
             advice.insert(0, f"keep fewer, more spread-out {what} (`select` parallax keeps one "
-                             f"once it has {config.min_parallax:g} deg of parallax to the last "
+                             f"once it has {config.parallax_deg:g} deg of parallax to the last "
                              "one kept)")
         return f"{head}: {cause}; {_either(advice)}"
     matched = pairs.get("n_pairs") != 0  # unknown where the pairs could not be read
@@ -729,11 +771,11 @@ def _failure(source: Path, inp: SfmInput, config: SfmConfig, matching: str, n_re
     if not config.camera.strip():
         advice.append("a camera model that fits the lens (`camera` OPENCV or OPENCV_FISHEYE)")
     if inp.kind == "video":
-        advice.append(f"more overlap (a higher `fps` than {config.fps:g})")
+        advice.append(f"more overlap (a higher `fps` than {config.video_fps:g})")
     elif not matched:
         advice.append(f"{what} that overlap more")
     if matching == "sequential":
-        advice.append(f"a higher `overlap` than {config.overlap}")
+        advice.append(f"a higher `overlap` than {config.sequential_overlap}")
     if config.min_registered > 0 and n_registered >= 3:
         advice.append("a lower `min_registered`")
     return f"{head}{cause}" + (f"; try {_either(advice)}" if advice else "")
@@ -776,7 +818,7 @@ def _match(database: Path, matching: str, exact: bool, config: SfmConfig,
         bar.add_task(f"sfm: {matching} matching", total=None, rate="")
         if matching == "sequential":
             pairing = pycolmap.SequentialPairingOptions()
-            pairing.overlap = config.overlap
+            pairing.overlap = config.sequential_overlap
             pairing.quadratic_overlap = True
             pycolmap.match_sequential(database, options, pairing, verification,
                                       device=pycolmap.Device.cpu)

@@ -30,14 +30,11 @@ class Camera:
     distortion: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
-        problem = camera_problem(self.width, self.height, self.fx, self.fy, self.cx, self.cy)
         object.__setattr__(self, "distortion", tuple(float(v) if isinstance(v, (int, float))
                                                      and not isinstance(v, bool) else v
                                                      for v in self.distortion))
-        problem = (problem or centre_problem(self.width, self.height, self.cx, self.cy)
-                   or lens.distortion_problem(self.model, self.distortion)
-                   or lens.fold_problem(self.model, self.distortion, self.width, self.height,
-                                        self.fx, self.fy, self.cx, self.cy))
+        problem = lens_camera_problem(self.model, self.width, self.height, self.fx, self.fy,
+                                      self.cx, self.cy, self.distortion)
         if problem:
             raise InputError(f"invalid camera: {problem}")
         if self.model != "OPENCV_FISHEYE" and not any(self.distortion):  # one name per lens
@@ -49,11 +46,8 @@ class Camera:
         """From a COLMAP model name and parameter list (COLMAP's principal point); an
         InputError naming `source` for anything out of range."""
         model, fx, fy, cx, cy, distortion = lens.colmap_values(model, params, source)
-        problem = (camera_problem(width, height, fx, fy, cx, cy)
-                   or centre_problem(width, height, cx, cy)
-                   or lens.distortion_problem(model, distortion)
-                   or lens.fold_problem(model, distortion, width, height, fx, fy, cx, cy))
-        if problem:
+        problem = lens_camera_problem(model, width, height, fx, fy, cx, cy, distortion)
+        if problem:  # named by `source` here, not as "invalid camera"
             raise InputError(f"{source}: {problem}")
         return cls(width, height, fx, fy, cx, cy, model, distortion)
 
@@ -205,6 +199,30 @@ def centre_problem(width: int, height: int, cx: float, cy: float) -> str | None:
             return (f"{name} must lie within one image size of the image ({-size}..{2 * size} "
                     f"pixels for {size}), got {_show(v)}")
     return None
+
+
+def k_matrix_problem(k) -> str | None:
+    """What is wrong with a 3x3 pinhole matrix K (None when nothing): finite, [[fx 0 cx]
+    [0 fy cy] [0 0 1]]: a skew or another last row would be silently ignored. The one rule
+    of intrinsics files and ROS CameraInfo messages."""
+    k = np.asarray(k, np.float64)
+    if k.shape != (3, 3):
+        return f"K must be 3x3, got {k.size} values"
+    if not np.all(np.isfinite(k)):
+        return "K must be finite numbers"
+    if k[0, 1] != 0 or k[1, 0] != 0 or list(k[2]) != [0.0, 0.0, 1.0]:
+        return "K must be [[fx 0 cx] [0 fy cy] [0 0 1]] (no skew)"
+    return None
+
+
+def lens_camera_problem(model: str, width, height, fx, fy, cx, cy, distortion) -> str | None:
+    """Every rule of a camera, in order (None when it keeps them all): `camera_problem`,
+    `centre_problem`, the lens model's distortion ranges and `fold_problem` (the image must
+    not fold inside it). The one check of `Camera` and `Camera.from_colmap`."""
+    return (camera_problem(width, height, fx, fy, cx, cy)
+            or centre_problem(width, height, cx, cy)
+            or lens.distortion_problem(model, distortion)
+            or lens.fold_problem(model, distortion, width, height, fx, fy, cx, cy))
 
 
 @dataclass

@@ -306,14 +306,21 @@ def test_a_recorded_root_that_is_no_string_is_kept_but_refused_where_used(tiny_m
                               f"got {shown}")
 
 
-@pytest.mark.parametrize("record", [{"root": None}, {"split": "test"}, {"root": "relative/x"},
-                                    {"root": "/abs/data"}])
+@pytest.mark.parametrize("record", [{"root": None}, {"split": "test"}, {"root": "/abs/data"}])
 def test_a_root_recorded_as_null_absent_or_a_path_is_read(tiny_map, record):
     doc = {**_meta_doc(tiny_map), "dataset": record}
     inputs = MapMeta.from_json(doc, tiny_map / META).recorded_inputs()
     root = record.get("root")
-    assert inputs["the dataset the map records"] == (
-        Path(root) if root and Path(root).is_absolute() else None)
+    assert inputs["the dataset the map records"] == (None if root is None else Path(root))
+
+
+@pytest.mark.parametrize("root", ["relative/x", "scene", ""])
+def test_a_relative_recorded_root_is_refused_where_used_never_read_from_the_cwd(tiny_map, root):
+    doc = {**_meta_doc(tiny_map), "dataset": {"root": root}}
+    meta = MapMeta.from_json(doc, tiny_map / META)
+    assert meta.dataset_root is None  # never resolved against the current folder
+    with pytest.raises(InputError, match=r"'dataset.root' must be an absolute path"):
+        meta.recorded_inputs()
 
 
 def test_a_recorded_dataset_that_is_no_object_is_refused_where_used(tiny_map):

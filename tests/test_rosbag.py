@@ -407,8 +407,8 @@ def test_camera_of_a_bag_is_checked(scene, tmp_path):
     info.k[0] = np.nan
     bag = write_bag(dataset, frames[:2], tmp_path / "run", camera_info=False,
                     extra={INFO_TOPIC: [info]})
-    with pytest.raises(InputError, match=f"^{bag}: camera_info topic {INFO_TOPIC}: invalid "
-                                         "camera: fx must be a finite number"):
+    with pytest.raises(InputError, match=f"^{bag}: camera_info topic {INFO_TOPIC}: K must be "
+                                         "finite numbers"):
         load_rosbag(bag)
 
 

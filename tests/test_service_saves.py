@@ -28,6 +28,7 @@ from slamreloc.map.format import META
 from slamreloc.proto.messages import MAX_SAVED_NAME_BYTES
 from slamreloc.service.server import ServeConfig, start_server
 from slamreloc.slam import live_map
+from tests.fuzzing import run_cli
 from tests.test_service_live import LIVE, frames  # noqa: F401 - the shared fixture
 
 REPO = Path(__file__).resolve().parents[1]
@@ -309,3 +310,28 @@ def test_a_learned_maps_folder_replaced_while_serving_takes_no_save(learning, tm
     finally:
         aside.rename(folder)
     assert session.save("seed").map_version
+
+
+def test_saves_under_new_names_are_bounded(tmp_path, frames):  # noqa: F811
+    """Round 6, finding 4: one session saved map after map under new names, each staying
+    loaded (16 MB of memory apiece), without bound. `max_learned_maps` bounds the new names
+    (OVERLOADED, nothing written); saving over a map already saved is always taken."""
+    folder = tmp_path / "learned"
+    folder.mkdir()
+    running = start_server({}, ServeConfig(port=0, watch_s=0, learned_maps=folder, live=FAST,
+                                           max_learned_maps=1))
+    try:
+        with Client(running.address, timeout_s=30) as client:
+            session = client.session(odometry="auto", learn=True)
+            for f in frames[:N_LEARN]:
+                session.send(f.image, camera=f.camera, depth=f.depth, timestamp=f.timestamp)
+            assert session.save("first").map_version
+            err = refused(lambda: session.save("second"), "OVERLOADED")
+            assert "max_learned_maps" in str(err), err
+            assert session.save("first").map_version  # over its own: taken
+            session.close()
+        assert sorted(os.listdir(folder)) == ["first"]
+    finally:
+        running.stop()
+    code, err = run_cli(["serve", "--max-learned-maps", "3", str(tmp_path / "m")])
+    assert code == 2 and "--learned-maps" in err and err.count("\n") == 1, err

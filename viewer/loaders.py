@@ -9,6 +9,7 @@ from pathlib import Path
 
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import check_folder
+from slamreloc.map.export import check_dataset_of_map
 from slamreloc.map.scene_map import SceneMap
 from slamreloc.viewer.data import SceneData, ViewerInputs
 from slamreloc.viewer.images import open_dataset
@@ -33,6 +34,8 @@ def load_scene_data(inputs: ViewerInputs) -> SceneData:
         reference = read_reference(inputs.poses)
     scene_map = SceneMap.load(inputs.map_dir, regressor=False)
     dataset = open_dataset(inputs.dataset or scene_map.info.dataset_root)
+    if inputs.dataset is not None and dataset is not None:  # its images shown as the map's
+        check_dataset_of_map(scene_map, Path(inputs.dataset), dataset)
     if reference is not None:  # the ground truth shown: --poses instead of the dataset's
         if dataset is None:
             raise InputError(f"{inputs.poses}: `poses` needs the dataset its frames belong to "

@@ -37,16 +37,21 @@ def address(server, host: str) -> str:
 
 
 def check_address(host: str, port: int) -> None:
-    """InputError unless `host` resolves and `port` is a TCP port, 0 to 65535 (0: any free
-    one, as `serve --port 0`), before anything is read."""
-    import socket
+    """InputError unless `host` is an address of this machine (or a name resolving to one;
+    `slamreloc.io.address`, the rule `serve` keeps) and `port` is a TCP port, 0 to 65535 (0:
+    any free one, as `serve --port 0`), before anything is read. A port in use is viser's to
+    handle (it moves to the next one); an address that is not this machine's would have it
+    try port after port for ever."""
+    from slamreloc.io.address import bind_problem, host_problem
 
+    problem = host_problem(host)
+    if problem:
+        raise InputError(f"`host` {host[:80]!r} {problem}")
     if not 0 <= port <= 65535:  # serve's rule (`ServeConfig.check`): 0 takes any free port
         raise InputError(f"`port` {port}: not a TCP port")
-    try:
-        socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-    except (OSError, UnicodeError) as err:
-        raise InputError(f"`host` {host[:80]!r}: cannot resolve it ({err})") from None
+    refusal = bind_problem(host, 0)
+    if refusal is not None:
+        raise refusal
 
 
 def start(inputs: ViewerInputs, data: SceneData | None = None) -> tuple[object, SceneHandles]:

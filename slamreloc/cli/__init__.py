@@ -12,7 +12,7 @@ from slamreloc.cli.commands import _flags, app, with_flags
 from slamreloc.errors import Interrupted, SlamrelocError, is_out_of_memory
 from slamreloc.runtime.progress import stop_bars
 
-__all__ = ["_flags", "app", "main", "with_flags"]
+__all__ = ["_flags", "app", "main", "run", "with_flags"]
 
 INTERRUPTED = 130  # the exit status of a command cut short by Ctrl-C or SIGTERM
 
@@ -189,8 +189,27 @@ def _end_interrupted(message: str = "interrupted") -> NoReturn:
     os._exit(INTERRUPTED)
 
 
+# native libraries' own log lines (OpenCV's warnings, FFmpeg's through it) would come before
+# the one `error:` line that says the same for the user; a user's own setting is kept
+NATIVE_QUIET = {"OPENCV_LOG_LEVEL": "ERROR", "OPENCV_FFMPEG_LOGLEVEL": "-8"}
+
+
+def _quiet_native_logs() -> None:
+    """Silence OpenCV's and FFmpeg's log lines for this process (before cv2 is imported, as
+    they read the environment once; through cv2 where it already is)."""
+    import os
+
+    for name, value in NATIVE_QUIET.items():
+        os.environ.setdefault(name, value)
+    cv2 = sys.modules.get("cv2")
+    if cv2 is not None and os.environ["OPENCV_LOG_LEVEL"] == "ERROR":
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+
+
 def main() -> None:
     import warnings
+
+    _quiet_native_logs()
 
     warnings.formatwarning = (
         lambda message, *args, **kwargs: f"warning: {with_flags(str(message))}\n")
@@ -221,3 +240,17 @@ def main() -> None:
         sys.exit(2)
     except KeyboardInterrupt:
         _end_interrupted()
+
+
+def run() -> None:
+    """The `slamreloc` program: `main`, then SIGTERM ignored while the process exits. Once the
+    command has ended its outputs are complete; a SIGTERM landing in the interpreter's
+    shutdown (seconds, with torch loaded) would otherwise kill it by the signal, an exit
+    status that says the outputs may not be whole. In a process that goes on after `main`
+    (tests), call `main`."""
+    import signal
+
+    try:
+        main()
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)

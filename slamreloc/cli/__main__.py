@@ -1,5 +1,5 @@
 """`python -m slamreloc.cli`: the `slamreloc` command."""
 
-from slamreloc.cli import main
+from slamreloc.cli import run
 
-main()
+run()

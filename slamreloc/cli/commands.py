@@ -27,9 +27,9 @@ from slamreloc.errors import InputError
 POSES_HELP = ("take the frames' poses from this file instead of the dataset's: a COLMAP model "
               "folder, 'name tx ty tz qx qy qz qw' lines, a TUM file or another dataset "
               "folder (docs/formats.md)")
-GUIDED_HELP = ("regressor: refine the pose on the map's database points matched near it, on maps "
-               "whose labels agree with their images (docs/method.md); --no-guided: the pose "
-               "from the regressed points alone")
+GUIDED_HELP = ("regressor (on by default): refine the pose on the map's database points "
+               "matched near it, on maps whose labels agree with their images "
+               "(docs/method.md); --no-guided: the pose from the regressed points alone")
 SPLIT_HELP = ("train | test | all | a role (kidnap, ...) | a sequence, or a comma-separated list "
               "of them, each sequence once")
 # upper bounds of counts the options take: beyond them a value is a typo, not a wish (1e11
@@ -45,6 +45,16 @@ def check_range(flag: str, value: int | float | None, low: int | float,
     within [low, high]."""
     if value is not None and not low <= value <= high:
         raise InputError(f"{flag} must be in {low}..{high}, got {str(value)[:24]}")
+
+
+def guided_choice(method: Method, guided: bool | None) -> bool:
+    """`--guided` / `--no-guided` as given (None: not given, which is guided): an InputError
+    with `--method matching`, which has no guided step to switch."""
+    if guided is not None and method != Method.regressor:
+        flag = "--guided" if guided else "--no-guided"
+        raise InputError(f"{flag} is for --method regressor; --method {method.value} has no "
+                         "guided step (leave it out)")
+    return True if guided is None else guided
 
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -153,14 +163,15 @@ def evaluate(
         metavar="FILE", help="also score against this reference (read as --poses is), moved "
         "into the map's frame by a similarity fitted on the map's training cameras only; "
         "repeatable")] = None,
-    guided: Annotated[bool, typer.Option(help=GUIDED_HELP)] = True,
+    guided: Annotated[Optional[bool], typer.Option(help=GUIDED_HELP)] = None,
 ) -> None:
     """Localize every frame of a split against MAP and score it against ground truth."""
     from slamreloc.cli import jobs
 
     summary = jobs.evaluate(map_dir, dataset, report, split, method.value, trajectory, plot,
                             device.value, depth=depth, poses=poses,
-                            references=list(reference or []), guided=guided)
+                            references=list(reference or []),
+                            guided=guided_choice(method, guided))
     from slamreloc.localize.evaluate import print_summary
 
     print_summary([summary])
@@ -178,7 +189,7 @@ def localize(
         help="a COLMAP camera string, any lens model: \"OPENCV 640 480 fx fy cx cy k1 k2 p1 "
              "p2\" (as in cameras.txt; scaled to an image of another size)")] = None,
     method: Annotated[Method, typer.Option()] = Method.regressor,
-    guided: Annotated[bool, typer.Option(help=GUIDED_HELP)] = True,
+    guided: Annotated[Optional[bool], typer.Option(help=GUIDED_HELP)] = None,
 ) -> None:
     """Print `name tx ty tz qx qy qz qw inliers` (camera-to-world) for each image."""
     from slamreloc.cli import jobs
@@ -192,7 +203,8 @@ def localize(
     else:
         query_camera = intrinsics
     errors = 0
-    for line, status in jobs.localize(map_dir, images, query_camera, method.value, guided):
+    for line, status in jobs.localize(map_dir, images, query_camera, method.value,
+                                       guided_choice(method, guided)):
         if status == "error":
             errors += 1
             typer.echo(with_flags(line), err=True)
@@ -259,9 +271,11 @@ def sfm(
         help="global (GLOMAP: fast) or incremental (COLMAP's: slower on long sequences, "
              "more robust on small sets and unknown intrinsics); auto: global for 100+ "
              "images with a known camera, else incremental")] = Mapper.auto,
-    fps: Annotated[float, typer.Option(help="video: frames sampled per second")] = 2.0,
+    fps: Annotated[Optional[float], typer.Option(
+        help="video: frames sampled per second [default: 2]")] = None,
     split: Annotated[str, typer.Option(help="dataset input: which frames")] = "all",
-    overlap: Annotated[int, typer.Option(help="sequential matching: next N images")] = 10,
+    overlap: Annotated[Optional[int], typer.Option(
+        help="sequential matching: next N images [default: 10]")] = None,
     max_features: Annotated[int, typer.Option(help="SIFT features per image")] = 4096,
     scale_from_depth: Annotated[bool, typer.Option(
         "--scale-from-depth", help="metric scale from the input's depth")] = False,
@@ -275,8 +289,9 @@ def sfm(
              "reach --min-parallax to the last one kept (near-duplicates of a slow camera "
              "make SfM fail); all keeps every one; auto: parallax for a video (among the "
              "--fps samples), all for photos and datasets")] = "auto",
-    min_parallax: Annotated[float, typer.Option(
-        metavar="DEG", help="--select parallax: median triangulation angle, degrees")] = 0.75,
+    min_parallax: Annotated[Optional[float], typer.Option(
+        metavar="DEG", help="--select parallax: median triangulation angle, degrees "
+        "[default: 0.75]")] = None,
 ) -> None:
     """Poses for unposed images or a video: SfM with pycolmap, written as a COLMAP dataset
     that map, evaluate, slam and pseudo-label read."""

@@ -42,7 +42,7 @@ from slamreloc.map.lock import map_write_lock
 from slamreloc.map.scene_map import SceneMap
 from slamreloc.map.surface import IcpConfig, read_frame_depth, refine_with_depth
 from slamreloc.runtime.progress import console
-from slamreloc.types import Camera, Frame, camera_problem
+from slamreloc.types import Camera, Frame, camera_problem, lens_camera_problem
 
 
 def evaluate(map_dir: Path, dataset_dir: Path, report: Path, split: str = "test",
@@ -183,6 +183,9 @@ def localize(map_dir: Path, images: list[Path],
             if isinstance(intrinsics, Camera):
                 camera = intrinsics.for_image(w, h, f"{path}: --camera")
             elif intrinsics:
+                problem = lens_camera_problem("PINHOLE", w, h, *intrinsics, ())
+                if problem:
+                    raise InputError(f"{path}: --intrinsics: {problem}")
                 camera = Camera(w, h, *intrinsics)
             elif own_camera is not None:
                 camera = own_camera.for_image(w, h, f"{path}: the bag's camera")

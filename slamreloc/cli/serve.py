@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -10,10 +9,7 @@ import typer
 
 from slamreloc.cli.choices import Engine
 from slamreloc.errors import InputError
-from slamreloc.service import MAX_REPLICAS
-
-TOKEN_ENV = "SLAMRELOC_TOKEN"
-
+from slamreloc.service import MAX_REPLICAS, TOKEN_ENV
 
 def map_names(maps: list[Path], names: list[str]) -> dict[str, Path]:
     """name -> folder: the `--name`s in order, then the folders' own names; each a name the
@@ -38,29 +34,6 @@ def map_names(maps: list[Path], names: list[str]) -> dict[str, Path]:
             raise InputError(f"{path}: two maps named {quoted(name, 40)} (`name`)")
         out[name] = path
     return out
-
-
-def read_token(token_file: Path | None) -> str | None:
-    """The token from `token_file`, else $SLAMRELOC_TOKEN, else None; InputError naming its
-    source for one gRPC could not carry (`token_problem`)."""
-    from slamreloc.service.server import token_problem
-
-    if token_file is not None:
-        from slamreloc.io.fileio import read_text
-
-        token = read_text(token_file, "token (`token_file`)", 1 << 16).strip()
-        source = f"{token_file}: the token (`token_file`)"
-    else:
-        token = os.environ.get(TOKEN_ENV) or None
-        source = f"the token in ${TOKEN_ENV}"
-    if token is None:
-        return None
-    if not token:
-        raise InputError(f"{token_file}: empty token file")
-    problem = token_problem(token)
-    if problem:
-        raise InputError(f"{source} {problem}")
-    return token
 
 
 def require_ray() -> None:
@@ -100,6 +73,9 @@ def serve(
     learned_maps: Annotated[Optional[Path], typer.Option(
         help="folder where learning sessions save their maps (SessionSave NAME: DIR/NAME, "
              "then served as NAME); without it a save is refused")] = None,
+    max_learned_maps: Annotated[Optional[int], typer.Option(
+        help="--learned-maps: most maps sessions may save under new names (each stays "
+             "loaded; a save over one of them is always taken) [default: 64]")] = None,
 ) -> None:
     """Serve MAPs over gRPC (protocol slamreloc.v1): Localize, SLAM sessions, health, list and
     reload maps. Runs until Ctrl-C."""
@@ -115,7 +91,12 @@ def serve(
     if not maps and learned_maps is None:
         raise InputError("no MAP to serve: give map folders, or --learned-maps DIR for a server "
                          "whose sessions learn their maps")
+    if max_learned_maps is not None and learned_maps is None:
+        raise InputError("--max-learned-maps bounds the maps saved into --learned-maps; give "
+                         "that folder, or leave it out")
     named = map_names(maps, list(name or []))
+    from slamreloc.service.server import read_token
+
     token = read_token(token_file)
     if engine == Engine.ray:
         require_ray()
@@ -137,4 +118,6 @@ def serve(
     serve_forever(named, ServeConfig(
         host=host, port=port, workers=workers, max_sessions=max_sessions, token=token,
         tls_cert=tls_cert, tls_key=tls_key, max_request_bytes=int(max_request_mb * (1 << 20)),
-        watch_s=watch, learned_maps=learned_maps))
+        watch_s=watch, learned_maps=learned_maps,
+        max_learned_maps=(ServeConfig.max_learned_maps if max_learned_maps is None
+                          else max_learned_maps)))

@@ -37,6 +37,7 @@ from slamreloc.datasets.colmap_check import check_model
 from slamreloc.datasets.io import check_frame_files, read_text
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3, pose_gap, same_pose, values_agree
+from slamreloc.io.fileio import open_regular
 from slamreloc.io.jsonio import read_json
 from slamreloc.types import Camera, Frame
 
@@ -60,6 +61,12 @@ def find_model(root: Path, dirs: tuple[str, ...] = MODEL_DIRS) -> tuple[Path, st
         present = {ext: [n for n in FILES if (folder / f"{n}.{ext}").is_file()] for ext in EXTS}
         if not any(present.values()):
             continue
+        for ext in EXTS:  # a model file there, but a folder, a pipe or a device: said so
+            for n in FILES:
+                path = folder / f"{n}.{ext}"
+                if n not in present[ext] and (path.exists() or path.is_symlink()):
+                    with open_regular(path, "COLMAP model"):
+                        pass
         partial = [(ext, names) for ext, names in present.items()
                    if names and len(names) < len(FILES)]
         if partial:

@@ -186,9 +186,21 @@ def _walk_frames(r: _Binary) -> None:
     r.end()
 
 
+def _model_text(path: Path) -> str:
+    """A text model file as text; InputError for one that starts with a byte-order mark,
+    which slamreloc's other text readers drop but COLMAP's own reader (that reads the model
+    after this check) takes for part of the first line."""
+    text = read_text(path, "COLMAP model", MAX_TEXT_BYTES)
+    with open(path, "rb") as f:
+        if f.read(3) == b"\xef\xbb\xbf":
+            raise InputError(f"{path}: starts with a UTF-8 byte-order mark, which COLMAP's "
+                             "reader does not skip (save the file without it)")
+    return text
+
+
 def _text_rows(path: Path) -> list[tuple[int, list[str]]]:
     """(line number, words) of the data lines (not blank, not comments)."""
-    text = read_text(path, "COLMAP model", MAX_TEXT_BYTES)
+    text = _model_text(path)
     return [(i, line.split()) for i, line in enumerate(text.splitlines(), 1)
             if line.strip() and not line.lstrip().startswith("#")]
 
@@ -230,7 +242,7 @@ def _read_cameras_text(path: Path) -> dict[int, int]:
 
 def _read_images_text(path: Path) -> dict[int, tuple[str, int]]:
     """Mirrors COLMAP's reader: an image line (data), then the next line holds its points."""
-    text = read_text(path, "COLMAP model", MAX_TEXT_BYTES)
+    text = _model_text(path)
     lines = text.splitlines()
     out, i = {}, 0
     while i < len(lines):
@@ -273,6 +285,9 @@ def check_model(folder: Path, ext: str) -> ModelIndex:
     else:
         cams = _read_cameras_text(folder / "cameras.txt")
         images = _read_images_text(folder / "images.txt")
+        for name in ("rigs", "frames"):
+            if (folder / f"{name}.txt").is_file():
+                _model_text(folder / f"{name}.txt")
     images_file = folder / f"images.{ext}"
     by_name = {}
     for name, cam_id in images.values():

@@ -12,7 +12,7 @@ from slamreloc.geometry import Rigid3
 from slamreloc.io import fileio
 from slamreloc.io.images import check_frame_files, image_header, image_size, read_depth, read_image
 from slamreloc.io.numbers import number_problem
-from slamreloc.types import camera_problem
+from slamreloc.types import camera_problem, k_matrix_problem
 
 __all__ = ["check_frame_files", "image_header", "image_size", "read_depth", "read_image",
            "read_intrinsics", "read_pose", "read_text", "write_pose"]
@@ -60,10 +60,9 @@ def read_intrinsics(path: Path) -> np.ndarray:
     """A 3x3 pinhole K matrix [[fx 0 cx] [0 fy cy] [0 0 1]] in pixels; InputError naming the
     file unless it is one (a skew or a last row other than 0 0 1 would be silently ignored)."""
     k = _read_matrix(path, "intrinsics", (3, 3))
-    if not np.all(np.isfinite(k)):
-        raise InputError(f"{path}: intrinsics must be finite numbers")
-    if k[0, 1] != 0 or k[1, 0] != 0 or list(k[2]) != [0.0, 0.0, 1.0]:
-        raise InputError(f"{path}: intrinsics must be [[fx 0 cx] [0 fy cy] [0 0 1]] (no skew)")
+    problem = k_matrix_problem(k)
+    if problem:
+        raise InputError(f"{path}: intrinsics: {problem}")
     if k[0, 2] < 0 or k[1, 2] < 0:
         raise InputError(f"{path}: intrinsics must have non-negative cx, cy")
     problem = camera_problem(1, 1, k[0, 0], k[1, 1], k[0, 2], k[1, 2])

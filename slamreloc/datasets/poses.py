@@ -41,9 +41,9 @@ from slamreloc.geometry import (
     read_named_trajectory,
     read_names_sidecar,
     read_tum_trajectory,
+    refuse_json_text,
 )
 from slamreloc.io.fileio import open_regular, reads_as, read_text
-from slamreloc.io.limits import limits
 from slamreloc.io.numbers import number_problem
 from slamreloc.types import Frame
 
@@ -109,7 +109,8 @@ def _refuse_repeated_names(path: Path) -> None:
     twice in a pose file, found by a pass over the lines' first words before the lines are
     parsed (a 2 M line file with a repeat fails in a second, not after a minute). Numeric
     first words (timestamps) are not names."""
-    text = read_text(path, "pose", limits().max_text_bytes)
+    text = read_text(path, "pose", "max_text_bytes")
+    refuse_json_text(text, path, "pose")
     first_line: dict[str, int] = {}
     for i, line in enumerate(text.splitlines(), 1):
         words = line.split(maxsplit=1)

@@ -49,7 +49,7 @@ from slamreloc.geometry import (MAX_COORDINATE, Rigid3, matrix_to_quat, nearest_
                                 pose_gap, same_pose, unit_quaternion)
 from slamreloc.io.images import check_encoded_image, check_image_size
 from slamreloc.runtime.progress import console
-from slamreloc.types import Camera, Frame
+from slamreloc.types import Camera, Frame, k_matrix_problem
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -475,8 +475,9 @@ def camera_from_info(msg: Any, size: tuple[int, int], source: str) -> Camera:
     """A `Camera` of the images' size (width, height) from a CameraInfo message."""
     k = [float(v) for v in _field(msg, "k")]
     d = [float(v) for v in _field(msg, "d")]
-    if len(k) != 9 or k[1] != 0:
-        raise InputError(f"{source}: K must be a 3x3 matrix without skew")
+    problem = k_matrix_problem(np.reshape(k, (3, 3))) if len(k) == 9 else "K must be 3x3"
+    if problem:
+        raise InputError(f"{source}: {problem}")
     if (msg.width, msg.height) not in ((0, 0), size):
         raise InputError(f"{source}: CameraInfo is for {msg.width}x{msg.height} images, the "
                          f"images are {size[0]}x{size[1]}")

@@ -74,9 +74,9 @@ def load_tum(root: Path) -> Dataset:
         raise InputError(f"{root / 'rgb.txt'}: image {dup!r} is listed more than once")
     width, height = image_size(root / rgb[0][1])
     own = (root / "intrinsics.txt").is_file()
+    k = read_intrinsics(root / "intrinsics.txt") if own else None  # its errors name it
     try:
         if own:
-            k = read_intrinsics(root / "intrinsics.txt")
             camera = Camera(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
         else:  # the TUM RGB-D benchmark's default camera, for its 640x480 images
             camera = Camera(width, height, 525.0, 525.0, 319.5, 239.5)

@@ -9,7 +9,7 @@ from typing import ClassVar
 import numpy as np
 
 from slamreloc.errors import InputError, OutOfMemory, is_out_of_memory
-from slamreloc.io.limits import bytes_text, limits
+from slamreloc.io.limits import bytes_text, limits, over_limit
 from slamreloc.types import Camera, Features
 
 
@@ -77,9 +77,7 @@ class Extractor:
         limit = limits().max_feature_bytes
         if need > limit:
             raise InputError(f"{source}: {self.name} features of a {width}x{height} image need "
-                             f"~{bytes_text(need)} of memory, over the {bytes_text(limit)} "
-                             "limit (raise it with `limit` max_feature_bytes=N or "
-                             "SLAMRELOC_MAX_FEATURE_BYTES)")
+                             + over_limit("max_feature_bytes", f"~{bytes_text(need)} of memory"))
 
     def check_frames(self, frames) -> None:
         """`check_size` for each image size among `frames` (dataset frames), naming the first

@@ -54,25 +54,35 @@ def regular_size(f: BinaryIO) -> int:
     return os.fstat(f.fileno()).st_size
 
 
-def read_bytes(path: str | Path, what: str, limit: int) -> bytes:
-    """The bytes of a regular file of at most `limit` bytes; InputError naming it otherwise
-    (also for a pipe, a device or a folder: see `open_regular`)."""
+def read_bytes(path: str | Path, what: str, limit: int | str) -> bytes:
+    """The bytes of a regular file of at most `limit` bytes (a number, or the name of a bound
+    the user may raise: `slamreloc.io.limits`); InputError naming it otherwise (also for a
+    pipe, a device or a folder: see `open_regular`)."""
+    from slamreloc.io.limits import bytes_text, limits, over_limit
+
     path = Path(path)
+    most = getattr(limits(), limit) if isinstance(limit, str) else limit
+
+    def too_large(size: str) -> InputError:
+        if isinstance(limit, str):
+            return InputError(f"{path}: {what} file of " + over_limit(limit, size))
+        return InputError(f"{path}: {what} file of {size}, over the {bytes_text(most)} a "
+                          f"{what} file may hold")
+
     with open_regular(path, what) as f:
         try:
             size = regular_size(f)
-            if size > limit:
-                raise InputError(f"{path}: {size} bytes, too large for a {what} file (limit "
-                                 f"{limit} bytes)")
-            data = f.read(limit + 1)  # a file growing while read is bounded too
+            if size > most:
+                raise too_large(bytes_text(size))
+            data = f.read(most + 1)  # a file growing while read is bounded too
         except OSError as err:
             raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None
-    if len(data) > limit:
-        raise InputError(f"{path}: more than {limit} bytes, too large for a {what} file")
+    if len(data) > most:
+        raise too_large(f"more than {bytes_text(most)}")
     return data
 
 
-def read_text(path: str | Path, what: str, limit: int) -> str:
+def read_text(path: str | Path, what: str, limit: int | str) -> str:
     """`read_bytes` as UTF-8 text (a leading byte-order mark, which some editors write, is
     dropped: every text file is read the same way, JSON's too); InputError for bytes that are
     not UTF-8."""
@@ -265,9 +275,13 @@ def check_outputs(outputs: dict[str, str | Path | None],
             is_own, own_kind = _own_test(own.get(option, ...))
             if want_dir and is_own is not ... and any(target.iterdir()) and (
                     is_own is None or not is_own(target)):
-                what = f"is not {own_kind}" if own_kind else "holds files that are not its output"
-                raise InputError(f"{out}: {option} exists, is not empty and {what}; refusing to "
-                                 "replace it (give a new or an empty folder)")
+                if is_own is None:  # an output that never replaces a folder, even its own
+                    raise InputError(f"{out}: {option} exists and is not empty; this command "
+                                     "writes a new or an empty folder only, never over one "
+                                     "(choose another, or remove it)")
+                raise InputError(f"{out}: {option} exists, is not empty and is not "
+                                 f"{own_kind or 'its own output'}; "
+                                 "refusing to replace it (give a new or an empty folder)")
             is_own, own_kind = _own_test((files or {}).get(option, ...))
             if not want_dir and is_own is not ... and not is_own(Path(out)):
                 raise InputError(f"{out}: {option} exists and is not "

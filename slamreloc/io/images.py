@@ -27,7 +27,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import open_regular, read_bytes, regular_size
-from slamreloc.io.limits import limits, pixels_text
+from slamreloc.io.limits import bytes_text, limits, over_limit, pixels_text
 
 T = TypeVar("T")
 # libjpeg's warnings (jerror.h): those that mean the data is corrupt or cut short, and the
@@ -145,8 +145,8 @@ def jpeg_structure_problem(data: bytes) -> str | None:
                 return "JPEG without scan data: the picture itself is missing"
             scans += 1
             if scans > limits().max_jpeg_scans:
-                return (f"JPEG with more than {limits().max_jpeg_scans} scans, over the scan "
-                        "limit (max_jpeg_scans)")
+                return f"JPEG with more than {limits().max_jpeg_scans} scans, " + over_limit(
+                    "max_jpeg_scans")
         elif marker == 0xD9:
             return None if scans else "JPEG without scan data: the picture itself is missing"
     return "JPEG truncated or corrupt: no end marker after its scans"
@@ -209,10 +209,8 @@ def check_image_size(width: int, height: int, source, what: str = "image") -> No
         raise InputError(f"{source}: {what} is {width}x{height} pixels; at least "
                          f"{lim.min_image_side} pixels a side are needed")
     if width * height > lim.max_image_pixels:
-        raise InputError(f"{source}: {what} is {width}x{height} = "
-                         f"{pixels_text(width * height)}, over the "
-                         f"{pixels_text(lim.max_image_pixels)} limit (raise it with `limit` "
-                         "max_image_pixels=N or SLAMRELOC_MAX_IMAGE_PIXELS)")
+        raise InputError(f"{source}: {what} is {width}x{height} = " + over_limit(
+            "max_image_pixels", pixels_text(width * height)))
 
 
 def jpeg_has_scan_data(data: bytes) -> bool:
@@ -233,8 +231,8 @@ def check_encoded_image(data: bytes, source, what: str = "image") -> ImageHeader
     corrupted, oversized or (JPEG) over-scanned one."""
     lim = limits()
     if len(data) > lim.max_image_bytes:
-        raise InputError(f"{source}: {len(data)} bytes, over the {lim.max_image_bytes} byte "
-                         f"limit for an encoded {what} (max_image_bytes)")
+        raise InputError(f"{source}: encoded {what} of " + over_limit(
+            "max_image_bytes", bytes_text(len(data))))
     header = encoded_header(data, source, what)
     if header.format == "PNG":
         for _ in _png_chunks(data, source, what, verify_crc=True):
@@ -305,7 +303,9 @@ def decode_image(data: bytes, source, flags: int = cv2.IMREAD_COLOR, what: str =
     else:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     if img is None or img.size == 0:
-        raise InputError(f"{source}: not a readable {what} (empty or corrupt)")
+        why = (f"{header.bits}-bit {header.format} samples, which OpenCV does not decode; "
+               "save it with 8 or 16 bits" if header.bits > 16 else "empty or corrupt")
+        raise InputError(f"{source}: not a readable {what} ({why})")
     if (img.shape[1], img.shape[0]) != (header.width, header.height):
         raise InputError(f"{source}: not a readable {what} (decoded {img.shape[1]}x"
                          f"{img.shape[0]}, its header says {header.width}x{header.height})")
@@ -331,7 +331,7 @@ def pixel_colours(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 
 def _file_bytes(path: Path, what: str) -> bytes:
-    return read_bytes(path, what, limits().max_image_bytes)
+    return read_bytes(path, what, "max_image_bytes")
 
 
 def read_image(path: str | Path,
@@ -374,8 +374,8 @@ def image_header(path: str | Path, what: str = "image") -> ImageHeader:
                     pass
             size = regular_size(f)  # other formats' parsers want the whole file (bounded)
             if size > limits().max_image_bytes:
-                raise InputError(f"{path}: {size} bytes, over the {limits().max_image_bytes} "
-                                 f"byte limit for an encoded {what} (max_image_bytes)")
+                raise InputError(f"{path}: encoded {what} of " + over_limit(
+                    "max_image_bytes", bytes_text(size)))
             head += f.read(limits().max_image_bytes)
     except OSError as err:
         raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None

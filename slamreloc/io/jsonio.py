@@ -18,7 +18,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import read_bytes
-from slamreloc.io.limits import limits
+from slamreloc.io.limits import bytes_text, limits, over_limit
 
 
 def _refuse_constant(name: str):
@@ -73,8 +73,8 @@ def parse_json(data: bytes | str, source, what: str = "JSON") -> Any:
     way)."""
     lim = limits()
     if len(data) > lim.max_json_bytes:
-        raise InputError(f"{source}: {len(data)} bytes, over the {lim.max_json_bytes} byte "
-                         f"limit for {what} (max_json_bytes)")
+        raise InputError(f"{source}: {what} of " + over_limit("max_json_bytes",
+                                                              bytes_text(len(data))))
     try:
         value = json.loads(data, parse_constant=_refuse_constant, parse_int=_bounded_int,
                            parse_float=_finite_float, object_pairs_hook=_unique_keys)
@@ -84,15 +84,15 @@ def parse_json(data: bytes | str, source, what: str = "JSON") -> Any:
         raise InputError(f"{source}: not valid {what} ({' '.join(str(err).split())[:200]})"
                          ) from None
     if _depth(value, lim.max_json_depth) > lim.max_json_depth:
-        raise InputError(f"{source}: {what} is nested more than {lim.max_json_depth} levels "
-                         "deep (max_json_depth)")
+        raise InputError(f"{source}: {what} nested more than {lim.max_json_depth} levels "
+                         "deep, " + over_limit("max_json_depth"))
     return value
 
 
 def read_json(path: str | Path, what: str = "JSON") -> dict:
     """The JSON object in a file (bounded by `max_json_bytes` and `max_json_depth`)."""
     path = Path(path)
-    value = parse_json(read_bytes(path, what, limits().max_json_bytes), path, what)
+    value = parse_json(read_bytes(path, what, "max_json_bytes"), path, what)
     if not isinstance(value, dict):
         raise InputError(f"{path}: {what} must be a JSON object, got {_kind(value)}")
     return value

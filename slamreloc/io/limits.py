@@ -81,6 +81,17 @@ def bytes_text(n: int) -> str:
     return f"{n / 1e6:.1f} MB" if n >= 1_000_000 else f"{n} bytes"
 
 
+def over_limit(name: str, amount: str | None = None) -> str:
+    """The one shape of every message about a bound: `AMOUNT, over the LIMIT limit (NAME;
+    raise it with `limit` NAME=N or SLAMRELOC_NAME)`, LIMIT in pixels, bytes or a count as the
+    bound's name says (`amount`: what the input needs, or None)."""
+    value = getattr(limits(), name)
+    shown = (pixels_text(value) if name.endswith("_pixels") else
+             bytes_text(value) if name.endswith("_bytes") else str(value))
+    return (f"{'' if amount is None else amount + ', '}over the {shown} limit ({name}; raise "
+            f"it with `limit` {name}=N or {ENV_PREFIX}{name.upper()})")
+
+
 _current: InputLimits | None = None
 
 

@@ -100,8 +100,8 @@ def check_dataset_of_map(scene_map: SceneMap, dataset_dir: Path, dataset) -> Non
             if theirs is not None and not filecmp.cmp(f.image_path, theirs, shallow=False):
                 raise InputError(f"`dataset` {dataset_dir}: {f.image_path} is not the image of "
                                  f"frame '{f.name}' in the dataset the map records ({theirs}): "
-                                 "the points would be coloured from other images (leave "
-                                 "`dataset` out to use the map's)")
+                                 "other images would stand for the map's (leave `dataset` "
+                                 "out to use the map's)")
         return
     cam = scene_map.camera
     for f in frames:

@@ -156,8 +156,8 @@ def _parse_npz(f: BinaryIO, path: Path, what: str) -> dict[str, np.ndarray]:
                     raise InputError(f"{path}: member {info.filename[:80]!r} claims "
                                      f"{info.file_size} bytes; refusing to read it")
         f.seek(0)
-        with np.load(f, allow_pickle=False) as npz:
-            return {key: npz[key] for key in npz.files}
+        with np.load(f, allow_pickle=False) as npz:  # values in this machine's byte order
+            return {key: _native(npz[key]) for key in npz.files}
     except InputError:
         raise
     except ValueError as err:
@@ -170,6 +170,14 @@ def _parse_npz(f: BinaryIO, path: Path, what: str) -> dict[str, np.ndarray]:
         # on a damaged archive: all of them mean "this file is not readable"
         raise InputError(f"{path}: not a readable {what} ({type(err).__name__}: "
                          f"{one_line(err)[:200]})") from None
+
+
+def _native(array: np.ndarray) -> np.ndarray:
+    """`array` in native byte order (a big-endian archive holds the same values; torch and
+    the checks below take native arrays only)."""
+    if array.dtype.byteorder in ("=", "|") or array.dtype.isnative:
+        return array
+    return array.astype(array.dtype.newbyteorder("="))
 
 
 def check_database(arrays: dict[str, np.ndarray], path: Path, dim: int,

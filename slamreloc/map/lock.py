@@ -3,7 +3,8 @@
 A writer holds an exclusive lock on `.NAME.lock` beside MAP (removed when it is done;
 `build_map` and `update_map` take it at their start); a second writer fails at once. A killed
 writer's temporary `.NAME.tmp-PID` and moved-aside `.NAME.old-PID` folders are removed at the
-next save or load of that map (a map moved aside and never replaced is put back first).
+next save or load of that map (a map moved aside and never replaced is put back first); only
+folders that are such debris (`_leftovers`), never a user's file of a like name.
 """
 
 from __future__ import annotations
@@ -17,7 +18,15 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.map.format import is_map
+from slamreloc.map.format import (
+    DATABASE,
+    LEGACY_WEIGHTS,
+    META,
+    PROVENANCE,
+    SURFACE,
+    WEIGHTS,
+    is_map,
+)
 
 _HELD: set[str] = set()  # maps whose write lock this process holds
 
@@ -26,15 +35,46 @@ def _lock_path(out: Path) -> Path:
     return out.parent / f".{out.name}.lock"
 
 
+MAP_FILES = frozenset({META, WEIGHTS, DATABASE, SURFACE, PROVENANCE, LEGACY_WEIGHTS})
+
+
 def _leftovers(out: Path) -> list[Path]:
-    if not out.parent.is_dir():
+    """What a killed writer of `out` left beside it, and nothing else: folders named exactly
+    `.NAME.tmp-PID` holding only map files (a save cut short), or `.NAME.old-PID` holding a
+    map (one moved aside), PID in digits. Names are compared as strings, not as a pattern (a
+    map named `m[1]` must not take `.m1.tmp-7` for its own), and a user's own file or folder
+    of a like name (`.NAME.old-mine`, a file `.NAME.tmp-notes`) is never taken for debris."""
+    try:
+        entries = list(os.scandir(out.parent))
+    except OSError:  # no folder, or one that cannot be listed: nothing to clean
         return []
-    return sorted([*out.parent.glob(f".{out.name}.tmp-*"), *out.parent.glob(f".{out.name}.old-*")])
+    found = []
+    for entry in entries:
+        for kind in ("tmp", "old"):
+            prefix = f".{out.name}.{kind}-"
+            pid = entry.name[len(prefix):]
+            if not (entry.name.startswith(prefix) and pid.isascii() and pid.isdigit()
+                    and entry.is_dir(follow_symlinks=False)):
+                continue
+            path = Path(entry.path)
+            if is_map(path) if kind == "old" else _only_map_files(path):
+                found.append(path)
+    return sorted(found)
+
+
+def _only_map_files(folder: Path) -> bool:
+    """Whether `folder` holds nothing but regular files a map writer writes."""
+    try:
+        return all(e.name in MAP_FILES and e.is_file(follow_symlinks=False)
+                   for e in os.scandir(folder))
+    except OSError:
+        return False
 
 
 @contextmanager
-def map_write_lock(out: str | Path) -> Iterator[None]:
-    """Hold the exclusive write lock of map folder `out` (re-entrant within a process).
+def map_write_lock(out: str | Path, what: str = "this map") -> Iterator[None]:
+    """Hold the exclusive write lock of map folder `out` (re-entrant within a process; `what`
+    the folder is, for the message; `sfm`'s datasets take it too).
 
     A second process asking for it gets InputError at once. On entry, the leftovers of a
     killed writer are cleaned up (and a map it had moved aside is put back)."""
@@ -52,7 +92,7 @@ def map_write_lock(out: str | Path) -> Iterator[None]:
         except BlockingIOError:
             holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
             os.close(fd)
-            raise InputError(f"{out}: another process (pid {holder}) is writing this map; "
+            raise InputError(f"{out}: another process (pid {holder}) is writing {what}; "
                              "try again when it has finished") from None
         # the holder before us removes the lock file on release: make sure ours is the
         # file at the path, not one it has just unlinked
@@ -79,7 +119,7 @@ def map_write_lock(out: str | Path) -> Iterator[None]:
 
 def _recover(out: Path) -> None:
     """Under the lock: put back a map a killed writer had moved aside; remove its leftovers."""
-    olds = [p for p in _leftovers(out) if ".old-" in p.name and is_map(p)]
+    olds = [p for p in _leftovers(out) if p.name.startswith(f".{out.name}.old-")]
     if olds and not out.exists():
         newest = max(olds, key=lambda p: p.stat().st_mtime)
         os.replace(newest, out)

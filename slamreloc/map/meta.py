@@ -47,7 +47,7 @@ from slamreloc.map.format import DATABASE, FORMAT_VERSION, LEGACY_WEIGHTS, MAP_F
 from slamreloc.registry import PRECISIONS, PRESETS
 from slamreloc.regressor.model import RegressorConfig
 from slamreloc.regressor.train import TrainConfig
-from slamreloc.types import Camera, camera_problem
+from slamreloc.types import Camera, camera_problem, lens_camera_problem
 
 Json = Any  # a parsed JSON value: dict, list, str, int, float, bool or None
 MAX_META_BYTES = 64 << 20
@@ -81,6 +81,22 @@ def _is_object(v) -> bool:
 
 def _is_strings(v) -> bool:
     return isinstance(v, list) and all(isinstance(s, str) for s in v)
+
+
+def frame_name_problem(name: str) -> str | None:
+    """Why `name` cannot name a map's training frame (None when it can): a frame is named by
+    its image's path relative to the dataset root (`seq-01/frame-000000`), which export writes
+    into lines (a COLMAP images.txt, a TUM names sidecar) and the viewer looks up in the
+    dataset: non-empty, without line breaks or other control characters (a space, as photos'
+    names have, is kept), relative, never leaving the root (`..`)."""
+    if not name:
+        return "is empty"
+    if any(not c.isprintable() and c != " " for c in name):  # photos' names hold spaces
+        return "holds a line break or another control character"
+    parts = name.replace("\\", "/").split("/")
+    if name.startswith("/") or ".." in parts:
+        return "is not a path inside the dataset (absolute, or with '..')"
+    return None
 
 
 def _short(v) -> str:
@@ -389,9 +405,11 @@ class MapMeta(_Record):
 
     @property
     def dataset_root(self) -> Path | None:
-        """The dataset the map was built from, when recorded."""
+        """The dataset the map was built from, when recorded (an absolute path; a recorded
+        root of another type or a relative one reads as none here, and `recorded_inputs`, which
+        every command that writes checks, refuses it)."""
         root = self.dataset.root if self.dataset else None
-        return None if root is None else Path(root)
+        return Path(root) if isinstance(root, str) and Path(root).is_absolute() else None
 
     @property
     def poses_source(self) -> str:
@@ -429,6 +447,13 @@ class MapMeta(_Record):
         if root is not None and not isinstance(root, str):
             raise InputError(f"{self.source or META}: '{where}.root' must be a string (the "
                              f"dataset's path), got {_short(root)}")
+        if root is not None and ("\0" in root or len(root.encode("utf-8", "replace")) > 4096):
+            raise InputError(f"{self.source or META}: '{where}.root' is not a path this system "
+                             f"can hold (a NUL byte, or over 4096 bytes), got {_short(root)}")
+        if root is not None and not Path(root).is_absolute():  # "" too: no path at all
+            raise InputError(f"{self.source or META}: '{where}.root' must be an absolute path "
+                             f"(maps record one; a relative one would name another dataset "
+                             f"from each folder a command runs in), got {_short(root)}")
         return root
 
     @property
@@ -496,15 +521,24 @@ def _check_schema(meta: dict, version: int, path) -> None:
     extra = set(cam) - {"width", "height", "fx", "fy", "cx", "cy", "model", "distortion"}
     if extra:
         raise InputError(f"{path}: unknown camera key '{sorted(extra)[0]}'")
+    model, dist = "PINHOLE", []
     if "model" in cam or "distortion" in cam:
         model = need(cam, "model", str, "camera.")
         dist = need(cam, "distortion", list, "camera.")
         problem = distortion_problem(model, dist)
         if problem:
             raise InputError(f"{path}: 'camera': {problem}")
+    problem = lens_camera_problem(model, *(cam[k] for k in ("width", "height", "fx", "fy",
+                                                              "cx", "cy")), tuple(dist))
+    if problem:  # every rule of a camera (`Camera`), named by the file here
+        raise InputError(f"{path}: 'camera': {problem}")
     names = meta.get("frame_names", [])
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise InputError(f"{path}: 'frame_names' must be a list of strings")
+    for i, name in enumerate(names):  # a name twice is one frame observed twice (`read`)
+        problem = frame_name_problem(name)
+        if problem:
+            raise InputError(f"{path}: 'frame_names'[{i}] {_short(name)} {problem}")
     if version >= 2:
         files = need(meta, "files", dict, "")
         for name in (WEIGHTS, DATABASE):

@@ -9,3 +9,4 @@ Clients: `slamreloc.client` (Python), clients/cpp (C++).
 
 ENGINES = ("grpc", "ray")  # slamreloc's own gRPC server; the same service on Ray Serve
 MAX_REPLICAS = 256  # replicas per map on Ray Serve (`--replicas`: checked whatever the engine)
+TOKEN_ENV = "SLAMRELOC_TOKEN"  # the token every call must carry, where no token file is given

@@ -58,7 +58,7 @@ from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import ERROR_METADATA_KEY, ServiceError, quoted
 from slamreloc.service import MAX_REPLICAS
-from slamreloc.service.server import WATCH_RULE, check_seconds, token_problem
+from slamreloc.service.server import WATCH_RULE, check_seconds, read_token, token_problem
 
 if TYPE_CHECKING:
     from ray.serve.deployment import Application
@@ -276,12 +276,29 @@ def build_app(args: dict[str, Any]) -> Application:
     if unknown or not isinstance(args.get("maps"), dict):
         raise InputError(f"args: `maps` (name: folder) is required; known: {sorted(known)}; "
                          f"unknown: {sorted(unknown)}")
+    maps = args["maps"]
+    bad = next((k for k, v in maps.items() if not isinstance(v, str) or not v.strip()), None)
+    if bad is not None:
+        raise InputError(f"args: `maps`.{str(bad)[:40]} must be a map folder's path, got "
+                         f"{repr(maps[bad])[:40]}")
     token = None
-    if args.get("token_file"):
-        from slamreloc.io.fileio import read_text
+    if "token_file" in args:  # given: it must hold a token (empty is not "no token")
+        path = args["token_file"]
+        if not isinstance(path, str) or not path.strip():
+            raise InputError(f"args: `token_file` must name a file, got {repr(path)[:40]}")
+        token = read_token(Path(path), environment=False)
+    return application({str(k): Path(v) for k, v in maps.items()},
+                       _config_number(args, "replicas", 1, whole=True),
+                       replica_cpus=_config_number(args, "replica_cpus", REPLICA_CPUS),
+                       token=token, watch_s=_config_number(args, "watch_s", WATCH_S))
 
-        token = read_text(args["token_file"], "token (`token_file`)", 1 << 16).strip() or None
-    return application({str(k): Path(v) for k, v in args["maps"].items()},
-                       int(args.get("replicas", 1)),
-                       replica_cpus=float(args.get("replica_cpus", REPLICA_CPUS)), token=token,
-                       watch_s=float(args.get("watch_s", WATCH_S)))
+
+def _config_number(args: dict[str, Any], key: str, default, whole: bool = False):
+    """`args[key]` (else `default`): a JSON/YAML number, whole where `whole` (2.9 is not 2
+    replicas, true is not 1); InputError naming the field otherwise."""
+    value = args.get(key, default)
+    kinds = (int,) if whole else (int, float)
+    if isinstance(value, bool) or not isinstance(value, kinds) or value != value:
+        what = "a whole number" if whole else "a number"
+        raise InputError(f"args: `{key}` must be {what}, got {repr(value)[:40]}")
+    return value

@@ -24,10 +24,8 @@ from __future__ import annotations
 
 import errno
 import hmac
-import ipaddress
 import os
 import signal
-import socket
 import stat
 import sys
 import threading
@@ -44,6 +42,7 @@ from google.protobuf.message import DecodeError
 
 from slamreloc import __version__
 from slamreloc.errors import InputError, OutOfMemory, is_out_of_memory
+from slamreloc.io.address import bind_problem, host_problem, is_loopback, listen_address
 from slamreloc.io.fileio import relation, resolved
 from slamreloc.map.format import META
 from slamreloc.proto import PROTOCOL
@@ -54,13 +53,13 @@ from slamreloc.proto.messages import (
     quoted,
     saved_map_name_problem,
 )
+from slamreloc.service import TOKEN_ENV
 from slamreloc.service.localize import localize
 from slamreloc.service.maps import MapRegistry
 from slamreloc.service.sessions import Session
 from slamreloc.slam.live_map import LiveMapConfig
 
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["Relocalizer"].full_name
-LOOPBACK_NAMES = ("localhost",)
 
 
 MIN_WATCH_S = 0.01  # the shortest `watch_s`: a check of every map folder per interval
@@ -86,6 +85,7 @@ class ServeConfig:
     # the folder learning sessions save their maps into (SessionSave: DIR/NAME, then served as
     # NAME); None: a save is refused (FAILED_PRECONDITION)
     learned_maps: Path | None = None
+    max_learned_maps: int = 64  # maps sessions may save under new names (each stays loaded)
     live: LiveMapConfig = field(default_factory=LiveMapConfig)  # learning sessions' maps
 
     def check(self) -> None:
@@ -97,6 +97,8 @@ class ServeConfig:
             raise InputError(f"`workers` {self.workers}: 1 to 256")
         if not 1 <= self.max_sessions <= 4096:
             raise InputError(f"`max_sessions` {self.max_sessions}: 1 to 4096")
+        if not 1 <= self.max_learned_maps <= 4096:
+            raise InputError(f"`max_learned_maps` {self.max_learned_maps}: 1 to 4096")
         if not 0 <= self.max_queued <= 4096:
             raise InputError(f"`max_queued` {self.max_queued}: 0 to 4096")
         if not (1 << 16) <= self.max_request_bytes <= (2 << 30) - 1:
@@ -120,8 +122,9 @@ class ServeConfig:
                                  f"(it is {what})")
             if not os.access(folder, os.W_OK | os.X_OK):
                 raise InputError(f"{folder}: `learned_maps` is not writable")
-        if not self.host:
-            raise InputError("`host` is empty: an address or a host name to bind")
+        problem = host_problem(self.host)
+        if problem:
+            raise InputError(f"`host` {quoted(self.host)} {problem}")
         if not is_loopback(self.host) and self.token is None:
             raise InputError(f"`host` {self.host} is not a loopback address: anyone who reaches "
                              "it could use the server; give a token (`token_file` or "
@@ -147,6 +150,32 @@ WATCH_RULE = {"minimum": MIN_WATCH_S, "what": "seconds between checks of the map
               "zero": "only ReloadMap"}  # `check_seconds` of `watch_s` / --watch
 
 
+def read_token(token_file: Path | None, environment: bool = True) -> str | None:
+    """The token from `token_file`, else (with `environment`) $SLAMRELOC_TOKEN, else None.
+    One rule for every source (`serve --token-file`, the variable, a Ray Serve config's
+    `token_file`): blanks around it are dropped, and an empty or blank one is an InputError
+    naming its source, never "no token" (which would turn authentication off), as is one gRPC
+    could not carry (`token_problem`)."""
+    if token_file is not None:
+        from slamreloc.io.fileio import read_text
+
+        text = read_text(token_file, "token (`token_file`)", 1 << 16)
+        source = f"{token_file}: the token (`token_file`)"
+    else:
+        text = os.environ.get(TOKEN_ENV) if environment else None
+        source = f"the token in ${TOKEN_ENV}"
+    if text is None:
+        return None
+    token = text.strip()
+    if not token:
+        raise InputError(f"{source} is empty (give a token, or leave it out to run "
+                         "without one on a loopback address)")
+    problem = token_problem(token)
+    if problem:
+        raise InputError(f"{source} {problem}")
+    return token
+
+
 def token_problem(token: str) -> str | None:
     """Why `token` cannot be the server's token (None when it can): at least MIN_TOKEN
     characters of printable ASCII without spaces - what gRPC metadata carries, so a client
@@ -158,64 +187,6 @@ def token_problem(token: str) -> str | None:
         return (f"must be printable ASCII without spaces or line breaks (gRPC metadata carries "
                 f"nothing else), got {bad!a}")
     return None
-
-
-def is_loopback(host: str) -> bool:
-    """Whether `host` names this machine only: localhost, 127.0.0.0/8 in any form the system
-    reads (127.1, 2130706433), ::1, or IPv4-mapped ::ffff:127.0.0.1."""
-    if host in LOOPBACK_NAMES:
-        return True
-    bare = host.strip("[]")
-    try:
-        ip = ipaddress.ip_address(bare)
-    except ValueError:
-        try:  # the short IPv4 forms the resolver also takes
-            ip = ipaddress.IPv4Address(socket.inet_aton(bare))
-        except OSError:
-            return False
-    mapped = getattr(ip, "ipv4_mapped", None)
-    return ip.is_loopback or (mapped is not None and mapped.is_loopback)
-
-
-def listen_address(host: str, port: int) -> str:
-    """gRPC's `host:port`, an IPv6 literal in brackets ("[::1]:50051")."""
-    bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host
-    return f"[{bare}]:{port}" if ":" in bare else f"{bare}:{port}"
-
-
-def bind_problem(host: str, port: int) -> InputError | None:
-    """Why the server could not listen on host:port, found before gRPC tries (which logs and
-    raises): an InputError naming `host` (not resolvable, not an address of this machine) or
-    `port` (in use, not allowed); None when a socket binds to one of its addresses."""
-    bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host
-    try:
-        infos = socket.getaddrinfo(bare, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
-    except (socket.gaierror, UnicodeError) as err:
-        reason = getattr(err, "strerror", None) or str(err)
-        return InputError(f"`host` {quoted(host)}: not an address, nor a name this machine "
-                          f"resolves ({reason})")
-    first: OSError | None = None
-    for family, kind, proto, _, address in infos:
-        try:
-            with socket.socket(family, kind, proto) as probe:
-                probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as gRPC does
-                probe.bind(address)
-                return None
-        except OSError as err:
-            first = first or err
-    where = listen_address(host, port)
-    code = first.errno if first is not None else None
-    if code == errno.EADDRINUSE:
-        return InputError(f"`port` {port}: cannot listen on {where}: the port is in use")
-    if code == errno.EACCES:
-        return InputError(f"`port` {port}: cannot listen on {where}: not allowed (a port below "
-                          "1024 needs privileges)")
-    if code == errno.EADDRNOTAVAIL:
-        return InputError(f"`host` {quoted(host)}: cannot listen on {where}: not an address of "
-                          "this machine")
-    reason = first.strerror if first is not None else "no address"
-    return InputError(f"`host` {quoted(host)} / `port` {port}: cannot listen on {where} "
-                      f"({reason})")
 
 
 _LOG_LOCK = threading.Lock()
@@ -408,9 +379,17 @@ class RelocalizerService:
                     pb.OVERLOADED, f"{self.sessions} sessions open and {self.opening} opening, "
                     "the most this server takes"))
             self.opening += 1
-        state = {"opened": False}
+        state = {"opened": False, "freed": False}
         key = id(state)
+
+        def ended() -> None:  # gRPC's callback when the stream ends, however it does
+            learning = state.get("session")
+            if learning is not None:  # a round (a save's wait) ends at its next epoch
+                learning.cancel()
+            self._free(state)
+
         self.deadlines.arm(key, self.config.open_timeout_s, context)
+        context.add_callback(ended)
         try:
             yield from self._session(requests, context, key, state)
         except grpc.RpcError:  # the stream was cancelled (by the client, or a deadline)
@@ -419,19 +398,30 @@ class RelocalizerService:
         finally:
             self.deadlines.disarm(key)
             learning = state.get("session")
-            if learning is not None:  # its training round ends before the session is freed
+            if learning is not None:  # its training round ends before its thread is let go
                 learning.release()
                 with self._count_lock:
                     self.learning.discard(learning)
-            with self._count_lock:
-                if state["opened"]:
-                    self.sessions -= 1
-                else:
-                    self.opening -= 1
+            self._free(state)
+
+    def _free(self, state: dict) -> None:
+        """Give a session's slot back, once: when its stream ends (a client that leaves frees
+        it at once, even while the handler still waits on a training round) or its handler
+        returns, whichever comes first."""
+        with self._count_lock:
+            if state["freed"]:
+                return
+            state["freed"] = True
+            if state["opened"]:
+                self.sessions -= 1
+            else:
+                self.opening -= 1
 
     def _opened(self, state: dict) -> None:
         """Count a session as open (OVERLOADED when `max_sessions` already are)."""
         with self._count_lock:
+            if state["freed"]:  # the stream ended while its SessionOpen was processed
+                raise ServiceError(pb.FAILED_PRECONDITION, "the session's stream has ended")
             if self.sessions >= self.config.max_sessions:
                 raise ServiceError(pb.OVERLOADED, f"{self.sessions} sessions open, the most "
                                    "this server takes")
@@ -465,7 +455,7 @@ class RelocalizerService:
                     yield pb.SessionUpdate(opened=session.opened()).SerializeToString()
                     continue
                 if kind == "save":  # no worker slot: a save computes no localization
-                    saved = self._save(session, msg.save)
+                    saved = self._save(session, msg.save, context)
                     yield pb.SessionUpdate(saved=saved).SerializeToString()
                     continue
                 if kind != "frame":
@@ -495,11 +485,16 @@ class RelocalizerService:
             try:
                 with self._worker(context, counted=False):
                     closed = session.close()
-            except ServiceError:  # the client left, or no worker came: no one to tell
+            except ServiceError as err:  # no worker came (or the client left): said so
+                if context.is_active():
+                    yield pb.SessionUpdate(error=pb.SessionError(
+                        kind=err.kind, message=f"close: {err.message}",
+                        frame=session.n_frames)).SerializeToString()
                 return
             yield pb.SessionUpdate(closed=closed).SerializeToString()
 
-    def _save(self, session: Session, request: pb.SessionSave) -> pb.MapSaved:
+    def _save(self, session: Session, request: pb.SessionSave,
+              context: grpc.ServicerContext | None = None) -> pb.MapSaved:
         """Write a learning session's map into `learned_maps`/NAME and serve it as NAME (added,
         or swapped in where this server already serves NAME from there). Refused: a session
         that learns nothing, a server without `learned_maps`, a NAME that is not a plain map
@@ -526,6 +521,10 @@ class RelocalizerService:
             path = self._learned[0] / name
             self._check_target(name, path)  # before the wait: a refusal needs no round
             session.train_for_save()
+            if context is not None and not context.is_active():  # the client left meanwhile
+                raise ServiceError(pb.FAILED_PRECONDITION, f"save.name {quoted(name)}: the "
+                                   "session's stream ended before its round did; nothing was "
+                                   "written")
             if not self._save_lock.acquire(blocking=False):
                 raise ServiceError(pb.OVERLOADED, f"save.name {quoted(name)}: another "
                                    "session's map is being written; try again when it is done")
@@ -602,11 +601,21 @@ class RelocalizerService:
                                "holds a map of that name that this server does not serve "
                                "(left by an earlier run or another server); the operator gives "
                                "it as MAP to serve it and save over it, or choose another name")
+        saved = {p for p in self._written if p != path}
+        if not own and len(saved) >= self.config.max_learned_maps:
+            raise ServiceError(pb.OVERLOADED, f"{said}: this server already serves "
+                               f"{len(saved)} maps its sessions saved, the most it keeps "
+                               "(`max_learned_maps`: each stays loaded); save over one of them")
 
     def finish_saves(self) -> None:
         """From now on no save begins writing; one that is writing is waited for (the save
-        lock is held only while a map is written and registered)."""
+        lock is held only while a map is written and registered); the training rounds of
+        learning sessions end at their next epoch (a save waiting on one is then refused)."""
         self.stopping.set()
+        with self._count_lock:
+            learning = list(self.learning)
+        for session in learning:
+            session.cancel()
         with self._save_lock:
             pass
 

@@ -208,6 +208,13 @@ class Session:
         self.train_for_save()
         return self.write(path)
 
+    def cancel(self) -> None:
+        """No more training for this session: a running round ends at its next epoch without
+        publishing (a save waiting on it then finds its stream ended, or the server stopping,
+        and writes nothing). Returns at once; `release` waits for the thread."""
+        if self.live_map is not None:
+            self.live_map.learner.stop(timeout_s=0)
+
     def release(self, timeout_s: float | None = None) -> None:
         """The stream ended, however it did: wait for a training round still running (its
         thread must not outlive the server: torch torn down under it aborts the process)."""

@@ -8,6 +8,7 @@ then starts lost in, and never writes); the map is written to `out` every
 
 from __future__ import annotations
 
+import os
 import signal
 import threading
 from contextlib import contextmanager
@@ -90,6 +91,9 @@ def make_odometry(name: str, depth_camera: Camera | None,
             raise InputError(f"`odometry` {name}: a topic is read from a ROS bag dataset")
         stamps, poses = bag_trajectory(dataset_dir, topic)
         return TrajectoryOdometry(stamps, poses, f"{dataset_dir}: topic {topic}")
+    if not os.path.lexists(name):
+        raise InputError(f"`odometry` {name!r}: not auto, kiss-icp, open3d, {TOPIC_PREFIX}/NAME "
+                         "or an existing TUM trajectory file")
     return TrajectoryOdometry.from_file(name)
 
 
@@ -119,6 +123,15 @@ def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = Sl
     frames = dataset.frames(config.split)
     if not frames:
         raise InputError(f"{dataset_dir}: split '{config.split}' has no frames")
+    kept, jumps = kidnap_schedule(len(frames), config.kidnap_every, config.kidnap_skip,
+                                  config.kidnap_from)
+    if config.kidnap_every > 0 and not jumps:
+        raise InputError(
+            f"{dataset_dir}: split '{config.split}' has {len(frames)} frames, and no kidnap "
+            f"fits in them: the first lands after {config.kidnap_from} processed frames and "
+            f"skips {config.kidnap_skip}, which needs more than "
+            f"{config.kidnap_from + config.kidnap_skip} frames (lower `kidnap_from`, "
+            "`kidnap_every` or `kidnap_skip`)")
     odometry = make_odometry(config.odometry, depth_camera_of(frames), dataset_dir)
     external = odometry.name == "trajectory"
     if out is not None and external:
@@ -136,8 +149,6 @@ def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = Sl
         if localizer is not None:
             localizer.extractor.check_frames(frames)
     backend = SlamBackend(odometry, plugins, config.backend)
-    kept, jumps = kidnap_schedule(len(frames), config.kidnap_every, config.kidnap_skip,
-                                  config.kidnap_from)
     processed = [frames[i] for i in kept]
     inputs = read_frames(dataset, processed, image=True, depth=not external)
     mapper = next((p for p in plugins if isinstance(getattr(p, "live_map", None), LiveMap)),
