@@ -69,18 +69,24 @@ def _truth_poses(dataset: Dataset, frames: list[Frame], truth: Dataset | None
 
 
 def _refuse_own_frames(old: SceneMap, dataset: Dataset, split: str, frames: list) -> None:
-    """InputError when every frame of the split is one the map was built from, in the dataset
-    the map records: nothing would be registered that the map does not hold already (the
-    map's own labels come back as "pseudo-labels" at 0 cm)."""
-    own = set(old.database.frame_names)
-    if not all(f.name in own for f in frames):
+    """InputError when every frame of the split is one the map was built from (its recorded
+    dataset and split, not a later update's): they would be registered against their own
+    labels and come back as "pseudo-labels" at 0 cm, with nothing learned. A sequence an
+    update already added may be pseudo-labelled again (each observation is kept)."""
+    record = old.info.dataset
+    built = old.info.dataset_root
+    if built is None or record is None or not isinstance(record.split, str):
         return
-    recorded = [p for key, p in old.info.recorded_inputs().items()
-                if p is not None and "pose file" not in key]
-    if any(p.resolve() == Path(dataset.root).resolve() for p in recorded):
+    if Path(built).resolve() != Path(dataset.root).resolve():
+        return
+    try:
+        own = {f.name for f in dataset.frames(record.split)}
+    except InputError:  # a split the dataset no longer has: nothing to compare with
+        return
+    if frames and all(f.name in own for f in frames):
         raise InputError(f"{dataset.root}: split '{split}' holds only frames the map was built "
-                         f"from ({len(frames)}): pseudo-labelling learns frames a map lacks "
-                         "(choose another split)")
+                         f"from (its split '{record.split}'): pseudo-labelling learns frames a "
+                         "map lacks (choose another split)")
 
 
 def pseudo_label(old: SceneMap, dataset: Dataset, split: str | None = None,

@@ -573,8 +573,17 @@ def run_sfm(source: Path, out: Path, config: SfmConfig = SfmConfig(),
         if config.split != SfmConfig.split:
             raise InputError(f"{source}: `split` chooses a dataset's frames; a video or a "
                              "folder of images has none (leave it out)")
-    with map_write_lock(out, "this dataset"):  # a second writer fails at once, not at the end
-        return _run_into(source, out, config, progress)
+    made = [p for p in out.absolute().parents if not p.exists()]  # folders this run makes
+    try:
+        with map_write_lock(out, "this dataset"):  # a second writer fails at once, not late
+            return _run_into(source, out, config, progress)
+    except BaseException:
+        for folder in made:  # nearest first: a failed run leaves no folder it made
+            try:
+                folder.rmdir()
+            except OSError:  # not empty (another's), or gone
+                break
+        raise
 
 
 def _run_into(source: Path, out: Path, config: SfmConfig, progress: bool) -> dict:

@@ -308,7 +308,7 @@ def test_second_writer_command_fails_at_its_start_while_map_works(scene_dir, tmp
     first = _cli("map", *args, "--epochs", "100000")  # still training when the others start
     try:
         deadline = time.monotonic() + 120  # its start-up; its training would take an hour
-        while not (lock.is_file() and lock.read_text().strip() == str(first.pid)):
+        while not (lock.is_file() and lock.read_text().split("\n")[0] == str(first.pid)):
             assert first.poll() is None and time.monotonic() < deadline, \
                 "the first run does not hold the lock while it works"
             time.sleep(0.02)

@@ -44,14 +44,17 @@ def test_a_readers_clean_up_takes_only_a_killed_writers_debris(small_map, scene_
     for name in ("m", "m[1]"):
         shutil.copytree(small_map.root, maps / name)
     mine = [maps / ".m.old-mine", maps / ".m.tmp-notes", maps / ".m1.tmp-777",
-            maps / ".m.tmp-12"]
+            maps / ".m.tmp-12", maps / ".m.old-20240101"]
     mine[0].mkdir()
     (mine[0] / "notes.txt").write_text("mine\n")
     mine[1].write_text("mine\n")
     mine[2].mkdir()
     mine[3].mkdir()  # a writer's name, a user's contents
     (mine[3] / "notes.txt").write_text("mine\n")
-    debris = maps / ".m.tmp-999"
+    shutil.copytree(small_map.root, mine[4])  # a dated backup of the map: a map, kept
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()  # a writer that was killed: its process id is free
+    debris = maps / f".m.tmp-{gone.pid}"
     debris.mkdir()
     shutil.copy(small_map.root / WEIGHTS, debris / WEIGHTS)
     image = sorted(scene_dir.glob("seq-02/*.color.png"))[0]
@@ -422,14 +425,10 @@ def test_a_second_sfm_into_the_same_folder_fails_at_once(scene_dir, tmp_path):
     for i, image in enumerate(sorted(scene_dir.glob("seq-01/*.color.png"))[:3]):
         (photos / f"p{i}.png").write_bytes(image.read_bytes())
     out = tmp_path / "out"
-    holder = subprocess.Popen(  # another process writing OUT (a lock is re-entrant in one)
-        [sys.executable, "-c", "import sys, time\nfrom slamreloc.map.lock import "
-         "map_write_lock\nwith map_write_lock(sys.argv[1], 'x'):\n    print('held', "
-         "flush=True)\n    time.sleep(120)", str(out)], stdout=subprocess.PIPE, text=True)
+    holder = _holding(out)
     try:
-        assert holder.stdout.readline().strip() == "held"
         one_line_exit_2(["sfm", str(photos), "--out", str(out)],
-                        f"another process (pid {holder.pid}) is writing this dataset")
+                        f"another process (pid {holder.pid}) is writing")
     finally:
         holder.kill()
         holder.wait()
@@ -437,3 +436,114 @@ def test_a_second_sfm_into_the_same_folder_fails_at_once(scene_dir, tmp_path):
     (out / "sfm.json").write_text("{}")
     one_line_exit_2(["sfm", str(photos), "--out", str(out)], "writes a new or an empty "
                     "folder only")
+
+
+# ---- the seventh round ---------------------------------------------------------------------------
+def _holding(out: Path) -> subprocess.Popen:
+    """Another process holding `out`'s write lock (a lock is re-entrant within one)."""
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time\nfrom slamreloc.map.lock import "
+         "map_write_lock\nwith map_write_lock(sys.argv[1], 'x'):\n    print('held', "
+         "flush=True)\n    time.sleep(120)", str(out)], stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held"
+    return holder
+
+
+def test_no_output_is_written_where_another_process_is_writing_a_map(small_map, tmp_path):
+    """Round 7, finding 1: `export --tum mz3` while `slam --out mz3` ran wrote a file there;
+    the session then failed and its work was lost. An output under a live writer's lock is
+    refused at once."""
+    out = tmp_path / "mz3"
+    holder = _holding(out)
+    try:
+        for option in ("--tum", "--ply"):
+            one_line_exit_2(["export", str(small_map.root), option, str(out)],
+                            f"another process (pid {holder.pid}) is writing x;")
+    finally:
+        holder.kill()
+        holder.wait()
+    assert not out.exists()
+
+
+def test_a_reference_that_fits_no_similarity_is_refused():
+    """Round 7, findings 2 and 3: a reference whose cameras all lie at one point gave scale
+    0 and a zero matrix; a mirrored one a negative scale; both were scored."""
+    from slamreloc.geometry import Rigid3
+    from slamreloc.localize.evaluate import align_to_reference
+
+    rng = np.random.default_rng(0)
+    centres = rng.normal(size=(6, 3))
+    names = [f"f{i}" for i in range(6)]
+    ours = {n: Rigid3(np.eye(3), c) for n, c in zip(names, centres)}
+    assert align_to_reference(ours, ours)[0].scale == pytest.approx(1.0)
+    collapsed = {n: Rigid3(np.eye(3), np.zeros(3)) for n in names}
+    with pytest.raises(InputError, match="all lie at one point"):
+        align_to_reference(ours, collapsed, "ref.txt")
+    mirrored = {n: Rigid3(np.eye(3), -c) for n, c in zip(names, centres)}
+    with pytest.raises(InputError, match="the fitted similarity has scale"):
+        align_to_reference(ours, mirrored, "ref.txt")
+
+
+def test_topics_are_given_once_and_for_bags_only(scene_dir):
+    """Round 7, findings 4 and 5: `--topic pose=/a --topic pose=/b` kept one silently, and
+    `--topic` on a dataset that is no bag was ignored."""
+    from slamreloc.datasets import load_dataset
+    from slamreloc.datasets.rosbag import BagTopics, parse_topics, set_topics
+
+    with pytest.raises(InputError, match="`topic` pose is given twice"):
+        parse_topics(["pose=/pose", "pose=/pose2"])
+    set_topics(parse_topics(["pose=/pose"]))
+    try:
+        with pytest.raises(InputError, match="this dataset is not a bag"):
+            load_dataset(scene_dir)
+    finally:
+        set_topics(BagTopics())
+    load_dataset(scene_dir)
+
+
+def test_colmap_export_refuses_names_its_text_model_cannot_carry(small_map, tmp_path):
+    """Round 7, finding 9: frame names with a blank, or repeated, were written into a COLMAP
+    model that slamreloc's own reader (and COLMAP's) then refused."""
+    root = tmp_path / "m"
+    shutil.copytree(small_map.root, root)
+    doc = json.loads((root / META).read_text())
+    doc["frame_names"][0] = "My Photos/IMG 1.jpg"
+    (root / META).write_text(json.dumps(doc))
+    out = tmp_path / "cm"
+    one_line_exit_2(["export", str(root), "--colmap", str(out)], "holds a blank")
+    assert not out.exists()
+    code, err = run_cli(["export", str(root), "--tum", str(tmp_path / "t.tum")])
+    assert code == 0, err
+
+
+def test_a_map_file_larger_than_any_map_is_refused_before_it_is_read(small_map, tmp_path):
+    """Round 7 (service), finding 1: a 30 GB sparse regressor.npz was hashed whole before its
+    checksum was compared; ReloadMap answered after a minute and a stop waited for it."""
+    root = tmp_path / "m"
+    shutil.copytree(small_map.root, root)
+    with open(root / WEIGHTS, "r+b") as f:
+        f.truncate(17 << 30)  # sparse: no disk used
+    t0 = time.monotonic()
+    with pytest.raises(InputError, match="more than a map's"):
+        SceneMap.load(root)
+    assert time.monotonic() - t0 < 10
+
+
+def test_a_pem_file_with_a_byte_order_mark_is_refused_naming_the_option(tmp_path):
+    """Round 7 (service), finding 3: a certificate starting with a byte-order mark passed
+    the check and was refused by gRPC in three log lines blaming the port."""
+    from slamreloc.service.server import pem_problem
+
+    assert "byte-order mark" in pem_problem(b"\xef\xbb\xbf-----BEGIN CERTIFICATE-----\n",
+                                            "certificate")
+
+
+@pytest.mark.parametrize("args", [None, 5, {"maps": {1: "/m"}}])
+def test_a_ray_config_that_is_no_mapping_is_refused(args):
+    """Round 7 (service), finding 6: `build_app(None)` was a bare TypeError; a map name 1 was
+    served as "1"."""
+    pytest.importorskip("ray.serve")
+    from slamreloc.service.ray_app import build_app
+
+    with pytest.raises(InputError, match="args"):
+        build_app(args)

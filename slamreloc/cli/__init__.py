@@ -243,14 +243,15 @@ def main() -> None:
 
 
 def run() -> None:
-    """The `slamreloc` program: `main`, then SIGTERM ignored while the process exits. Once the
-    command has ended its outputs are complete; a SIGTERM landing in the interpreter's
-    shutdown (seconds, with torch loaded) would otherwise kill it by the signal, an exit
-    status that says the outputs may not be whole. In a process that goes on after `main`
-    (tests), call `main`."""
+    """The `slamreloc` program: `main`, then SIGTERM and SIGINT ignored while the process
+    exits. Once the command has ended its outputs are complete; a signal landing in the
+    interpreter's shutdown (seconds, with torch loaded) would otherwise end it by the signal
+    or as interrupted, an exit status that says the outputs may not be whole. In a process
+    that goes on after `main` (tests), call `main`."""
     import signal
 
     try:
         main()
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)

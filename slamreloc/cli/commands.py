@@ -80,10 +80,9 @@ def options(
         from slamreloc.io.limits import parse_limits, set_limits
 
         set_limits(**parse_limits(limit))
-    if topic:
-        from slamreloc.datasets.rosbag import parse_topics, set_topics
+    from slamreloc.datasets.rosbag import parse_topics, set_topics
 
-        set_topics(parse_topics(topic))
+    set_topics(parse_topics(topic or []))  # none: found in each bag (never an earlier run's)
 
 
 @app.command("map")

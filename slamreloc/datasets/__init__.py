@@ -8,7 +8,7 @@ from slamreloc.datasets.base import Dataset
 from slamreloc.datasets.colmap import is_colmap, load_colmap
 from slamreloc.datasets.io import read_depth, read_image, read_intrinsics, read_pose, write_pose
 from slamreloc.datasets.poses import ReferencePoses, apply_poses, read_poses
-from slamreloc.datasets.rosbag import is_rosbag, load_rosbag
+from slamreloc.datasets.rosbag import BagTopics, default_topics, is_rosbag, load_rosbag
 from slamreloc.datasets.sevenscenes import is_sevenscenes, load_sevenscenes
 from slamreloc.datasets.tum import is_tum, load_tum
 from slamreloc.errors import InputError
@@ -50,6 +50,9 @@ def read_reference(path: str | Path) -> ReferencePoses:
 def _load_layout(root: Path) -> Dataset:
     if is_rosbag(root):
         return load_rosbag(root)
+    if default_topics() != BagTopics():  # the CLI's `--topic`: for a bag only
+        raise InputError(f"{root}: `topic` chooses a ROS bag's topics, and this dataset is not "
+                         "a bag (leave `topic` out)")
     if not root.is_dir():
         check_folder(root, "dataset")
     if is_tum(root):

@@ -114,6 +114,9 @@ def parse_topics(items: list[str]) -> BagTopics:
             tf_frames(name, f"`topic` {item!r}")
         elif not name.startswith("/"):
             name = "/" + name
+        if kind in chosen:  # which one was meant? (the rule of `--limit` given twice)
+            raise InputError(f"`topic` {kind} is given twice ({chosen[kind]!r} and {name!r}): "
+                             "give each kind once")
         chosen[kind] = name
     return BagTopics(**chosen)
 

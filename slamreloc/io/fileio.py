@@ -204,6 +204,46 @@ def relation(a: Path, b: Path) -> str | None:
     return None
 
 
+def write_lock_path(out: str | Path) -> Path:
+    """The lock file of a folder being written (`.NAME.lock` beside it): held by the writer
+    of a map or an sfm dataset (`slamreloc.map.lock.map_write_lock`) while it works."""
+    out = Path(out)
+    return out.parent / f".{out.name}.lock"
+
+
+def lock_record(fd: int) -> tuple[str, str]:
+    """(process id, what it writes) as a writer records them in its lock file ("PID\nWHAT")."""
+    text = os.pread(fd, 256, 0).decode(errors="replace")
+    pid, _, what = text.partition("\n")
+    return pid.strip() or "?", what.strip() or "this map"
+
+
+def busy_writer(out: str | Path) -> str | None:
+    """`FOLDER: another process (pid N) is writing WHAT; ...` where a live writer (another
+    process than this one) holds `out`'s write lock, else None."""
+    import fcntl
+
+    try:
+        fd = os.open(write_lock_path(out), os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            pid, what = lock_record(fd)
+            if pid == str(os.getpid()):  # this process's own
+                return None
+            return (f"{out}: another process (pid {pid}) is writing {what}; try again when it "
+                    "has finished")
+        except OSError:
+            return None
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
 def check_outputs(outputs: dict[str, str | Path | None],
                   inputs: dict[str, str | Path | None],
                   folders: tuple[str, ...] | dict[str, Callable[[Path], bool] | None] = (),
@@ -252,6 +292,9 @@ def check_outputs(outputs: dict[str, str | Path | None],
             kind = "a file" if parent.is_file() else "not a folder"
             raise InputError(f"{out}: {option} cannot be written there: its parent {parent} is "
                              f"{kind}")
+        busy = busy_writer(out)
+        if busy is not None:  # a map (or sfm dataset) being written there right now
+            raise InputError(busy)
         for what, src in ins.items():
             how = relation(target, src)
             if how is None or how == "lies inside" and not src.is_dir():

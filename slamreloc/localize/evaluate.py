@@ -267,7 +267,17 @@ def align_to_reference(map_from_cam: dict[str, Rigid3], reference: dict[str, Rig
         where = f"{source}: " if source else ""
         raise InputError(f"{where}only {len(names)} training frames have a reference pose; a "
                          "similarity fit needs at least 3")
+    where = f"{source}: " if source else ""
+    for label, poses in (("the reference's", reference), ("the map's", map_from_cam)):
+        centres = np.array([poses[n].translation for n in names])
+        if np.sqrt(np.mean(np.sum((centres - centres.mean(0)) ** 2, axis=1))) < 1e-6:
+            raise InputError(f"{where}{label} {len(names)} shared training cameras all lie at "
+                             "one point: no similarity can be fitted to them")
     ref_from_map = align_poses([map_from_cam[n] for n in names], [reference[n] for n in names])
+    if not ref_from_map.scale > 0:  # centres in mirrored or unrelated order
+        raise InputError(f"{where}the fitted similarity has scale {ref_from_map.scale:.4g} "
+                         f"over {len(names)} shared training cameras: the reference's positions "
+                         "do not follow the map's (mirrored, or not these cameras' poses)")
     return ref_from_map, {
         "scale": ref_from_map.scale, "n_frames": len(names),
         **residual_medians(map_from_cam, reference, names, ref_from_map),

@@ -260,6 +260,23 @@ def write_training_poses(scene_map: SceneMap, path: Path) -> None:
                          names=list(db.frame_names))
 
 
+def _check_colmap_names(scene_map: SceneMap) -> None:
+    """InputError unless every training frame's name can be an image name of a COLMAP text
+    model that COLMAP (and slamreloc) reads back: one word (images.txt is split at blanks),
+    each name once (a model's image names are unique)."""
+    seen: set[str] = set()
+    for name in scene_map.database.frame_names:
+        if any(c.isspace() for c in name):
+            raise InputError(f"{scene_map.root}: frame {name!r} holds a blank, which a COLMAP "
+                             "text model cannot carry in an image name (`colmap` needs "
+                             "one-word names; `ply` and `tum` take it)")
+        if name in seen:
+            raise InputError(f"{scene_map.root}: frame {name!r} is a training frame twice (a "
+                             "map updated with frames it held), and a COLMAP model names each "
+                             "image once (`ply` and `tum` take it)")
+        seen.add(name)
+
+
 def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = None,
                tum: Path | None = None, dataset_dir: Path | None = None,
                progress: bool = True) -> dict:
@@ -282,6 +299,8 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
                   files={"`tum`": TUM_FILE, "`tum`'s names file": NAMES_FILE,
                          "`ply`": PLY_FILE})
     scene_map = SceneMap.load(map_dir, regressor=False)
+    if colmap is not None:
+        _check_colmap_names(scene_map)
     dataset = None
     if dataset_dir is not None:
         from slamreloc.datasets import load_dataset

@@ -106,7 +106,13 @@ def sha256_file(path: Path, what: str = "map file") -> str:
 
 
 def _digest(f: BinaryIO, path: Path, what: str) -> str:
-    """SHA-256 of an opened map file to its end; InputError naming it on a read error."""
+    """SHA-256 of an opened map file to its end; InputError naming it on a read error, or
+    before a byte is read when it is larger than any map file (MAX_ARRAY_BYTES: a 60 GB
+    sparse file would hold a reload, and a server's stop, for minutes)."""
+    size = regular_size(f)
+    if size > MAX_ARRAY_BYTES:
+        raise InputError(f"{path}: {size} bytes, more than a map's {what} holds (at most "
+                         f"{MAX_ARRAY_BYTES >> 30} GiB); refusing to read it")
     try:
         return sha256_of(f)
     except OSError as err:

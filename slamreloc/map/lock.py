@@ -18,6 +18,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from slamreloc.errors import InputError
+from slamreloc.io.fileio import lock_record, write_lock_path
 from slamreloc.map.format import (
     DATABASE,
     LEGACY_WEIGHTS,
@@ -31,8 +32,6 @@ from slamreloc.map.format import (
 _HELD: set[str] = set()  # maps whose write lock this process holds
 
 
-def _lock_path(out: Path) -> Path:
-    return out.parent / f".{out.name}.lock"
 
 
 MAP_FILES = frozenset({META, WEIGHTS, DATABASE, SURFACE, PROVENANCE, LEGACY_WEIGHTS})
@@ -41,9 +40,10 @@ MAP_FILES = frozenset({META, WEIGHTS, DATABASE, SURFACE, PROVENANCE, LEGACY_WEIG
 def _leftovers(out: Path) -> list[Path]:
     """What a killed writer of `out` left beside it, and nothing else: folders named exactly
     `.NAME.tmp-PID` holding only map files (a save cut short), or `.NAME.old-PID` holding a
-    map (one moved aside), PID in digits. Names are compared as strings, not as a pattern (a
-    map named `m[1]` must not take `.m1.tmp-7` for its own), and a user's own file or folder
-    of a like name (`.NAME.old-mine`, a file `.NAME.tmp-notes`) is never taken for debris."""
+    map (one moved aside), PID the id of a process that is gone (`_dead_writer`). Names are
+    compared as strings, not as a pattern (a map named `m[1]` must not take `.m1.tmp-7` for
+    its own), and a user's own file or folder of a like name (`.NAME.old-mine`, a dated
+    backup `.NAME.old-20240101`, a file `.NAME.tmp-notes`) is never taken for debris."""
     try:
         entries = list(os.scandir(out.parent))
     except OSError:  # no folder, or one that cannot be listed: nothing to clean
@@ -54,12 +54,36 @@ def _leftovers(out: Path) -> list[Path]:
             prefix = f".{out.name}.{kind}-"
             pid = entry.name[len(prefix):]
             if not (entry.name.startswith(prefix) and pid.isascii() and pid.isdigit()
-                    and entry.is_dir(follow_symlinks=False)):
+                    and entry.is_dir(follow_symlinks=False) and _dead_writer(int(pid))):
                 continue
             path = Path(entry.path)
             if is_map(path) if kind == "old" else _only_map_files(path):
                 found.append(path)
     return sorted(found)
+
+
+def _pid_max() -> int:
+    try:
+        with open("/proc/sys/kernel/pid_max") as f:
+            return int(f.read())
+    except (OSError, ValueError):
+        return 1 << 22  # Linux's largest
+
+
+def _dead_writer(pid: int) -> bool:
+    """Whether `pid` can be the id of a writer that is gone: a process id this system can
+    give (a dated backup `.NAME.old-20240101` is no writer's) and no live process (a live one
+    is this process, whose own folders its writer removes, or a writer of another map folder
+    of that name elsewhere: never ours to take)."""
+    if not 0 < pid <= _pid_max():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # alive, another user's
+        return False
+    return False
 
 
 def _only_map_files(folder: Path) -> bool:
@@ -84,15 +108,15 @@ def map_write_lock(out: str | Path, what: str = "this map") -> Iterator[None]:
         yield
         return
     out.parent.mkdir(parents=True, exist_ok=True)
-    lock = _lock_path(out)
+    lock = write_lock_path(out)
     while True:
         fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            holder, theirs = lock_record(fd)
             os.close(fd)
-            raise InputError(f"{out}: another process (pid {holder}) is writing {what}; "
+            raise InputError(f"{out}: another process (pid {holder}) is writing {theirs}; "
                              "try again when it has finished") from None
         # the holder before us removes the lock file on release: make sure ours is the
         # file at the path, not one it has just unlinked
@@ -105,7 +129,7 @@ def map_write_lock(out: str | Path, what: str = "this map") -> Iterator[None]:
         os.close(fd)
     try:
         os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        os.pwrite(fd, f"{os.getpid()}\n{what}\n".encode(), 0)
         _HELD.add(key)
         try:
             _recover(out)

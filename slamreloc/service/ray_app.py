@@ -272,11 +272,17 @@ def build_app(args: dict[str, Any]) -> Application:
     `maps` (name -> folder on every node), and optionally `replicas`, `replica_cpus`,
     `token_file` (a file holding the token), `watch_s`."""
     known = {"maps", "replicas", "replica_cpus", "token_file", "watch_s"}
+    if not isinstance(args, dict):
+        raise InputError(f"args: must be a mapping of {sorted(known)}, got {repr(args)[:40]}")
     unknown = set(args) - known
     if unknown or not isinstance(args.get("maps"), dict):
         raise InputError(f"args: `maps` (name: folder) is required; known: {sorted(known)}; "
                          f"unknown: {sorted(unknown)}")
     maps = args["maps"]
+    bad = next((k for k in maps if not isinstance(k, str)), None)
+    if bad is not None:
+        raise InputError(f"args: `maps` names must be strings (a map's name), got "
+                         f"{repr(bad)[:40]}")
     bad = next((k for k, v in maps.items() if not isinstance(v, str) or not v.strip()), None)
     if bad is not None:
         raise InputError(f"args: `maps`.{str(bad)[:40]} must be a map folder's path, got "

@@ -785,6 +785,9 @@ def pair_problem(key: bytes, cert: bytes) -> str | None:
 def pem_problem(data: bytes, what: str) -> str | None:
     """Why `data` is not a PEM `what` ("private key" or "certificate"), or None."""
     marker = b"PRIVATE KEY-----" if what == "private key" else b"-----BEGIN CERTIFICATE-----"
+    if data.startswith(b"\xef\xbb\xbf"):  # Python's parsers skip it, gRPC's TLS does not
+        return ("it starts with a UTF-8 byte-order mark, which gRPC's TLS does not read: save "
+                "it without")
     if marker not in data:
         return "no " + ("'PRIVATE KEY'" if what == "private key" else "'BEGIN CERTIFICATE'") \
             + " block"

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import signal
 import threading
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -125,13 +126,13 @@ def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = Sl
         raise InputError(f"{dataset_dir}: split '{config.split}' has no frames")
     kept, jumps = kidnap_schedule(len(frames), config.kidnap_every, config.kidnap_skip,
                                   config.kidnap_from)
-    if config.kidnap_every > 0 and not jumps:
-        raise InputError(
+    if config.kidnap_every > 0 and not jumps:  # asked for, and never happens: said so
+        warnings.warn(
             f"{dataset_dir}: split '{config.split}' has {len(frames)} frames, and no kidnap "
             f"fits in them: the first lands after {config.kidnap_from} processed frames and "
             f"skips {config.kidnap_skip}, which needs more than "
             f"{config.kidnap_from + config.kidnap_skip} frames (lower `kidnap_from`, "
-            "`kidnap_every` or `kidnap_skip`)")
+            "`kidnap_every` or `kidnap_skip`); tracking without kidnaps", stacklevel=2)
     odometry = make_odometry(config.odometry, depth_camera_of(frames), dataset_dir)
     external = odometry.name == "trajectory"
     if out is not None and external:
