@@ -122,4 +122,4 @@ def test_ctrl_c_during_map_saves_state_and_says_how_to_resume(scene_dir, tmp_pat
 def test_resume_without_checkpoint_is_a_one_line_error(scene_dir, tmp_path):
     res = subprocess.run([sys.executable, "-m", "slamreloc.cli", "map", str(scene_dir), "--out",
                           str(tmp_path / "m"), "--resume"], capture_output=True, text=True)
-    assert res.returncode == 2 and "no training checkpoint" in res.stderr
+    assert res.returncode == 2 and "no interrupted training of this map" in res.stderr

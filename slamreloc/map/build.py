@@ -91,7 +91,7 @@ def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progr
     ckpt = checkpoint_path(out)
     if resume and not ckpt.is_file():
         raise InputError(f"{out}: `resume`: no interrupted training of this map to resume "
-                         "(an interrupted `map` leaves one; leave `resume` out to start anew)")
+                         "(training cut short leaves one; leave `resume` out to start anew)")
     frames = dataset.frames(split)
     if not frames:
         raise InputError(f"{dataset.root}: split '{split}' has no frames")

@@ -57,7 +57,8 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
                     progress: bool = True, checkpoint: Path | None = None,
                     resume: bool = False, weights: np.ndarray | None = None,
                     fine_tune: bool = False,
-                    on_epoch_end: Callable[[int, float], None] | None = None) -> dict:
+                    on_epoch_end: Callable[[int, float], None] | None = None,
+                    on_step: Callable[[], None] | None = None) -> dict:
     """Fit `model` to (N, D) descriptors -> (N, 3) world points (metres). Returns training stats.
 
     checkpoint: a file to save training state to every `config.checkpoint_every_s` seconds
@@ -65,7 +66,8 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
     weights: per-sample loss weights (label quality); fine_tune: continue from the model's
     weights, normalisation and regions instead of initialising them from the data.
     on_epoch_end(epoch, loss_m): called after each epoch (0-based) with its mean training
-    distance (metres), before any weight averaging is applied to the model."""
+    distance (metres), before any weight averaging is applied to the model. on_step(): called
+    after each optimiser step (a caller that must end training within a step raises there)."""
     t_cpu = time.process_time()
     dev = resolve_device(device)
     precision = resolve_precision(config.precision, dev.type)
@@ -133,6 +135,8 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
                              precision)
                 sched.step()
                 epoch_loss += dist
+                if on_step is not None:
+                    on_step()
             losses.append(float(epoch_loss) / steps_per_epoch * float(model.out_scale))
             average.update(model, epoch)
             if on_epoch_end is not None:

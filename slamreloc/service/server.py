@@ -384,7 +384,7 @@ class RelocalizerService:
 
         def ended() -> None:  # gRPC's callback when the stream ends, however it does
             learning = state.get("session")
-            if learning is not None:  # a round (a save's wait) ends at its next epoch
+            if learning is not None:  # a round (a save's wait) ends at its next step
                 learning.cancel()
             self._free(state)
 
@@ -610,7 +610,7 @@ class RelocalizerService:
     def finish_saves(self) -> None:
         """From now on no save begins writing; one that is writing is waited for (the save
         lock is held only while a map is written and registered); the training rounds of
-        learning sessions end at their next epoch (a save waiting on one is then refused)."""
+        learning sessions end at their next step (a save waiting on one is then refused)."""
         self.stopping.set()
         with self._count_lock:
             learning = list(self.learning)

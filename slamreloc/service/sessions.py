@@ -209,7 +209,7 @@ class Session:
         return self.write(path)
 
     def cancel(self) -> None:
-        """No more training for this session: a running round ends at its next epoch without
+        """No more training for this session: a running round ends at its next step without
         publishing (a save waiting on it then finds its stream ended, or the server stopping,
         and writes nothing). Returns at once; `release` waits for the thread."""
         if self.live_map is not None:

@@ -103,7 +103,7 @@ class BackgroundLearner:
         self._rng = np.random.default_rng(config.train.seed)
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
-        self._stopping = threading.Event()  # `stop`: rounds end at their next epoch
+        self._stopping = threading.Event()  # `stop`: rounds end at their next step
         self._t0 = time.perf_counter()
         self.rounds: list[Round] = []
         self.error: BaseException | None = None  # a round's failure, raised by `check`
@@ -149,7 +149,7 @@ class BackgroundLearner:
 
     def stop(self, timeout_s: float | None = None) -> None:
         """End the learner: the waiting submission is dropped, the running round ends at its
-        next epoch without publishing, and this returns once its thread has ended (or after
+        next step without publishing, and this returns once its thread has ended (or after
         `timeout_s`). The published model stays; no round starts after this. A process must
         not exit with the thread inside torch (its forced unwinding aborts the process)."""
         with self._lock:
@@ -174,7 +174,9 @@ class BackgroundLearner:
         except BaseException as e:  # noqa: BLE001 - handed to the tracker's thread by check()
             self.error = e
 
-    def _check_stop(self, epoch: int, loss_m: float) -> None:
+    def _check_stop(self, *_) -> None:
+        """After each step and epoch: a `stop` ends the round there (a server's stop, a
+        session's cancel wait one step, not an epoch that grows with the session)."""
         if self._stopping.is_set():
             raise _Stopped
 
@@ -200,7 +202,7 @@ class BackgroundLearner:
                 rows = self._window(n)
         stats = train_regressor(model, descriptors[rows].astype(np.float32), points[rows], train,
                                 c.device, progress=False, fine_tune=not scratch,
-                                on_epoch_end=self._check_stop)
+                                on_epoch_end=self._check_stop, on_step=self._check_stop)
         model.eval().requires_grad_(False)  # published: read by the tracker, never trained
         self.model = model  # the swap: readers hold either the old model or this one
         self.version += 1
