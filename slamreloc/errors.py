@@ -32,3 +32,16 @@ def is_out_of_memory(err: BaseException) -> bool:
     return (type(err).__name__ == "error" and "Insufficient memory" in text
             or "can't allocate memory" in text
             or "out of memory" in text.lower() and "alloc" in text.lower())
+
+
+QUOTE_LIMIT = 80  # characters of given text a message repeats
+
+
+def quoted(text, limit: int = QUOTE_LIMIT) -> str:
+    """`text` (a map name, a host, a field a client sent) as an error message may echo it:
+    repr-quoted and cut to about `limit` characters (a service's refusal travels in gRPC's
+    trailing metadata, which has a size bound of its own)."""
+    text = text if isinstance(text, str) else str(text)
+    if len(text) <= limit:
+        return repr(text)
+    return f"{text[:limit]!r}... ({len(text)} characters)"

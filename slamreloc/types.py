@@ -202,12 +202,14 @@ def centre_problem(width: int, height: int, cx: float, cy: float) -> str | None:
 
 
 def k_matrix_problem(k) -> str | None:
-    """What is wrong with a 3x3 pinhole matrix K (None when nothing): finite, [[fx 0 cx]
+    """What is wrong with a 3x3 pinhole matrix K, or its 9 values row by row (None when
+    nothing): finite, [[fx 0 cx]
     [0 fy cy] [0 0 1]]: a skew or another last row would be silently ignored. The one rule
     of intrinsics files and ROS CameraInfo messages."""
     k = np.asarray(k, np.float64)
-    if k.shape != (3, 3):
+    if k.size != 9:
         return f"K must be 3x3, got {k.size} values"
+    k = k.reshape(3, 3)  # its 9 values row by row, as CameraInfo sends them
     if not np.all(np.isfinite(k)):
         return "K must be finite numbers"
     if k[0, 1] != 0 or k[1, 0] != 0 or list(k[2]) != [0.0, 0.0, 1.0]:

@@ -42,11 +42,9 @@ def check_address(host: str, port: int) -> None:
     any free one, as `serve --port 0`), before anything is read. A port in use is viser's to
     handle (it moves to the next one); an address that is not this machine's would have it
     try port after port for ever."""
-    from slamreloc.io.address import bind_problem, host_problem
+    from slamreloc.io.address import bind_problem, check_host
 
-    problem = host_problem(host)
-    if problem:
-        raise InputError(f"`host` {host[:80]!r} {problem}")
+    check_host(host)
     if not 0 <= port <= 65535:  # serve's rule (`ServeConfig.check`): 0 takes any free port
         raise InputError(f"`port` {port}: not a TCP port")
     refusal = bind_problem(host, 0)

@@ -478,7 +478,7 @@ def camera_from_info(msg: Any, size: tuple[int, int], source: str) -> Camera:
     """A `Camera` of the images' size (width, height) from a CameraInfo message."""
     k = [float(v) for v in _field(msg, "k")]
     d = [float(v) for v in _field(msg, "d")]
-    problem = k_matrix_problem(np.reshape(k, (3, 3))) if len(k) == 9 else "K must be 3x3"
+    problem = k_matrix_problem(k)
     if problem:
         raise InputError(f"{source}: {problem}")
     if (msg.width, msg.height) not in ((0, 0), size):

@@ -8,9 +8,21 @@ import errno
 import ipaddress
 import socket
 
-from slamreloc.errors import InputError
+from slamreloc.errors import InputError, quoted
 
 LOOPBACK_NAMES = ("localhost",)
+
+
+def _bare(host: str) -> str:
+    """`host` without the brackets of an IPv6 literal (`[::1]` -> `::1`)."""
+    return host[1:-1] if host.startswith("[") and host.endswith("]") else host
+
+
+def check_host(host: str) -> None:
+    """InputError `` `host` 'H' PROBLEM `` unless `host` keeps `host_problem`'s rule."""
+    problem = host_problem(host)
+    if problem:
+        raise InputError(f"`host` {quoted(host)} {problem}")
 
 
 def host_problem(host: str) -> str | None:
@@ -25,7 +37,7 @@ def host_problem(host: str) -> str | None:
     if bad is not None:
         return (f"holds {bad!a}: an address or host name is plain ASCII without blanks "
                 "(127.0.0.1, ::1, a name; IDNA xn-- for other scripts)")
-    bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    bare = _bare(host)
     try:
         ipaddress.ip_address(bare)
     except ValueError:
@@ -38,10 +50,6 @@ def host_problem(host: str) -> str | None:
         return ("is a short, octal or hexadecimal IPv4 form, which libraries read "
                 "differently: write four decimal numbers (127.0.0.1)")
     return None
-
-
-def _quoted(host: str) -> str:
-    return repr(host) if len(host) <= 80 else f"{host[:80]!r}... ({len(host)} characters)"
 
 
 def is_loopback(host: str) -> bool:
@@ -60,7 +68,7 @@ def is_loopback(host: str) -> bool:
 
 def listen_address(host: str, port: int) -> str:
     """gRPC's `host:port`, an IPv6 literal in brackets ("[::1]:50051")."""
-    bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    bare = _bare(host)
     return f"[{bare}]:{port}" if ":" in bare else f"{bare}:{port}"
 
 
@@ -68,12 +76,12 @@ def bind_problem(host: str, port: int) -> InputError | None:
     """Why a server could not listen on host:port, found before its library tries: an
     InputError naming `host` (not resolvable, not an address of this machine) or `port` (in
     use, not allowed); None when a socket binds to one of its addresses."""
-    bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    bare = _bare(host)
     try:
         infos = socket.getaddrinfo(bare, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
     except (socket.gaierror, UnicodeError) as err:
         reason = getattr(err, "strerror", None) or str(err)
-        return InputError(f"`host` {_quoted(host)}: not an address, nor a name this machine "
+        return InputError(f"`host` {quoted(host)}: not an address, nor a name this machine "
                           f"resolves ({reason})")
     first: OSError | None = None
     for family, kind, proto, _, address in infos:
@@ -92,8 +100,8 @@ def bind_problem(host: str, port: int) -> InputError | None:
         return InputError(f"`port` {port}: cannot listen on {where}: not allowed (a port below "
                           "1024 needs privileges)")
     if code == errno.EADDRNOTAVAIL:
-        return InputError(f"`host` {_quoted(host)}: cannot listen on {where}: not an address of "
+        return InputError(f"`host` {quoted(host)}: cannot listen on {where}: not an address of "
                           "this machine")
     reason = first.strerror if first is not None else "no address"
-    return InputError(f"`host` {_quoted(host)} / `port` {port}: cannot listen on {where} "
+    return InputError(f"`host` {quoted(host)} / `port` {port}: cannot listen on {where} "
                       f"({reason})")

@@ -181,9 +181,7 @@ def _parse_npz(f: BinaryIO, path: Path, what: str) -> dict[str, np.ndarray]:
 def _native(array: np.ndarray) -> np.ndarray:
     """`array` in native byte order (a big-endian archive holds the same values; torch and
     the checks below take native arrays only)."""
-    if array.dtype.byteorder in ("=", "|") or array.dtype.isnative:
-        return array
-    return array.astype(array.dtype.newbyteorder("="))
+    return array if array.dtype.isnative else array.astype(array.dtype.newbyteorder("="))
 
 
 def check_database(arrays: dict[str, np.ndarray], path: Path, dim: int,

@@ -16,7 +16,7 @@ import cv2
 import grpc
 import numpy as np
 
-from slamreloc.errors import InputError
+from slamreloc.errors import InputError, quoted
 from slamreloc.geometry import MAX_COORDINATE, Rigid3, unit_quaternion
 from slamreloc.io.images import check_image_size, decode_image, decode_rgb, encoded_header
 from slamreloc.proto import relocalizer_pb2 as pb
@@ -26,7 +26,6 @@ ERROR_METADATA_KEY = "slamreloc-error"  # trailing metadata: the ErrorKind's nam
 DEPTH_REFERENCE_SIZE = (640, 480)  # a request's depth camera is held at this size (pixels)
 
 
-QUOTE_LIMIT = 80  # characters of client-supplied text a refusal's message repeats
 MAX_MAP_NAME = 128  # characters of a served map's name
 
 
@@ -75,16 +74,6 @@ def saved_map_name_problem(name: str) -> str | None:
         return (f"is {size} bytes of UTF-8, more than {MAX_SAVED_NAME_BYTES} (a folder's name "
                 "is bounded in bytes by the file system)")
     return None
-
-
-def quoted(text, limit: int = QUOTE_LIMIT) -> str:
-    """`text` (a map name, a field the client sent) as it may be echoed in a refusal's
-    message: repr-quoted and cut to about `limit` characters (a status detail travels in
-    gRPC's trailing metadata, which has a size bound of its own)."""
-    text = text if isinstance(text, str) else str(text)
-    if len(text) <= limit:
-        return repr(text)
-    return f"{text[:limit]!r}... ({len(text)} characters)"
 
 
 def short_message(text: str, limit: int = 1000) -> str:

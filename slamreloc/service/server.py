@@ -42,7 +42,7 @@ from google.protobuf.message import DecodeError
 
 from slamreloc import __version__
 from slamreloc.errors import InputError, OutOfMemory, is_out_of_memory
-from slamreloc.io.address import bind_problem, host_problem, is_loopback, listen_address
+from slamreloc.io.address import bind_problem, check_host, is_loopback, listen_address
 from slamreloc.io.fileio import relation, resolved
 from slamreloc.map.format import META
 from slamreloc.proto import PROTOCOL
@@ -122,9 +122,7 @@ class ServeConfig:
                                  f"(it is {what})")
             if not os.access(folder, os.W_OK | os.X_OK):
                 raise InputError(f"{folder}: `learned_maps` is not writable")
-        problem = host_problem(self.host)
-        if problem:
-            raise InputError(f"`host` {quoted(self.host)} {problem}")
+        check_host(self.host)
         if not is_loopback(self.host) and self.token is None:
             raise InputError(f"`host` {self.host} is not a loopback address: anyone who reaches "
                              "it could use the server; give a token (`token_file` or "
