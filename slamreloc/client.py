@@ -27,13 +27,18 @@ from pathlib import Path
 import grpc
 import numpy as np
 
+from slamreloc.errors import InputError, quoted
 from slamreloc.geometry import Rigid3
+from slamreloc.io.address import target_problem
+from slamreloc.io.pem import pem_problem, read_pem
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
+    CLIENT_TIMEOUT_S,
     ERROR_METADATA_KEY,
     GRPC_CODES,
     camera_msg,
     rigid_from_msg,
+    token_problem,
     transform_msg,
 )
 from slamreloc.proto.relocalizer_pb2_grpc import RelocalizerStub
@@ -112,21 +117,57 @@ def _camera(camera: Camera | str | None) -> pb.Camera | None:
     return pb.Camera(colmap=camera) if isinstance(camera, str) else camera_msg(camera)
 
 
+MAX_MESSAGE_BYTES = (2 << 30) - 1  # gRPC's message size is an int32
+
+
+def _check_arguments(address, token, tls_ca, timeout_s, max_message_bytes) -> None:
+    """InputError naming the first argument of `Client` that it could not use (the rules of
+    the server and of clients/cpp: `target_problem`, `token_problem`, CLIENT_TIMEOUT_S)."""
+    problem = target_problem(address)
+    if problem:
+        raise InputError(f"`address` {quoted(str(address))} {problem}")
+    if token is not None and not isinstance(token, str):
+        raise InputError(f"`token` is {type(token).__name__}, not text")
+    if tls_ca is not None and not isinstance(tls_ca, (str, Path, bytes, bytearray,
+                                                      memoryview)):
+        raise InputError(f"`tls_ca` is {type(tls_ca).__name__}: a PEM file's path or bytes")
+    low, high = CLIENT_TIMEOUT_S
+    if (isinstance(timeout_s, bool) or not isinstance(timeout_s, (int, float))
+            or not low <= timeout_s <= high):
+        raise InputError(f"`timeout_s` {timeout_s!r}: seconds, {low:g} to {high:g}")
+    if (isinstance(max_message_bytes, bool) or not isinstance(max_message_bytes, int)
+            or not 1024 <= max_message_bytes <= MAX_MESSAGE_BYTES):
+        raise InputError(f"`max_message_bytes` {max_message_bytes!r}: a whole number of bytes, "
+                         f"1024 to {MAX_MESSAGE_BYTES}")
+
+
 class Client:
-    """A connection to a server. `token`: sent as `authorization: Bearer TOKEN`; `tls_ca`: the
-    PEM certificate(s) to trust for a TLS server; `timeout_s`: the longest wait for a unary
-    call's answer and for a session frame's (a save and a close wait as long as the server
-    takes: it bounds them itself)."""
+    """A connection to a server at `address` (HOST:PORT, `target_problem`'s rule). `token`:
+    sent as `authorization: Bearer TOKEN` (blanks around it dropped; the server's rule,
+    `token_problem`, holds for it); `tls_ca`: the PEM certificate(s) to trust for a TLS server
+    (a path or the bytes; InputError when they are no PEM certificate); `timeout_s`: the
+    longest wait for a unary call's answer and for a session frame's, CLIENT_TIMEOUT_S (a
+    save and a close wait as long as the server takes: it bounds them itself)."""
 
     def __init__(self, address: str = "127.0.0.1:50051", token: str | None = None,
                  tls_ca: Path | bytes | None = None, timeout_s: float = 60.0,
                  max_message_bytes: int = 64 << 20):
+        _check_arguments(address, token, tls_ca, timeout_s, max_message_bytes)
         options = [("grpc.max_send_message_length", max_message_bytes),
                    ("grpc.max_receive_message_length", max_message_bytes)]
+        if token is not None:  # the blanks around it dropped, as the server reads its own
+            token = token.strip()
+            problem = token_problem(token) if token else "is empty (give one, or None for none)"
+            if problem:
+                raise InputError(f"the token {problem}")
         if tls_ca is not None:
-            from slamreloc.io.fileio import read_bytes
-
-            ca = tls_ca if isinstance(tls_ca, bytes) else read_bytes(tls_ca, "TLS CA", 1 << 20)
+            if isinstance(tls_ca, (bytes, bytearray, memoryview)):
+                ca = bytes(tls_ca)
+                problem = pem_problem(ca, "certificate")
+                if problem:
+                    raise InputError(f"`tls_ca` is not a PEM certificate ({problem})")
+            else:
+                ca = read_pem(tls_ca, "certificate", "tls_ca")
             self.channel = grpc.secure_channel(address, grpc.ssl_channel_credentials(ca),
                                                options)
         else:
@@ -196,6 +237,8 @@ def frame_poses(results: list[pb.FrameResult]) -> list[Rigid3 | None]:
             for r in results]
 
 
+DEPTH_ENCODINGS = ("float32", "uint16")  # `ClientSession.send`'s depth: metres, or depth units
+
 CONFIRMING = (pb.SessionEvent.TRACKING_RECOVERED, pb.SessionEvent.LOOP_CLOSURE)
 
 
@@ -240,11 +283,14 @@ class ClientSession:
         # the client's `timeout_s`, as a unary call is
         self._timeout_s = client.timeout_s
         self._answers: queue.Queue = queue.Queue()
-        threading.Thread(target=self._read, name="slamreloc-session", daemon=True).start()
-        first = self._next()
-        if first.WhichOneof("message") != "opened":
+        try:
+            threading.Thread(target=self._read, name="slamreloc-session", daemon=True).start()
+            first = self._next()
+            if first.WhichOneof("message") != "opened":
+                raise _unexpected(first, "opened")
+        except BaseException:  # whatever fails once the stream is open frees its server slot
             self._updates.cancel()
-            raise _unexpected(first, "opened")
+            raise
         self.opened: pb.SessionOpened = first.opened
         self.closed: pb.SessionClosed | None = None
 
@@ -281,6 +327,9 @@ class ClientSession:
         """One frame. depth: float32 metres (H, W); with depth_encoding="uint16" a uint16
         array in the session's depth units. odometry_world_from_cam: required with client
         odometry (the client's pose in its own fixed odometry frame)."""
+        if depth_encoding not in DEPTH_ENCODINGS:
+            raise InputError(f"`depth_encoding` {depth_encoding!r}: one of "
+                             f"{', '.join(DEPTH_ENCODINGS)}")
         frame = pb.SessionFrame(image=image_msg(image), timestamp=timestamp)
         if camera is not None:
             frame.camera.CopyFrom(_camera(camera))

@@ -15,7 +15,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import atomic_file
-from slamreloc.io.numbers import number_problem
+from slamreloc.io.numbers import number_problem, written_as_number
 
 RIGID_TOL = 1e-3  # max |R^T R - I| and |det R - 1| accepted for a pose read from a file
 MAX_COORDINATE = 1e9  # metres: beyond any map, and squares stay far from overflow
@@ -468,12 +468,12 @@ def read_named_trajectory(path) -> TumTrajectory:
     rows = read_tum_trajectory(path)
     stamps, names = [], []
     for i, (first, _) in enumerate(rows):
-        try:
+        if not written_as_number(first):
+            stamps.append(float(i))  # a frame name (a named pose file, older `evaluate` files)
+            names.append(first)
+        else:  # a number, or written as one (1e400, nan): a timestamp, checked as one
             stamps.append(parse_stamp(first, str(path)))
             names.append(None)
-        except InputError:  # a frame name (a named pose file, older `evaluate` files)
-            stamps.append(float(i))
-            names.append(first)
     sidecar = names_sidecar(path)
     numeric = bool(rows) and all(n is None for n in names)
     if numeric and sidecar.is_file():

@@ -43,7 +43,7 @@ from slamreloc.io.fileio import check_outputs, write_json
 from slamreloc.map.lock import map_write_lock
 from slamreloc.io.video import is_video, video_frames
 from slamreloc.runtime.progress import console, make_progress
-from slamreloc.types import Camera
+from slamreloc.types import Camera, frame_name_problem
 
 SFM_JSON = "sfm.json"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
@@ -353,8 +353,20 @@ def checked_image(path: Path) -> tuple[bytes, np.ndarray]:
     return data, decode_rgb(data, path)  # `check_encoded_image`'s rules, every reader's
 
 
-def _is_image_file(path: Path) -> bool:
-    return path.suffix.lower() in IMAGE_SUFFIXES and path.is_file()
+def _is_image_file(path: Path, root: Path) -> bool:
+    """A photo of the folder `root` by its name; InputError where that name is no regular
+    file (a folder, a pipe, a device, a broken link: it would vanish from the input unsaid)
+    or could not name a frame (`frame_name_problem`: a line break in it)."""
+    if path.suffix.lower() not in IMAGE_SUFFIXES:
+        return False
+    if not path.is_file():
+        kind = ("a folder" if path.is_dir() else "a broken link" if not path.exists()
+                else "a pipe, device or socket")
+        raise InputError(f"{path}: named as a photo but not a file ({kind})")
+    problem = frame_name_problem(path.relative_to(root).as_posix())
+    if problem:
+        raise InputError(f"{path}: its name {problem}: rename the photo")
+    return True
 
 
 def collect_images(source: Path, images_dir: Path, config: SfmConfig,
@@ -413,7 +425,7 @@ def _collect_video(path: Path, images_dir: Path, config: SfmConfig,
 
 def _collect_folder(root: Path, images_dir: Path, config: SfmConfig,
                     progress: bool) -> SfmInput:
-    paths = sorted(p for p in root.rglob("*") if _is_image_file(p))
+    paths = sorted(p for p in root.rglob("*") if _is_image_file(p, root))
     if not paths:
         raise InputError(f"{root}: no images ({', '.join(IMAGE_SUFFIXES)}) in this folder, and "
                          "it is not a dataset slamreloc reads")

@@ -48,7 +48,11 @@ class Camera:
         model, fx, fy, cx, cy, distortion = lens.colmap_values(model, params, source)
         problem = lens_camera_problem(model, width, height, fx, fy, cx, cy, distortion)
         if problem:  # named by `source` here, not as "invalid camera"
-            raise InputError(f"{source}: {problem}")
+            # said with the principal point as given (COLMAP's, half a pixel off ours) where
+            # that is what is wrong, so the message quotes the number the user wrote
+            given = lens_camera_problem(model, width, height, fx, fy, cx + 0.5, cy + 0.5,
+                                        distortion)
+            raise InputError(f"{source}: {given or problem}")
         return cls(width, height, fx, fy, cx, cy, model, distortion)
 
     @classmethod
@@ -225,6 +229,22 @@ def lens_camera_problem(model: str, width, height, fx, fy, cx, cy, distortion) -
             or centre_problem(width, height, cx, cy)
             or lens.distortion_problem(model, distortion)
             or lens.fold_problem(model, distortion, width, height, fx, fy, cx, cy))
+
+
+def frame_name_problem(name: str) -> str | None:
+    """Why `name` cannot name a map's training frame (None when it can): a frame is named by
+    its image's path relative to the dataset root (`seq-01/frame-000000`), which export writes
+    into lines (a COLMAP images.txt, a TUM names sidecar) and the viewer looks up in the
+    dataset: non-empty, without line breaks or other control characters (a space, as photos'
+    names have, is kept), relative, never leaving the root (`..`)."""
+    if not name:
+        return "is empty"
+    if any(not c.isprintable() and c != " " for c in name):  # photos' names hold spaces
+        return "holds a line break or another control character"
+    parts = name.replace("\\", "/").split("/")
+    if name.startswith("/") or ".." in parts:
+        return "is not a path inside the dataset (absolute, or with '..')"
+    return None
 
 
 @dataclass

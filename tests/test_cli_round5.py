@@ -304,8 +304,8 @@ def test_pseudo_labelling_the_maps_own_frames_is_refused(small_map, scene_dir, t
     assert not out.exists() and not (tmp_path / "r.json").exists()
 
 
-BOUND_SHAPE = (r"over the [^ ]+( [A-Za-z]+)? limit \({name}; raise it with --limit {name}=N or "
-               r"SLAMRELOC_{upper}\)$")
+BOUND_SHAPE = (r"over the [^ ]+( [A-Za-z]+)? limit \({name}; raise it with slamreloc --limit "
+               r"{name}=N or SLAMRELOC_{upper}\)$")
 
 
 @pytest.mark.parametrize("name, value", [("max_image_bytes", "10"),

@@ -80,8 +80,9 @@ def sequence(scene_dir, tmp_path_factory) -> Path:
 
 def run_client(binary: Path, *args: str, env: dict | None = None, token: str | None = TOKEN):
     argv = [str(binary), *args] + (["--token", token] if token else [])
+    environment = {**os.environ, **(env or {})}  # a variable given as None is unset
     return subprocess.run(argv, capture_output=True, text=True, timeout=120, check=False,
-                          env={**os.environ, **(env or {})})
+                          env={k: v for k, v in environment.items() if v is not None})
 
 
 def _fields(line: str) -> tuple[str, list[float], int]:
@@ -175,7 +176,7 @@ def test_errors_name_the_file_or_server_and_exit_2(client_binary, server, sequen
     # no token, and a wrong one
     for token in (None, "wrong-token-of-26-characters"):
         line = _error_line(run_client(client_binary, "--server", address, str(sequence),
-                                      token=token, env={"SLAMRELOC_TOKEN": ""}))
+                                      token=token, env={"SLAMRELOC_TOKEN": None}))
         assert "UNAUTHENTICATED" in line
     # a folder that does not exist, and one without images
     missing = tmp_path / "no_such_sequence"
@@ -245,3 +246,74 @@ def test_tls(client_binary, small_map, sequence, tmp_path):
         assert "UNAVAILABLE" in line
     finally:
         running.stop()
+
+
+def test_files_tokens_and_cameras_follow_the_python_rules(client_binary, server, sequence,
+                                                          tmp_path):
+    """The rules of the Python side (slamreloc.io.fileio, slamreloc.io.pem, token_problem):
+    a pipe or a device is refused, never read (a pipe would block for ever); a CA file that is
+    no PEM certificate, a token gRPC cannot carry or the server would refuse, and an empty
+    option are refused before any call."""
+    address = server.address
+    fifo = tmp_path / "ca.fifo"
+    os.mkfifo(fifo)
+    zeros, bom = tmp_path / "zeros.pem", tmp_path / "bom.pem"
+    zeros.write_bytes(bytes(4096))
+    bom.write_bytes(b"\xef\xbb\xbf-----BEGIN CERTIFICATE-----\nAAAA\n-----END CERTIFICATE-----\n")
+    for ca, words in ((fifo, "a named pipe"), (Path("/dev/zero"), "a device"),
+                      (tmp_path, "a folder"), (zeros, "no 'BEGIN CERTIFICATE' block"),
+                      (bom, "byte-order mark"), (tmp_path / "none.pem", "not found")):
+        line = _error_line(run_client(client_binary, "--server", address, "--tls-ca", str(ca),
+                                      str(sequence)))
+        assert str(ca) in line and "--tls-ca" in line and words in line, line
+    garbage = tmp_path / "garbage.pem"
+    garbage.write_text("-----BEGIN CERTIFICATE-----\nnot base64 !\n-----END CERTIFICATE-----\n")
+    line = _error_line(run_client(client_binary, "--server", address, "--tls-ca", str(garbage),
+                                  str(sequence)))
+    assert str(garbage) in line and "not base64" in line
+    port = address.rsplit(":", 1)[1]
+    cases = [(["--tls-ca", ""], "--tls-ca: empty"), (["--camera", " "], "--camera: empty"),
+             # the address and number rules of the Python side (target_problem, numbers)
+             (["--server", f"127.0.0.1:{int(port) + 65536}"], "not a number from 1 to 65535"),
+             (["--server", f"0177.0.0.1:{port}"], "short, octal or hexadecimal IPv4"),
+             (["--timeout", "1e-4"], "out of 0.001 to 1e6"),
+             (["--timeout", "0x10"], "not a number"), (["--timeout", " 5"], "not a number"),
+             (["--token", " \t"], "--token: empty"),
+             (["--token", "token with-a-space-0123"], "printable ASCII without spaces"),
+             (["--token", "short"], "at least 16 characters")]
+    for args, words in cases:
+        server = [] if "--server" in args else ["--server", address]
+        line = _error_line(run_client(client_binary, *server, *args, str(sequence), token=None))
+        assert words in line, (args, line)
+    # the variable: blanks around it dropped (as the server reads it), blank refused
+    done = run_client(client_binary, "--server", address, str(sequence), token=None,
+                      env={"SLAMRELOC_TOKEN": f"  {TOKEN}\n"})
+    assert done.returncode == 0, done.stderr
+    line = _error_line(run_client(client_binary, "--server", address, str(sequence),
+                                  token=None, env={"SLAMRELOC_TOKEN": " "}))
+    assert "$SLAMRELOC_TOKEN is empty" in line
+    # an image that is a pipe: reported (never opened blocking), the others localized
+    frames = sorted(sequence.glob("frame-*.color.png"))[:2]
+    folder = tmp_path / "seq"
+    folder.mkdir()
+    shutil.copy(frames[0], folder / frames[0].name)
+    os.mkfifo(folder / frames[1].name)
+    done = run_client(client_binary, "--server", address, str(folder))
+    line = _error_line(done)
+    assert frames[1].name in line and "a named pipe" in line
+    assert [ln.split()[0] for ln in done.stdout.splitlines()] == [frames[0].name]
+
+
+@pytest.mark.parametrize("rows,words", [
+    ("1.0 /etc/hostname\n", "points outside the dataset folder"),
+    ("1.0 ../x.png\n", "points outside the dataset folder"),
+    ("0x1 rgb/a.png\n", "is not a number"),
+    ("1.0 rgb/a.png\n1.0 rgb/b.png\n", "repeats line 1 with another file"),
+    ("1.0 rgb/a.png\n2.0 other/a.png\n", "listed more than once"),
+    ("1e13 rgb/a.png\n", "timestamps are seconds")])
+def test_rgb_txt_follows_the_tum_readers_rules(client_binary, server, tmp_path, rows, words):
+    """rgb.txt as slamreloc.datasets.tum reads it: numbers by the number rule, files inside
+    the folder, one file per timestamp, one image per name."""
+    (tmp_path / "rgb.txt").write_text(rows)
+    line = _error_line(run_client(client_binary, "--server", server.address, str(tmp_path)))
+    assert str(tmp_path / "rgb.txt") in line and words in line, line

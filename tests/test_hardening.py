@@ -10,6 +10,7 @@ import shutil
 import subprocess
 import sys
 import threading
+import time
 import warnings
 from pathlib import Path
 
@@ -462,3 +463,26 @@ def test_a_huge_map_name_is_refused_unknown_map(served):
             del session
         assert refused.value.kind == "BAD_REQUEST" and len(refused.value.message) < 400
         assert client.health().serving
+
+
+def test_watch_reports_every_failed_swap(tiny_map, tmp_path):
+    """The same broken folder swapped in three times (each a new version of the folder) is
+    reported three times: Python's warning filter shows a repeated text only once."""
+    root = copy_map(tiny_map, tmp_path / "map")
+    registry = MapRegistry({"m": root}, load_timeout_s=10)
+    messages: list[str] = []
+    thread = registry.watch(0.05, on_failure=messages.append)
+    try:
+        for i in range(3):
+            copy_map(tiny_map, root)
+            make_special(root / DATABASE, "fifo")
+            st_ = (root / META).stat()
+            os.utime(root / META, ns=(st_.st_atime_ns, st_.st_mtime_ns + (i + 1) * 10**9))
+            for _ in range(400):  # until this swap is reported (a safety bound of 20 s)
+                if len(messages) > i:
+                    break
+                time.sleep(0.05)
+    finally:
+        registry.close()
+        thread.join(10)
+    assert len(messages) == 3 and all("not a regular file" in m for m in messages), messages

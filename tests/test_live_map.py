@@ -50,6 +50,7 @@ def test_live_session_recovers_kidnaps_in_its_own_map(live_session):
     assert r["ate_rmse_aligned_m"] <= 0.4 * r["ate_rmse_odometry_only_aligned_m"]
     live = r["live_map"]
     assert live["n_keyframes"] > 10 and live["n_prior_frames"] == 0
+    assert live["n_feature_links"] >= live["n_keyframes"]
     assert live["rounds"] and live["rounds"][0]["scratch"]
     assert live["n_writes"] >= 1
 
@@ -381,3 +382,55 @@ def test_sigterm_at_start_up_is_one_line(kidnap_scene, tmp_path):
         assert len(lines) == 1 and lines[0].startswith("interrupted"), err
     else:
         assert not lines, err
+
+
+def test_feature_links_hold_keyframes_where_odometry_drifts(kidnap_scene):
+    """Odometry that drifts (2 deg and 8 cm over 24 frames): keyframes linked by their
+    keypoints on recent keyframes' depth points stay near their true relative poses; without
+    links the drift stays in the graph."""
+    from plugins.live_mapping import LiveMappingPlugin
+    from slamreloc.datasets import load_dataset
+    from slamreloc.slam.feed import read_frames
+
+    dataset = load_dataset(kidnap_scene)
+    frames = dataset.frames("seq-03")[:24]
+    inputs = list(read_frames(dataset, frames))
+    n = len(frames)
+
+    def track(link_keyframes: int) -> tuple[float, float, int]:
+        live = LiveMap(LiveMapConfig(train_every=10 ** 9, link_keyframes=link_keyframes))
+        backend = SlamBackend(None, [LiveMappingPlugin(live)], BackendConfig(keyframe_every=2))
+        for i, (frame, inp) in enumerate(zip(frames, inputs)):
+            drift = Rigid3(axis_angle_to_matrix(np.radians([0, 2.0 * i / (n - 1), 0])),
+                           np.array([0.08 * i / (n - 1), 0, 0]))
+            backend.process(inp.image, inp.depth, inp.camera, drift @ frame.world_from_cam,
+                            float(i))
+        keys = [r for r in backend.frames if r.key is not None]
+        first, last = keys[0], keys[-1]
+        estimate = backend.keyframe_pose(first.key).inverse() @ backend.keyframe_pose(last.key)
+        truth = frames[first.index].world_from_cam.inverse() @ frames[last.index].world_from_cam
+        return (*pose_error(estimate, truth), backend.graph.n_links)
+
+    linked_m, linked_deg, n_links = track(3)
+    drifted_m, drifted_deg, no_links = track(0)
+    assert no_links == 0 and n_links >= 20
+    assert drifted_m > 0.05  # the drift is there without links ...
+    assert linked_m <= 0.3 * drifted_m and linked_deg <= 0.3 * drifted_deg  # ... not with them
+
+
+def test_a_bounded_map_stops_growing_and_tracks_on(kidnap_scene):
+    """`max_keyframes` (the service's bound on a learning session's map): keyframes past it
+    add no rows, and the session goes on tracking."""
+    from plugins.live_mapping import LiveMappingPlugin
+    from slamreloc.datasets import load_dataset
+    from slamreloc.slam.feed import read_frames
+
+    dataset = load_dataset(kidnap_scene)
+    frames = dataset.frames("seq-03")[:16]
+    live = LiveMap(LiveMapConfig(train_every=10 ** 9, max_keyframes=3, link_keyframes=0))
+    backend = SlamBackend(None, [LiveMappingPlugin(live)], BackendConfig(keyframe_every=2))
+    for i, (frame, inp) in enumerate(zip(frames, read_frames(dataset, frames))):
+        result = backend.process(inp.image, inp.depth, inp.camera, frame.world_from_cam, float(i))
+        assert result.world_from_cam is not None
+    assert live.full and live.store.n_keyframes == 3
+    assert sum(r.key is not None for r in backend.frames) > 3  # the graph went on

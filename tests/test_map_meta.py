@@ -21,8 +21,8 @@ from slamreloc.errors import InputError
 from slamreloc.io.jsonio import parse_json
 from slamreloc.map.format import DATABASE, FORMAT_VERSION, MAP_FORMAT, WEIGHTS
 from slamreloc.map.meta import (CameraMeta, DatasetMeta, FeatureMeta, MapMeta, RegressorMeta,
-                                SurfaceMeta, UpdateMeta, frame_name_problem)
-from slamreloc.types import Camera, lens_camera_problem
+                                SurfaceMeta, UpdateMeta)
+from slamreloc.types import Camera, frame_name_problem, lens_camera_problem
 from tests.fuzzing import damaged_json, fuzz_settings, json_values
 
 PATH = Path("/maps/m/slamreloc_map.json")
@@ -42,13 +42,14 @@ def shuffled(draw, doc: dict) -> dict:
 
 
 @st.composite
-def some_keys(draw, typed: dict) -> dict:
+def some_keys(draw, typed: dict, checked: tuple[str, ...] = ()) -> dict:
     """A JSON object with some of the keys `typed` names (key -> strategy of the right type),
-    each of the right type or, sometimes, any JSON value; and sometimes an unknown key."""
+    each of the right type or, sometimes, any JSON value (not those the schema `checked`);
+    and sometimes an unknown key."""
     doc = {}
     for key, strategy in typed.items():
         if draw(st.booleans()):
-            doc[key] = draw(strategy | finite_json)
+            doc[key] = draw(strategy if key in checked else strategy | finite_json)
     if draw(st.booleans()):
         doc["x_" + draw(st.text("abc", max_size=3))] = draw(finite_json)
     return draw(shuffled(doc))
@@ -104,11 +105,13 @@ def metadata(draw) -> dict:
     optional = {
         "slamreloc_version": st.text(max_size=8) | finite_json,
         "train": st.dictionaries(st.text("abc_", max_size=5), finite_json, max_size=4)
-        | finite_json,
+        | finite_json.filter(lambda v: not isinstance(v, dict) or not {"precision", "epochs"}
+                             & set(v)),  # typed fields: checked (test_schema_types...)
         "timings_s": st.dictionaries(st.text("abc_", max_size=5), st.floats(0, 100), max_size=3),
         "dataset": some_keys({"root": st.text(max_size=8), "kind": st.text(max_size=8),
                               "split": st.text(max_size=5), "metric": st.booleans(),
-                              "poses": st.text(max_size=8)}) | finite_json,
+                              "poses": st.text(max_size=8)}, checked=("metric",))
+        | finite_json.filter(lambda v: not isinstance(v, dict) or "metric" not in v),
         "surface": some_keys({"n_points": st.integers(0, 10 ** 6),
                               "voxel_m": st.floats(0.001, 1.0) | st.integers(1, 2)}),
         "pseudo_label": some_keys({"source_map": st.text(max_size=8),
@@ -207,6 +210,10 @@ def test_typed_views_read_what_the_metadata_records(doc):
     (lambda d: {**d, "camera": {**d["camera"], "model": "OPENCV", "distortion": [0.1]}},
      "'camera': OPENCV has 4 distortion parameters, got 1"),
     (lambda d: {**d, "frame_names": ["a", 1]}, "'frame_names' must be a list of strings"),
+    # round 8: typed fields that other commands act on
+    (lambda d: {**d, "train": {"epochs": -1}}, "'train.epochs' must be a whole number"),
+    (lambda d: {**d, "dataset": {"metric": "yes"}}, "'dataset.metric' must be true or false"),
+    (lambda d: {**d, "timings_s": "x"}, "'timings_s' must be an object of seconds"),
     (lambda d: {k: v for k, v in d.items() if k != "files"}, "missing key 'files'"),
     (lambda d: {**d, "files": {WEIGHTS: "00", DATABASE: SHA}},
      f"'files.{WEIGHTS}' must be a SHA-256 hex digest"),

@@ -210,9 +210,10 @@ def test_router_checks_the_token():
         asyncio.run(router.Health(pb.HealthRequest(), context))
         assert context.code == grpc.StatusCode.UNAUTHENTICATED
         assert context.trailing == [(ERROR_METADATA_KEY, "UNAUTHENTICATED")]
-    context = FakeContext([("authorization", f"Bearer {token}")])
-    assert asyncio.run(router.Health(pb.HealthRequest(), context)).serving
-    assert context.code is None
+    for scheme in ("Bearer", "bearer", "BEARER"):  # the scheme in any case, as the gRPC engine
+        context = FakeContext([("authorization", f"{scheme} {token}")])
+        assert asyncio.run(router.Health(pb.HealthRequest(), context)).serving
+        assert context.code is None
 
 
 def test_deploy_file_is_a_valid_serve_config(small_map):

@@ -177,17 +177,56 @@ def test_auto_detection_and_listing(scene, tmp_path, capsys):
         "bag: pose /pose (geometry_msgs/msg/PoseStamped, 8 messages)"]
 
 
+def test_a_choice_that_would_be_a_guess_is_refused(scene, tmp_path):
+    """Two colour cameras with as many messages, two depth topics alike, or a CameraInfo only
+    under another camera's namespace: refused, naming the topics, until `--topic` names one;
+    then the bag loads."""
+    dataset, frames = scene
+    msgs = Messages(2)
+    second = {"/cam2/color/image_raw": [msgs.raw(frame_stamp(f), read_image(f.image_path),
+                                                 "rgb8") for f in frames]}
+    bag = write_bag(dataset, frames, tmp_path / "two_cameras", compressed=False, extra=second)
+    with pytest.raises(InputError, match=r"2 image topics could be the one to read \("
+                       r"/cam/color/image_raw, /cam2/color/image_raw\): name one"):
+        load_rosbag(bag)
+    loaded = load_rosbag(bag, parse_topics([f"image={IMAGE_TOPIC}"])).frames()
+    assert_same_frames(frames, loaded)
+
+    depth = {"/cam/depth2/image_raw": [msgs.raw(frame_stamp(f), np.zeros((20, 30), np.uint16),
+                                                "16UC1") for f in frames]}
+    bag = write_bag(dataset, frames, tmp_path / "two_depths", depth=False, extra={
+        **depth, "/cam/depth/image_raw": depth["/cam/depth2/image_raw"]})
+    with pytest.raises(InputError, match="2 depth topics could be the one to read"):
+        load_rosbag(bag)
+
+    other = {"/cam2/camera_info": [msgs.camera_info(frame_stamp(f), f.camera) for f in frames]}
+    bag = write_bag(dataset, frames, tmp_path / "other_info", camera_info=False, extra=other)
+    with pytest.raises(InputError, match=r"CameraInfo topics, /cam2/camera_info, are of other "
+                       r"cameras or several\): add /cam/color/camera_info"):
+        load_rosbag(bag).frames()
+    loaded = load_rosbag(bag, parse_topics(["camera_info=/cam2/camera_info"])).frames()
+    assert_same_frames(frames, loaded)
+
+
 def test_listing_says_what_was_not_found(scene, tmp_path, capsys):
     dataset, frames = scene
     msgs = Messages(1)
     odometry = [msgs.odometry(frame_stamp(f), "map", "body", f.world_from_cam) for f in frames]
     bag = write_bag(dataset, frames, tmp_path / "run.bag", 1, depth=False,
                     extra={"/odom": odometry})
-    loaded = load_rosbag(bag).frames()
+    with pytest.warns(UserWarning, match="no pose topic chosen from the candidates /odom, "
+                      "/pose: the frames have no poses unless one is named"):
+        loaded = load_rosbag(bag).frames()
     assert all(f.depth_path is None and f.world_from_cam is None for f in loaded)
     lines = capsys.readouterr().err.splitlines()
     assert lines[1] == "bag: no depth topic found"
-    assert lines[3].startswith("bag: no pose topic found (candidates: /odom, /pose; name one")
+    assert lines[3] == "bag: no pose topic found"
+    # on the command line: the warning names the option as it is typed
+    done = subprocess.run([sys.executable, "-m", "slamreloc.cli", "map", str(bag), "--out",
+                           str(tmp_path / "m")], capture_output=True, text=True)
+    code, err = done.returncode, done.stderr
+    assert code == 2 and "warning: " in err and "named with slamreloc --topic pose=NAME" in err
+    assert err.splitlines()[-1].startswith("error: ") and "has no pose" in err
 
 
 def test_pose_without_a_static_chain_is_the_cameras(scene, tmp_path, capsys):
@@ -342,7 +381,8 @@ def _coefficient_count(ds, frames, tmp):
 def _no_camera_info(ds, frames, tmp):
     bag = write_bag(ds, frames[:2], tmp / "run", camera_info=False)
     return bag, [], (f"no sensor_msgs/CameraInfo for image topic {IMAGE_TOPIC}/compressed: add "
-                     f"{INFO_TOPIC} to the bag, or name one with --topic camera_info=NAME")
+                     f"{INFO_TOPIC} to the bag, or name one with slamreloc --topic "
+                     "camera_info=NAME")
 
 
 def _depth_size(ds, frames, tmp):
@@ -394,7 +434,7 @@ def test_bad_bag_is_one_error_line_naming_it(scene, tmp_path, tiny_map, case):
 def test_bad_topic_option_is_one_error_line(tmp_path, tiny_map):
     code, err = run_cli(["--topic", "colour=/x", "evaluate", str(tiny_map), str(tmp_path),
                          "--report", str(tmp_path / "r.json")])
-    assert code == 2 and err.strip() == ("error: --topic 'colour=/x': expected KIND=NAME with "
+    assert code == 2 and err.strip() == ("error: slamreloc --topic 'colour=/x': expected KIND=NAME with "
                                          "KIND one of image, depth, camera_info, pose")
 
 

@@ -86,6 +86,11 @@ def test_view_refuses_an_address_of_another_machine_instead_of_trying_ports_for_
     ({"replica_cpus": "x"}, "`replica_cpus` must be a number"),
     ({"watch_s": None}, "`watch_s` must be a number"),
     ({"maps": {"m": None}}, "must be a map folder's path"),
+    # round 8: NUL bytes, a share of a CPU Ray refuses, names the gRPC engine refuses
+    ({"token_file": "tok\0en"}, "`token_file` must name a file"),
+    ({"maps": {"m": "/tmp/m\0x"}}, "holds a NUL byte"),
+    ({"replica_cpus": 1e-300}, "`replica_cpus` 1e-300: 0.01 to 64"),
+    ({"maps": {"m" * 129: "/tmp"}}, "more than 128"),
 ])
 def test_a_ray_config_keeps_the_clis_rules(tmp_path, args, needle):
     """Finding 2 (service): an empty `token_file` built the app with no token (no
@@ -532,7 +537,7 @@ def test_a_map_file_larger_than_any_map_is_refused_before_it_is_read(small_map, 
 def test_a_pem_file_with_a_byte_order_mark_is_refused_naming_the_option(tmp_path):
     """Round 7 (service), finding 3: a certificate starting with a byte-order mark passed
     the check and was refused by gRPC in three log lines blaming the port."""
-    from slamreloc.service.server import pem_problem
+    from slamreloc.io.pem import pem_problem
 
     assert "byte-order mark" in pem_problem(b"\xef\xbb\xbf-----BEGIN CERTIFICATE-----\n",
                                             "certificate")

@@ -31,7 +31,12 @@ from slamreloc.map.format import DATABASE, META, PROVENANCE, SURFACE, sha256_fil
 from slamreloc.map.scene_map import SceneMap
 from slamreloc.io.address import host_problem, is_loopback
 from slamreloc.proto import relocalizer_pb2 as pb
-from slamreloc.proto.messages import ERROR_METADATA_KEY, depth_from_msg, map_name_problem
+from slamreloc.proto.messages import (
+    ERROR_METADATA_KEY,
+    depth_from_msg,
+    map_name_problem,
+    token_problem,
+)
 from slamreloc.service import maps as maps_module
 from slamreloc.service import server as server_module
 from slamreloc.service.maps import MapRegistry, ServedMap, folder_stamp
@@ -41,7 +46,6 @@ from slamreloc.service.server import (
     ServeConfig,
     certificate_problem,
     start_server,
-    token_problem,
 )
 from slamreloc.types import Camera
 from tests.fuzzing import fuzz_settings, no_hang, run_cli
@@ -448,6 +452,41 @@ def test_tokens_grpc_cannot_carry_are_refused(token):
     assert token_problem(token) is not None
     with pytest.raises(InputError, match="printable ASCII"):
         ServeConfig(token=token).check()
+    with pytest.raises(InputError, match="printable ASCII"):  # the client: the same rule
+        Client("127.0.0.1:1", token=token)
+
+
+def test_client_tls_ca_is_read_as_the_server_reads_its_pem_files(tmp_path):
+    """A client's CA: a regular PEM certificate file (a pipe is refused, never opened
+    blocking), or bytes that are one."""
+    fifo = tmp_path / "ca.fifo"
+    os.mkfifo(fifo)
+    (tmp_path / "zeros.pem").write_bytes(bytes(100))
+    for ca, words in ((fifo, "a named pipe"), (Path("/dev/zero"), "a device"),
+                      (tmp_path / "zeros.pem", "no 'BEGIN CERTIFICATE' block"),
+                      (b"\xef\xbb\xbf-----BEGIN CERTIFICATE-----\n", "byte-order mark")):
+        with no_hang(10), pytest.raises(InputError, match=words) as err:
+            Client("127.0.0.1:1", token="t" * 16, tls_ca=ca)
+        assert "`tls_ca`" in str(err.value)
+    with pytest.raises(InputError, match="at least 16"):
+        Client("127.0.0.1:1", token="short")
+
+
+@pytest.mark.parametrize("kwargs,words", [
+    ({"address": "127.0.0.1:65537"}, "not a number from 1 to 65535"),
+    ({"address": "0177.0.0.1:50051"}, "short, octal or hexadecimal IPv4"),
+    ({"address": "nohost"}, "is not HOST:PORT"),
+    ({"timeout_s": float("inf")}, "`timeout_s` inf"), ({"timeout_s": -1}, "`timeout_s` -1"),
+    ({"timeout_s": float("nan")}, "`timeout_s` nan"), ({"timeout_s": 1e10}, "0.001 to 1e+06"),
+    ({"max_message_bytes": 2 ** 40}, "`max_message_bytes`"),
+    ({"token": b"bytes-token-of-16-chars"}, "`token` is bytes"),
+    ({"token": "   "}, "the token is empty"), ({"tls_ca": 5}, "`tls_ca` is int")])
+def test_client_arguments_follow_the_servers_rules(kwargs, words):
+    """A Client refuses what the server or gRPC could not use, before any call: a port gRPC
+    would wrap, a timeout gRPC's deadline arithmetic overflows or that fails every call."""
+    with pytest.raises(InputError) as err:
+        Client(**{"address": "127.0.0.1:50051", **kwargs})
+    assert words in str(err.value)
 
 
 @pytest.mark.parametrize("text", ["ünïcödé-token-of-more-than-16", "a-token\nof-sixteen-chars"])
@@ -856,6 +895,8 @@ def test_a_closed_client_session_says_so(tiny_map):
     try:
         with Client(running.address, timeout_s=30) as client:
             session = client.session(map="m", odometry="auto")
+            with pytest.raises(InputError, match="`depth_encoding` 'uint8'"):  # not float32
+                session.send(_image(), depth=np.zeros((4, 4)), depth_encoding="uint8")
             closed = session.close()
             assert session.close() is closed
             for call in (lambda: session.send(_image()), lambda: session.save("x")):

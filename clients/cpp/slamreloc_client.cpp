@@ -3,8 +3,11 @@
 //   slamreloc_client --server HOST:PORT [--map NAME] [--token T] [--tls-ca PEM]
 //                    [--camera "MODEL W H ..."] [--timeout SECONDS] SEQUENCE
 //
-// --token (default: $SLAMRELOC_TOKEN) is sent as `authorization: Bearer T`; --tls-ca: connect
-// with TLS, trusting the certificate(s) in that PEM file (else plain TCP).
+// --token (default: $SLAMRELOC_TOKEN, blanks around it dropped) is sent as `authorization:
+// Bearer T`: at least 16 characters of printable ASCII without spaces, the server's rule;
+// --tls-ca: connect with TLS, trusting the certificate(s) in that PEM file (else plain TCP).
+// Every file named here is read as the Python side reads it: a regular file (a pipe, device or
+// folder is refused, never opened blocking), of bounded size (PEM 1 MiB, an image 64 MiB).
 //
 // SEQUENCE is a 7-Scenes sequence folder (frame-XXXXXX.color.png or .color.jpg, in name order)
 // or a TUM RGB-D folder (rgb.txt: `timestamp rgb/file.png` lines, in the order listed). Each
@@ -21,19 +24,32 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cctype>
+#include <cerrno>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
 #include <iterator>
+#include <map>
 #include <memory>
 #include <optional>
+#include <regex>
+#include <set>
 #include <sstream>
 #include <stdexcept>
 #include <string>
 #include <utility>
 #include <vector>
+
+#include <arpa/inet.h>
+#include <fcntl.h>
+#include <netinet/in.h>
+#include <sys/stat.h>
+#include <unistd.h>
 
 #include <grpc/support/log.h>
 #include <grpcpp/grpcpp.h>
@@ -75,6 +91,13 @@ const char* code_name(grpc::StatusCode code) {
   const int i = static_cast<int>(code);
   return i >= 0 && i < static_cast<int>(std::size(names)) ? names[i] : "UNKNOWN_CODE";
 }
+
+constexpr std::size_t kMinToken = 16;                 // the server's rule (`token_problem`)
+constexpr std::uintmax_t kMaxPemBytes = 1u << 20;      // slamreloc.io.pem.MAX_PEM_BYTES
+constexpr std::uintmax_t kMaxImageBytes = 64u << 20;   // the client's gRPC message bound
+constexpr std::uintmax_t kMaxListBytes = 1u << 30;     // rgb.txt, as the Python TUM reader
+constexpr double kMinTimeoutS = 0.001, kMaxTimeoutS = 1e6;  // proto.messages.CLIENT_TIMEOUT_S
+constexpr double kMaxStampS = 1e12;  // slamreloc.geometry.MAX_STAMP_S
 
 std::string one_line(std::string text) {
   std::replace(text.begin(), text.end(), '\n', ' ');
@@ -138,6 +161,118 @@ std::optional<v1::Transform> relocalize(v1::Relocalizer::StubInterface& stub,
 
 namespace {
 
+// Why `token` cannot be sent (empty when it can): the server's rule, at least kMinToken
+// characters of printable ASCII without spaces (what gRPC metadata carries).
+std::string token_problem(const std::string& token) {
+  if (token.size() < kMinToken)
+    return "must have at least " + std::to_string(kMinToken) + " characters";
+  for (const unsigned char c : token)
+    if (c < 0x21 || c > 0x7E)
+      return "must be printable ASCII without spaces or line breaks (gRPC metadata carries "
+             "nothing else)";
+  return "";
+}
+
+// `text` without the blanks (spaces, tabs, line breaks) around it.
+std::string strip_blanks(const std::string& text) {
+  const char* blanks = " \t\r\n\v\f";
+  const auto first = text.find_first_not_of(blanks);
+  if (first == std::string::npos) return "";
+  return text.substr(first, text.find_last_not_of(blanks) - first + 1);
+}
+
+// Closes a file descriptor when it goes out of scope.
+struct Fd {
+  int fd;
+  ~Fd() {
+    if (fd >= 0) ::close(fd);
+  }
+};
+
+// The bytes of the regular file `path` (`what` names it in errors), at most `limit` of them.
+// Opened without blocking and checked on what was opened, as slamreloc.io.fileio.open_regular
+// does: a named pipe with no writer would block for ever, a device would be read for ever.
+std::string read_file(const fs::path& path, const std::string& what, std::uintmax_t limit) {
+  const std::string name = path.string() + ": " + what;
+  Fd file{::open(path.c_str(), O_RDONLY | O_NONBLOCK | O_NOCTTY | O_CLOEXEC)};
+  if (file.fd < 0)
+    throw Error(errno == ENOENT ? name + " file not found"
+                                : name + " cannot be read (" + std::strerror(errno) + ")");
+  struct stat info {};
+  if (::fstat(file.fd, &info) != 0) throw Error(name + " cannot be read");
+  if (!S_ISREG(info.st_mode)) {
+    const char* kind = S_ISDIR(info.st_mode)                              ? "a folder"
+                       : S_ISFIFO(info.st_mode)                           ? "a named pipe"
+                       : S_ISCHR(info.st_mode) || S_ISBLK(info.st_mode)   ? "a device"
+                       : S_ISSOCK(info.st_mode)                           ? "a socket"
+                                                                          : "not a file";
+    throw Error(name + " is not a regular file (" + kind + ")");
+  }
+  const auto too_large = [&](const std::string& size) {
+    return Error(name + " file of " + size + ", over the " + std::to_string(limit >> 20) +
+                 " MiB such a file may hold");
+  };
+  if (static_cast<std::uintmax_t>(info.st_size) > limit)
+    throw too_large(std::to_string(info.st_size) + " bytes");
+  ::fcntl(file.fd, F_SETFL, ::fcntl(file.fd, F_GETFL) & ~O_NONBLOCK);
+  std::string bytes;
+  char buffer[1 << 16];
+  for (;;) {  // a file growing while read is bounded too
+    const ssize_t n = ::read(file.fd, buffer, sizeof buffer);
+    if (n < 0 && errno == EINTR) continue;
+    if (n < 0) throw Error(name + " cannot be read (" + std::strerror(errno) + ")");
+    if (n == 0) break;
+    bytes.append(buffer, static_cast<std::size_t>(n));
+    if (bytes.size() > limit) throw too_large("more than " + std::to_string(limit) + " bytes");
+  }
+  return bytes;
+}
+
+// The number rule of slamreloc.io.numbers: a plain ASCII decimal (-1.5, 2e-3; no hex, blanks
+// or words), finite; `what` names it in the error.
+double parse_number(const std::string& text, const std::string& what) {
+  static const std::regex decimal(R"([+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?)");
+  if (text.size() > 400 || !std::regex_match(text, decimal))
+    throw Error(what + ": '" + text.substr(0, 40) +
+                "' is not a number (numbers are plain ASCII decimals such as -1.5 or 2e-3)");
+  const double value = std::strtod(text.c_str(), nullptr);
+  if (!std::isfinite(value)) throw Error(what + ": " + text.substr(0, 40) + " is not finite");
+  return value;
+}
+
+// Why `target` (--server) cannot be connected to, empty when it can: HOST:PORT with a host of
+// plain ASCII without blanks (no short, octal or hexadecimal IPv4 form, which libraries read
+// differently) and a decimal port from 1 to 65535 (gRPC would wrap 65537 to 1); a target with
+// a scheme (dns:, unix:, ...) is left to gRPC. slamreloc.io.address.target_problem's rule.
+std::string target_problem(const std::string& target) {
+  static const char* const schemes[] = {"dns", "unix", "unix-abstract", "ipv4", "ipv6",
+                                        "vsock"};
+  const std::string head = target.substr(0, target.find(':'));
+  if (target.find("://") != std::string::npos ||
+      std::find(std::begin(schemes), std::end(schemes), head) != std::end(schemes))
+    return "";
+  const auto colon = target.rfind(':');
+  if (colon == std::string::npos || colon == 0) return "is not HOST:PORT";
+  std::string host = target.substr(0, colon);
+  const std::string port = target.substr(colon + 1);
+  for (const unsigned char c : host)
+    if (c < 0x21 || c > 0x7E)
+      return "host holds a blank or a character beyond plain ASCII (write 127.0.0.1, ::1, a "
+             "name; IDNA xn-- for other scripts)";
+  if (host.size() > 2 && host.front() == '[' && host.back() == ']')
+    host = host.substr(1, host.size() - 2);
+  in_addr v4{};
+  if (::inet_aton(host.c_str(), &v4) != 0 && ::inet_pton(AF_INET, host.c_str(), &v4) != 1)
+    return "host is a short, octal or hexadecimal IPv4 form, which libraries read "
+           "differently: write four decimal numbers (127.0.0.1)";
+  const bool digits = !port.empty() && port.size() <= 5 &&
+                      std::all_of(port.begin(), port.end(),
+                                  [](char c) { return c >= '0' && c <= '9'; });
+  if (!digits || std::stol(port) < 1 || std::stol(port) > 65535)
+    return "port '" + port.substr(0, 40) + "' is not a number from 1 to 65535";
+  return "";
+}
+
 struct Options {
   std::string server;
   fs::path tls_ca;     // empty: plain TCP
@@ -157,7 +292,13 @@ const char kUsage[] =
 
 Options parse_args(int argc, char** argv) {
   Options opts;
-  if (const char* token = std::getenv("SLAMRELOC_TOKEN")) opts.call.token = token;
+  std::string token_source;  // where the token came from, for its error
+  if (const char* token = std::getenv("SLAMRELOC_TOKEN")) {
+    opts.call.token = strip_blanks(token);
+    token_source = "$SLAMRELOC_TOKEN";
+    if (opts.call.token.empty())
+      throw Error("$SLAMRELOC_TOKEN is empty (give a token, or unset it)");
+  }
   std::vector<std::string> positional;
   for (int i = 1; i < argc; ++i) {
     std::string arg = argv[i];
@@ -179,24 +320,36 @@ Options parse_args(int argc, char** argv) {
       throw Error(arg + ": needs a value");
     }
     if (arg == "--server") {
+      const std::string problem = target_problem(value);
+      if (!problem.empty()) throw Error("--server '" + value.substr(0, 80) + "' " + problem);
       opts.server = value;
     } else if (arg == "--map") {
       opts.call.map = value;
     } else if (arg == "--token") {
-      opts.call.token = value;
+      opts.call.token = strip_blanks(value);
+      token_source = "--token";
+      if (opts.call.token.empty()) throw Error("--token: empty (give a token, or leave it out)");
     } else if (arg == "--tls-ca") {
+      if (value.empty()) throw Error("--tls-ca: empty (give a PEM file, or leave it out)");
       opts.tls_ca = value;
     } else if (arg == "--camera") {
-      opts.camera = value;
+      opts.camera = strip_blanks(value);
+      if (opts.camera.empty())
+        throw Error("--camera: empty (give a COLMAP camera line such as \"PINHOLE W H fx fy cx "
+                    "cy\", or leave it out for the map's camera)");
     } else if (arg == "--timeout") {
-      char* end = nullptr;
-      const double seconds = std::strtod(value.c_str(), &end);
-      if (value.empty() || *end != '\0' || !(seconds > 0 && seconds < 1e6))
-        throw Error("--timeout: " + value + " is not a positive number of seconds");
+      const double seconds = parse_number(value, "--timeout");
+      if (!(seconds >= kMinTimeoutS && seconds <= kMaxTimeoutS))
+        throw Error("--timeout: " + value + " seconds, out of 0.001 to 1e6 (the Python "
+                    "client's `timeout_s` rule)");
       opts.call.timeout = std::chrono::milliseconds(static_cast<long long>(seconds * 1000));
     } else {
       throw Error(arg + ": unknown option (see --help)");
     }
+  }
+  if (!opts.call.token.empty()) {
+    const std::string problem = token_problem(opts.call.token);
+    if (!problem.empty()) throw Error("the token (" + token_source + ") " + problem);
   }
   if (opts.server.empty()) throw Error("--server HOST:PORT is required (see --help)");
   if (positional.size() != 1) throw Error("give one SEQUENCE folder (see --help)");
@@ -211,17 +364,35 @@ std::vector<fs::path> sequence_images(const fs::path& dir) {
     throw Error(dir.string() + (fs::exists(dir, ec) ? ": not a folder" : ": no such folder"));
   std::vector<fs::path> images;
   const fs::path list = dir / "rgb.txt";
-  if (fs::is_regular_file(list, ec)) {
-    std::ifstream in(list);
-    if (!in) throw Error(list.string() + ": cannot be read");
+  if (fs::exists(list, ec)) {  // rgb.txt: slamreloc.datasets.tum's rules
+    std::istringstream in(read_file(list, "image list", kMaxListBytes));
+    std::map<double, std::pair<int, std::string>> seen;  // stamp -> (first line, its file)
+    std::set<std::string> stems;
     std::string line;
     for (int n = 1; std::getline(in, line); ++n) {
+      const std::string where = list.string() + ":" + std::to_string(n);
       std::istringstream fields(line);
       std::string stamp, file, extra;
       if (!(fields >> stamp) || stamp[0] == '#') continue;  // blank line or comment
       if (!(fields >> file) || (fields >> extra))
-        throw Error(list.string() + ":" + std::to_string(n) + ": expected `timestamp file`");
-      images.push_back(dir / file);
+        throw Error(where + ": expected `timestamp file`");
+      const double t = parse_number(stamp, where + ": timestamp");
+      if (std::fabs(t) > kMaxStampS)
+        throw Error(where + ": timestamp " + stamp + " is beyond 1e12 s: timestamps are seconds");
+      const fs::path rel(file);
+      if (rel.is_absolute() || std::find(rel.begin(), rel.end(), "..") != rel.end())
+        throw Error(where + ": '" + file.substr(0, 80) + "' points outside the dataset folder");
+      const auto [first, added] = seen.emplace(t, std::make_pair(n, file));
+      if (!added) {
+        if (first->second.second != file)
+          throw Error(where + ": timestamp " + stamp + " repeats line " +
+                      std::to_string(first->second.first) + " with another file");
+        continue;  // the same row twice: read once
+      }
+      if (!stems.insert(rel.stem().string()).second)
+        throw Error(list.string() + ": image '" + rel.stem().string() +
+                    "' is listed more than once");
+      images.push_back(dir / rel);
     }
   } else {
     for (const auto& entry : fs::directory_iterator(dir, ec)) {
@@ -241,12 +412,28 @@ std::vector<fs::path> sequence_images(const fs::path& dir) {
   return images;
 }
 
-std::string read_file(const fs::path& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) throw Error(path.string() + ": cannot be opened");
-  std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  if (in.bad()) throw Error(path.string() + ": cannot be read");
-  return bytes;
+// The trusted certificate(s) of --tls-ca: a PEM file, as slamreloc.io.pem checks it.
+std::string read_tls_ca(const fs::path& path) {
+  std::string pem = read_file(path, "--tls-ca", kMaxPemBytes);
+  const std::string name = path.string() + ": --tls-ca is not a PEM certificate";
+  if (pem.rfind("\xEF\xBB\xBF", 0) == 0)
+    throw Error(name + " (it starts with a UTF-8 byte-order mark, which gRPC's TLS does not "
+                       "read: save it without)");
+  const std::string begin = "-----BEGIN CERTIFICATE-----", end = "-----END CERTIFICATE-----";
+  const auto first = pem.find(begin);
+  if (first == std::string::npos) throw Error(name + " (no 'BEGIN CERTIFICATE' block)");
+  const auto last = pem.find(end, first);
+  if (last == std::string::npos) throw Error(name + " (no 'END CERTIFICATE' line)");
+  std::size_t n = 0;  // the block's body: base64 in whole groups of 4
+  for (std::size_t i = first + begin.size(); i < last; ++i) {
+    const unsigned char c = pem[i];
+    if (std::isspace(c)) continue;
+    if (!(std::isalnum(c) || c == '+' || c == '/' || c == '='))
+      throw Error(name + " (its first certificate is not base64)");
+    ++n;
+  }
+  if (n == 0 || n % 4 != 0) throw Error(name + " (its first certificate is not base64)");
+  return pem;
 }
 
 void print_result(const std::string& name, const v1::LocalizeResponse& r) {
@@ -267,17 +454,17 @@ bool is_image_error(const CallError& err) {
 }
 
 int run(const Options& opts) {
+  std::shared_ptr<grpc::ChannelCredentials> credentials = grpc::InsecureChannelCredentials();
+  if (!opts.tls_ca.empty()) {  // the options' files first, then the sequence
+    grpc::SslCredentialsOptions tls;
+    tls.pem_root_certs = read_tls_ca(opts.tls_ca);
+    credentials = grpc::SslCredentials(tls);
+  }
   const std::vector<fs::path> images = sequence_images(opts.sequence);
   std::optional<v1::Camera> camera;
   if (!opts.camera.empty()) {
     camera.emplace();
     camera->set_colmap(opts.camera);
-  }
-  std::shared_ptr<grpc::ChannelCredentials> credentials = grpc::InsecureChannelCredentials();
-  if (!opts.tls_ca.empty()) {
-    grpc::SslCredentialsOptions tls;
-    tls.pem_root_certs = read_file(opts.tls_ca);
-    credentials = grpc::SslCredentials(tls);
   }
   auto channel = grpc::CreateChannel(opts.server, credentials);
   auto stub = v1::Relocalizer::NewStub(channel);
@@ -285,7 +472,7 @@ int run(const Options& opts) {
   for (const fs::path& path : images) {
     std::string bytes;
     try {
-      bytes = read_file(path);
+      bytes = read_file(path, "image", kMaxImageBytes);
     } catch (const Error& err) {
       std::fprintf(stderr, "error: %s\n", err.what());
       status = 2;

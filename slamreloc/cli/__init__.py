@@ -206,6 +206,12 @@ def _quiet_native_logs() -> None:
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 
+def _topics_unread() -> bool:
+    """Whether `--topic` was given and the command loaded no bag with it."""
+    rosbag = sys.modules.get("slamreloc.datasets.rosbag")
+    return rosbag is not None and rosbag.default_topics_unread()
+
+
 def main() -> None:
     import warnings
 
@@ -217,6 +223,8 @@ def main() -> None:
         try:
             with sigterm_as_ctrl_c():
                 status = _run_app()
+            if not status and _topics_unread():
+                warnings.warn("`topic` was not used: this command read no ROS bag")
         finally:
             stop_bars()  # a bar left up by a failure: erased before the error line
         if status == INTERRUPTED:  # typer's answer to a Ctrl-C it caught, said nothing of

@@ -62,8 +62,12 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
 app.command()(serve)
 
 
+NO_DATASET_COMMANDS = ("localize", "demo", "serve")  # commands that never read a dataset
+
+
 @app.callback()
 def options(
+    ctx: typer.Context,
     limit: Annotated[Optional[list[str]], typer.Option(
         "--limit", metavar="NAME=VALUE",
         help="change a bound on untrusted input, before the command: max_image_pixels, "
@@ -83,6 +87,9 @@ def options(
     from slamreloc.datasets.rosbag import parse_topics, set_topics
 
     set_topics(parse_topics(topic or []))  # none: found in each bag (never an earlier run's)
+    if topic and ctx.invoked_subcommand in NO_DATASET_COMMANDS:
+        raise InputError(f"`topic` chooses a ROS bag DATASET's topics, and "
+                         f"'{ctx.invoked_subcommand}' reads no dataset")
 
 
 @app.command("map")
@@ -294,7 +301,11 @@ def sfm(
 ) -> None:
     """Poses for unposed images or a video: SfM with pycolmap, written as a COLMAP dataset
     that map, evaluate, slam and pseudo-label read."""
+    from slamreloc.datasets.rosbag import default_topics
     from slamreloc.sfm import SfmConfig, print_sfm_summary, run_sfm
+
+    if default_topics().pose:
+        raise InputError("`topic` pose=: sfm makes the poses from the images and reads none")
 
     config = SfmConfig(camera=camera, fix_intrinsics=fix_intrinsics, matching=matching.value,
                        mapper=mapper.value, overlap=overlap, max_features=max_features, fps=fps,
@@ -500,13 +511,19 @@ def _flags() -> dict[str, str]:
 
     root = get_command(app)
     commands = [root, *getattr(root, "commands", {}).values()]
-    return {p.name: next(o for o in p.opts if o.startswith("--"))
-            for c in commands for p in c.params
-            if p.param_type_name == "option" and any(o.startswith("--") for o in p.opts)}
+    flags = {p.name: next(o for o in p.opts if o.startswith("--"))
+             for c in commands for p in c.params
+             if p.param_type_name == "option" and any(o.startswith("--") for o in p.opts)}
+    for p in root.params:  # options of the program, not of a command: they go before it
+        if p.name in flags:
+            flags[p.name] = f"slamreloc {flags[p.name]}"
+    return flags
 
 
 def with_flags(message: str) -> str:
     """A library message as the command line says it: a setting named `field` (backticks,
-    `slamreloc.errors`) becomes its flag where it is one of the commands' options."""
+    `slamreloc.errors`) becomes its flag where it is one of the commands' options (the
+    program's own, `--limit` and `--topic`, as `slamreloc --topic`: they precede the
+    command)."""
     flags = _flags()
     return re.sub(r"`([a-z][a-z0-9_]*)`", lambda m: flags.get(m[1], m[0]), message)

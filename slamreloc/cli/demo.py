@@ -12,6 +12,7 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
+from slamreloc.errors import Interrupted
 from slamreloc.datasets import load_dataset
 from slamreloc.io.fileio import check_outputs, write_json
 from slamreloc.geometry import NAMES_SUFFIX
@@ -103,7 +104,12 @@ def run_demo(workdir: Path, viewer: bool = True, port: int = 8080,
         dataset = load_dataset(scene_dir)
     with stage(2, "map: features, labels, surface, regressor training "
                   f"({map_config.train.epochs} epochs)"):
-        scene_map = build_map(dataset, workdir / "map", "train", map_config)
+        try:
+            scene_map = build_map(dataset, workdir / "map", "train", map_config)
+        except Interrupted:  # the map command's advice (`--resume`) is not the demo's
+            raise Interrupted(f"{workdir / 'map'}: the demo was interrupted while training "
+                              "its map; run the same demo command again to start it "
+                              "over") from None
     with stage(3, f"relocalize the {n_query} query frames: regressor, then matching",
                steps=2) as done:
         summaries = []

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.types import Frame
+from slamreloc.types import Frame, frame_name_problem
 
 
 @dataclass
@@ -27,6 +27,18 @@ class Dataset:
     # resolved path of a pose file given with --poses (`datasets.poses.apply_poses`)
     poses_source: str = "dataset"
     poses_matched: int | None = None  # frames that took a pose from that file (None: own)
+
+    def __post_init__(self) -> None:
+        """Every frame's name is one a map can keep (`frame_name_problem`): a name made from
+        a file or folder name (a bag's stem, a photo's) is refused here, naming the dataset,
+        not after the work by the map it would be written into."""
+        for frames in self.sequences.values():
+            for frame in frames:
+                problem = frame_name_problem(frame.name)
+                if problem:
+                    raise InputError(f"{self.root}: frame name {frame.name[:80]!r} {problem}: "
+                                     "its name comes from the files' or folders' names; "
+                                     "rename them")
 
     @property
     def poses_origin(self) -> Path:

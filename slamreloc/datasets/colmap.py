@@ -36,7 +36,7 @@ from slamreloc.datasets.base import Dataset
 from slamreloc.datasets.colmap_check import check_model
 from slamreloc.datasets.io import check_frame_files, read_text
 from slamreloc.errors import InputError
-from slamreloc.geometry import Rigid3, pose_gap, same_pose, values_agree
+from slamreloc.geometry import Rigid3, pose_gap, same_pose, unit_quaternion, values_agree
 from slamreloc.io.fileio import open_regular
 from slamreloc.io.jsonio import read_json
 from slamreloc.types import Camera, Frame
@@ -147,8 +147,12 @@ def image_world_from_cam(image, source: str) -> Rigid3 | None:
                                                                                "registered")
     if not posed:
         return None
-    cam_from_world = np.asarray(_attr(image, "cam_from_world").matrix(), np.float64)
-    return Rigid3.from_matrix(cam_from_world, source=source).inverse()
+    # from its quaternion, normalised (its norm was checked within unit_quaternion's 1e-3 as
+    # the model was read: `colmap_check`), as every pose file's; the matrix pycolmap makes of
+    # a quaternion a little off unit norm is no rotation
+    pose = _attr(image, "cam_from_world")
+    quat = unit_quaternion(np.asarray(pose.rotation.quat, np.float64), source)  # x y z w
+    return Rigid3.from_qt(quat, np.asarray(pose.translation, np.float64)).inverse()
 
 
 def read_checked(folder: Path, ext: str):

@@ -58,13 +58,13 @@ def write_pose(path: Path, world_from_cam: Rigid3) -> None:
 
 def read_intrinsics(path: Path) -> np.ndarray:
     """A 3x3 pinhole K matrix [[fx 0 cx] [0 fy cy] [0 0 1]] in pixels; InputError naming the
-    file unless it is one (a skew or a last row other than 0 0 1 would be silently ignored)."""
+    file unless it is one (a skew or a last row other than 0 0 1 would be silently ignored).
+    The principal point is checked against the images' size by the caller's `Camera` (one
+    rule for every camera: `centre_problem`)."""
     k = _read_matrix(path, "intrinsics", (3, 3))
     problem = k_matrix_problem(k)
     if problem:
         raise InputError(f"{path}: intrinsics: {problem}")
-    if k[0, 2] < 0 or k[1, 2] < 0:
-        raise InputError(f"{path}: intrinsics must have non-negative cx, cy")
     problem = camera_problem(1, 1, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
     if problem:
         raise InputError(f"{path}: intrinsics: {problem}")

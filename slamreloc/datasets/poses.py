@@ -44,7 +44,7 @@ from slamreloc.geometry import (
     refuse_json_text,
 )
 from slamreloc.io.fileio import open_regular, reads_as, read_text
-from slamreloc.io.numbers import number_problem
+from slamreloc.io.numbers import written_as_number
 from slamreloc.types import Frame
 
 MAX_DT = 0.02  # seconds: a pose without a name stands for the frame this close in time
@@ -107,14 +107,16 @@ TUM_FILE = reads_as(read_tum_trajectory,
 def _refuse_repeated_names(path: Path) -> None:
     """InputError `FILE:LINE: frame NAME has more than one pose` at the first frame name given
     twice in a pose file, found by a pass over the lines' first words before the lines are
-    parsed (a 2 M line file with a repeat fails in a second, not after a minute). Numeric
-    first words (timestamps) are not names."""
+    parsed (a 2 M line file with a repeat fails in a second, not after a minute). Only lines
+    the parser would read as `name tx ty tz qx qy qz qw` count: a first word written as a
+    number (a timestamp, even one out of range: `1e400`, `nan`) is no name, and a line of
+    another field count is left to the parser, which says what is wrong with it."""
     text = read_text(path, "pose", "max_text_bytes")
     refuse_json_text(text, path, "pose")
     first_line: dict[str, int] = {}
     for i, line in enumerate(text.splitlines(), 1):
-        words = line.split(maxsplit=1)
-        if not words or words[0].startswith("#") or number_problem(words[0]) is None:
+        words = line.split()
+        if len(words) != 8 or words[0].startswith("#") or written_as_number(words[0]):
             continue
         seen = first_line.setdefault(words[0], i)
         if seen != i:

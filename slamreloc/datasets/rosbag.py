@@ -33,6 +33,7 @@ import atexit
 import hashlib
 import shutil
 import tempfile
+import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -88,16 +89,23 @@ class BagTopics:
 
 
 _default_topics = BagTopics()
+_default_topics_read = False  # whether a bag was loaded with them since `set_topics`
 
 
 def set_topics(topics: BagTopics) -> None:
     """The topics `load_rosbag` reads when it is given none (the CLI's `--topic`)."""
-    global _default_topics
-    _default_topics = topics
+    global _default_topics, _default_topics_read
+    _default_topics, _default_topics_read = topics, False
 
 
 def default_topics() -> BagTopics:
     return _default_topics
+
+
+def default_topics_unread() -> bool:
+    """Whether topics were set (`set_topics`) and no bag has been loaded with them since: a
+    command that read no bag took the CLI's `--topic` for nothing."""
+    return _default_topics != BagTopics() and not _default_topics_read
 
 
 def parse_topics(items: list[str]) -> BagTopics:
@@ -259,21 +267,45 @@ def _image_kind(bag: _Bag, topic: str) -> str:
             "depth" if msg.encoding in DEPTH_ENCODINGS else "other")
 
 
+def _only_best(bag: _Bag, kind: str, candidates: list[str], rank: Callable[[str], tuple]
+               ) -> str | None:
+    """The candidate topic that ranks above every other (None for none); an InputError
+    listing them where two rank first alike: the choice would be a guess (two cameras of one
+    rig), so the user names one."""
+    if not candidates:
+        return None
+    ranked = sorted(candidates, key=rank, reverse=True)
+    if len(ranked) > 1 and rank(ranked[0]) == rank(ranked[1]):
+        tied = [t for t in ranked if rank(t) == rank(ranked[0])]
+        raise InputError(f"{bag.path}: {len(tied)} {kind} topics could be the one to read "
+                         f"({', '.join(tied)}): name one with `topic` {kind}=NAME")
+    return ranked[0]
+
+
 def _auto_image(bag: _Bag) -> str:
-    """The colour image topic with the most messages (else any non-depth image topic, whose
-    encoding is then refused by name)."""
+    """The colour image topic: 3- or 4-channel (or compressed) before grey, then the most
+    messages; else any non-depth image topic, whose encoding is then refused by name. Two
+    topics alike on both counts are refused (`_only_best`)."""
     kinds = {t: _image_kind(bag, t) for t in _of_type(bag, IMAGE, COMPRESSED)}
     candidates = [t for t, k in kinds.items() if k != "depth" and bag.topics[t][1]]
     if not candidates:
         raise InputError(f"{bag.path}: no image topic (sensor_msgs/Image or CompressedImage "
                          f"with colour images; topics: {bag.listing()})")
-    return max(candidates, key=lambda t: (kinds[t] == "colour", bag.topics[t][1]))
+    return _only_best(bag, "image", candidates, lambda t: (
+        kinds[t] == "colour", kinds[t] == "colour" and not _is_grey(bag, t), bag.topics[t][1]))
+
+
+def _is_grey(bag: _Bag, topic: str) -> bool:
+    msg = bag.first(topic)
+    return bag.topics[topic][0] == IMAGE and msg is not None and msg.encoding == "mono8"
 
 
 def _auto_depth(bag: _Bag) -> str | None:
-    """A 16UC1/32FC1 image topic, an aligned/registered one first, then the most messages."""
-    depth = [t for t in _of_type(bag, IMAGE) if _image_kind(bag, t) == "depth"]
-    return max(depth, default=None, key=lambda t: (
+    """A 16UC1/32FC1 image topic with messages: an aligned/registered one first, then the
+    most messages; two alike on both counts are refused (`_only_best`)."""
+    depth = [t for t in _of_type(bag, IMAGE)
+             if _image_kind(bag, t) == "depth" and bag.topics[t][1]]
+    return _only_best(bag, "depth", depth, lambda t: (
         "aligned" in t or "registered" in t, bag.topics[t][1]))
 
 
@@ -285,9 +317,11 @@ def _namespace(topic: str) -> str:
 
 
 def _auto_camera_info(bag: _Bag, image: str) -> str | None:
-    infos = _of_type(bag, CAMERA_INFO)
-    same = [t for t in infos if _namespace(t) == _namespace(image)]
-    return same[0] if len(same) == 1 else infos[0] if len(infos) == 1 else None
+    """The CameraInfo topic of the image's namespace (`/ns/image_raw` -> `/ns/camera_info`),
+    where there is one: a CameraInfo of another namespace describes another camera until the
+    user names it."""
+    same = [t for t in _of_type(bag, CAMERA_INFO) if _namespace(t) == _namespace(image)]
+    return same[0] if len(same) == 1 else None
 
 
 def _auto_pose(bag: _Bag) -> str | None:
@@ -318,7 +352,10 @@ def _print_choice(bag: _Bag, chosen: BagTopics) -> None:
         name = getattr(chosen, kind)
         topic = TF_TOPIC if name and name.startswith("tf:") else name
         if topic is None:
-            _say(f"bag: no {kind} topic found" + _unchosen(bag, kind))
+            _say(f"bag: no {kind} topic found")
+            hint = _unchosen(bag, kind)
+            if hint:
+                warnings.warn(f"{bag.path}: {hint}", stacklevel=2)
         else:
             msgtype, count = bag.topics[topic]
             via = f"{topic}, " if topic != name else ""
@@ -326,12 +363,14 @@ def _print_choice(bag: _Bag, chosen: BagTopics) -> None:
 
 
 def _unchosen(bag: _Bag, kind: str) -> str:
-    """For the listing, where no pose topic was chosen: the bag's pose topics (several, or
-    TransformStamped / tf ones, which are never picked automatically)."""
+    """Where no pose topic was chosen, a warning's text naming the bag's pose topics (several,
+    or TransformStamped / tf ones, which are never picked automatically); "" where it has
+    none."""
     names = _of_type(bag, *POSE_TYPES, TF_MESSAGE) if kind == "pose" else []
     names = [n for n in names if n != TF_STATIC_TOPIC]
-    return (f" (candidates: {', '.join(names)}; name one with `topic` pose=NAME or "
-            "pose=tf:PARENT:CHILD)") if names else ""
+    return (f"no pose topic chosen from the candidates {', '.join(names)}: the frames have no "
+            "poses unless one is named with `topic` pose=NAME or pose=tf:PARENT:CHILD"
+            ) if names else ""
 
 
 def _say(line: str) -> None:
@@ -498,8 +537,12 @@ def _intrinsics(camera: Camera) -> str:
 def _camera(bag: _Bag, topic: str | None, image: str, size: tuple[int, int]) -> Camera:
     if topic is None:
         expected = "/".join(("", _namespace(image), "camera_info")).replace("//", "/")
-        raise InputError(f"{bag.path}: no sensor_msgs/CameraInfo for image topic {image}: add "
-                         f"{expected} to the bag, or name one with `topic` camera_info=NAME")
+        others = _of_type(bag, CAMERA_INFO)
+        there = (f" (the bag's CameraInfo topics, {', '.join(others)}, are of other cameras "
+                 "or several)" if others else "")
+        raise InputError(f"{bag.path}: no sensor_msgs/CameraInfo for image topic {image}"
+                         f"{there}: add {expected} to the bag, or name one with `topic` "
+                         "camera_info=NAME")
     source = f"{bag.path}: camera_info topic {topic}"
     camera = None
     for i, (_, msg) in enumerate(bag.messages(topic)):  # one camera for the whole bag
@@ -681,10 +724,13 @@ def load_rosbag(path: str | Path, topics: BagTopics | None = None) -> Dataset:
     """A bag as a one-sequence Dataset (frames `"{stem}/{index:06d}"` in bag order, in both
     splits); `topics` default to `set_topics`' (the CLI's `--topic`), else are found
     automatically. One summary line per topic is printed."""
+    global _default_topics_read
     path = Path(path)
     sequence = path.stem
+    if topics is None:
+        topics, _default_topics_read = default_topics(), True
     with _open_bag(path) as bag:
-        chosen = _choose_topics(bag, topics or default_topics())
+        chosen = _choose_topics(bag, topics)
         _print_choice(bag, chosen)
         image = chosen.image
         first = bag.first(image)

@@ -101,7 +101,11 @@ def _camera(root: Path) -> Camera:
         return camera
     if (root / "intrinsics.txt").is_file():
         k = read_intrinsics(root / "intrinsics.txt")
-        return Camera(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+        try:
+            return Camera(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+        except InputError as err:  # the camera rule with the images' size: name the file
+            raise InputError(f"{root / 'intrinsics.txt'}: {err} (the images are "
+                             f"{width}x{height})") from None
     fx, fy, cx, cy = DEFAULT_K  # 7-Scenes' camera: never stretched onto another aspect ratio
     return Camera(640, 480, fx, fy, cx, cy).for_image(
         width, height, f"{first}: the default 7-Scenes camera (give the dataset an "

@@ -52,6 +52,29 @@ def host_problem(host: str) -> str | None:
     return None
 
 
+GRPC_SCHEMES = ("dns", "unix", "unix-abstract", "ipv4", "ipv6", "vsock")  # gRPC's target names
+
+
+def target_problem(target: str) -> str | None:
+    """Why a client's `HOST:PORT` (an IPv6 host in brackets) cannot be connected to (None
+    when it can): the host by `host_problem`'s rule, the port a decimal number from 1 to
+    65535 (gRPC would wrap 65537 to 1). A gRPC target with a scheme (`dns:`, `unix:`,
+    `ipv4:`...) is left to gRPC. clients/cpp applies the same rule to --server."""
+    if not isinstance(target, str):
+        return f"is {type(target).__name__}, not text (HOST:PORT)"
+    if "://" in target or target.split(":", 1)[0] in GRPC_SCHEMES:
+        return None
+    host, sep, port = target.rpartition(":")
+    if not sep or not host:
+        return "is not HOST:PORT"
+    problem = host_problem(host)
+    if problem:
+        return f"host {problem}"
+    if not (port.isascii() and port.isdigit() and 1 <= int(port) <= 65535):
+        return f"port {port!a} is not a number from 1 to 65535"
+    return None
+
+
 def is_loopback(host: str) -> bool:
     """Whether `host` names this machine only: localhost, 127.0.0.0/8, ::1, or IPv4-mapped
     ::ffff:127.0.0.1 (the short IPv4 forms are refused by `host_problem` first)."""

@@ -24,6 +24,13 @@ DECIMAL_WORDS = "numbers are plain ASCII decimals such as -1.5 or 2e-3"
 WHOLE_WORDS = "whole numbers are plain ASCII digits with an optional sign, such as 12"
 
 
+def written_as_number(word: str) -> bool:
+    """Whether `word` is written as a number (a decimal, or nan / inf), even one no float
+    holds (`1e400`): a field that is no name, to be checked as the number it means to be."""
+    return bool(DECIMAL.fullmatch(word)) or word.lower().lstrip("+-") in ("nan", "inf",
+                                                                          "infinity")
+
+
 def number_problem(text: str, integer: bool = False) -> str | None:
     """Why `text` is not a number by the rule above (a whole number with `integer`): None
     when it is one."""

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import hashlib
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +22,7 @@ from slamreloc.map.meta import (CameraMeta, DatasetMeta, FeatureMeta, MapMeta, R
                                 SurfaceMeta)
 from slamreloc.map.write import check_map_target, save_map
 from slamreloc.runtime.progress import console
-from slamreloc.regressor.checkpoint import checkpoint_path
+from slamreloc.regressor.checkpoint import check_settings, checkpoint_path, run_settings
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, resolve_device, train_regressor
 from slamreloc.rgbd import registered_depths
@@ -51,6 +52,16 @@ def labelled_database(frames: list[Frame], feats: list[Features], labels: LabelS
         frame_index=np.concatenate([np.full(k.sum(), i) for i, k in enumerate(keep)]),
         frame_names=[f.name for f in frames],
         world_from_cam=np.stack([f.world_from_cam.matrix() for f in frames]))
+
+
+def _shaping(config: MapConfig) -> dict:
+    """The settings that shape a map (what a resumed run must share with the interrupted
+    one): all but where and how precisely it trains (device, precision, checkpoint period)."""
+    shaping = asdict(config)
+    del shaping["device"]
+    shaping["train"] = {k: v for k, v in shaping["train"].items()
+                        if k not in ("precision", "checkpoint_every_s")}
+    return shaping
 
 
 def depth_labels(dataset: Dataset, config: MapConfig) -> bool:
@@ -99,6 +110,12 @@ def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progr
     if unposed:
         raise InputError(f"{dataset.poses_origin}: frame {unposed[0]} has no pose; mapping "
                          "needs poses")
+    settings = run_settings(
+        dataset=str(dataset.root), poses=str(dataset.poses_origin), split=split,
+        frames=hashlib.sha256("\n".join(f.name for f in frames).encode()).hexdigest()[:16],
+        config=_shaping(config))
+    if resume:
+        check_settings(ckpt, settings)  # now, not after the features and labels
     extractor = make_extractor(config.features, **config.feature_options)
     timings = {}
     t0 = time.perf_counter()
@@ -131,7 +148,7 @@ def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progr
     model = SceneCoordinateRegressor(RegressorConfig.preset(config.arch, extractor.dim))
     t0 = time.perf_counter()
     train_stats = train_regressor(model, descriptors, points, config.train, config.device,
-                                  progress, checkpoint=ckpt, resume=resume)
+                                  progress, checkpoint=ckpt, resume=resume, settings=settings)
     if config.augment.views:
         train_stats = {**train_stats, "augment": config.augment.to_dict(),
                        "n_augmented_rows": len(points) - len(db.points)}

@@ -185,9 +185,10 @@ def _native(array: np.ndarray) -> np.ndarray:
 
 
 def check_database(arrays: dict[str, np.ndarray], path: Path, dim: int,
-                   frame_names: list[str]) -> None:
+                   frame_names: list[str] | None) -> None:
     """InputError unless database.npz's arrays (DB_KEYS) fit each other, the descriptor
-    dimension and the frame names, and the training poses are rigid."""
+    dimension and the frame names (None: the metadata has none, as an older map; a list,
+    empty too, names every training pose), and the training poses are rigid."""
     missing = [k for k in DB_KEYS if k not in arrays]
     if missing:
         raise InputError(f"{path}: missing array '{missing[0]}'")
@@ -218,7 +219,7 @@ def check_database(arrays: dict[str, np.ndarray], path: Path, dim: int,
     n_frames = len(poses)
     if idx.min() < 0 or idx.max() >= n_frames:
         raise InputError(f"{path}: 'frame_index' points outside the {n_frames} training poses")
-    if frame_names and len(frame_names) != n_frames:
+    if frame_names is not None and len(frame_names) != n_frames:
         raise InputError(f"{path}: {n_frames} training poses but {len(frame_names)} frame "
                          f"names in {META}")
     rot = poses[:, :3, :3].astype(np.float64)

@@ -47,7 +47,7 @@ from slamreloc.map.format import DATABASE, FORMAT_VERSION, LEGACY_WEIGHTS, MAP_F
 from slamreloc.registry import PRECISIONS, PRESETS
 from slamreloc.regressor.model import RegressorConfig
 from slamreloc.regressor.train import TrainConfig
-from slamreloc.types import Camera, camera_problem, lens_camera_problem
+from slamreloc.types import Camera, camera_problem, frame_name_problem, lens_camera_problem
 
 Json = Any  # a parsed JSON value: dict, list, str, int, float, bool or None
 MAX_META_BYTES = 64 << 20
@@ -81,22 +81,6 @@ def _is_object(v) -> bool:
 
 def _is_strings(v) -> bool:
     return isinstance(v, list) and all(isinstance(s, str) for s in v)
-
-
-def frame_name_problem(name: str) -> str | None:
-    """Why `name` cannot name a map's training frame (None when it can): a frame is named by
-    its image's path relative to the dataset root (`seq-01/frame-000000`), which export writes
-    into lines (a COLMAP images.txt, a TUM names sidecar) and the viewer looks up in the
-    dataset: non-empty, without line breaks or other control characters (a space, as photos'
-    names have, is kept), relative, never leaving the root (`..`)."""
-    if not name:
-        return "is empty"
-    if any(not c.isprintable() and c != " " for c in name):  # photos' names hold spaces
-        return "holds a line break or another control character"
-    parts = name.replace("\\", "/").split("/")
-    if name.startswith("/") or ".." in parts:
-        return "is not a path inside the dataset (absolute, or with '..')"
-    return None
 
 
 def _short(v) -> str:
@@ -509,6 +493,15 @@ def _check_schema(meta: dict, version: int, path) -> None:
     if isinstance(train, dict):
         _check_optional(train, "precision", "train.", path,
                         f"one of {', '.join(PRECISIONS)}", lambda v: v in PRECISIONS)
+        _check_optional(train, "epochs", "train.", path, "a whole number of epochs, 0 or more",
+                        lambda v: _is_int(v) and v >= 0)
+    dataset = meta.get("dataset")
+    if isinstance(dataset, dict):  # `metric` decides whether the map's units are metres
+        _check_optional(dataset, "metric", "dataset.", path, "true or false",
+                        lambda v: isinstance(v, bool))
+    _check_optional(meta, "timings_s", "", path, "an object of seconds",
+                    lambda v: isinstance(v, dict) and all(_is_number(t) and t >= 0
+                                                          for t in v.values()))
     cam = need(meta, "camera", dict, "")
     for key in ("width", "height"):
         if not 0 < need(cam, key, int, "camera.") <= 1 << 16:

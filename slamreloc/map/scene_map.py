@@ -120,9 +120,10 @@ class SceneMap:
         if self.format_version >= 2 and expected is None:
             raise InputError(f"{path}: no checksum for it in {META}")
         arrays = read_npz(path, "training database", expected, self.digests)
-        names = list(self.info.frame_names or ())
+        names = None if self.info.frame_names is None else list(self.info.frame_names)
         check_database(arrays, path, self.info.regressor.to_config().in_dim, names)
-        return MapDatabase(*(arrays[k] for k in DB_KEYS[:4]), names, arrays["world_from_cam"])
+        return MapDatabase(*(arrays[k] for k in DB_KEYS[:4]), names or [],
+                           arrays["world_from_cam"])
 
     def session_frames(self) -> dict[str, Rigid3] | None:
         """For a map a SLAM session learned (`slam --out`: recorded poses "slam", its frame

@@ -112,6 +112,13 @@ def save_map(out: str | Path, meta: MapMeta, model: SceneCoordinateRegressor, db
                 files[name] = _write_npz(tmp / name, arrays)
             _crash_point("files-written")
             doc = meta.stamped(files, db.frame_names).to_json()
+            # what readers will check, checked before the swap: a document they would refuse
+            # never replaces a map that loads
+            try:
+                MapMeta.from_json(json.loads(json.dumps(doc)), out / META)
+            except InputError as err:
+                raise InputError(f"{out}: not written (what was there is kept): its metadata "
+                                 f"would not load: {err}") from None
             with open(tmp / META, "w") as f:
                 f.write(json.dumps(doc, indent=1))
                 f.flush()

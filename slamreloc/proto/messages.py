@@ -10,6 +10,7 @@ through `Camera` (the same checks as `--intrinsics` / `--camera`), poses through
 
 from __future__ import annotations
 
+import hmac
 import unicodedata
 
 import cv2
@@ -104,6 +105,35 @@ class ServiceError(Exception):
 
 
 # the gRPC status each kind of refusal is answered with (every server of the protocol)
+MIN_TOKEN = 16  # characters of an access token
+# a client's wait for an answer, seconds (clients/cpp's --timeout too): gRPC's deadline
+# arithmetic overflows far beyond the top, and below the bottom every call fails at once
+CLIENT_TIMEOUT_S = (0.001, 1e6)
+
+
+def token_problem(token: str) -> str | None:
+    """Why `token` cannot be a server's or a client's token (None when it can): at least
+    MIN_TOKEN characters of printable ASCII without spaces - what gRPC metadata carries, so a
+    client can send it at all (clients/cpp applies the same rule)."""
+    if len(token) < MIN_TOKEN:
+        return f"must have at least {MIN_TOKEN} characters"
+    bad = next((c for c in token if not 0x21 <= ord(c) <= 0x7E), None)
+    if bad is not None:
+        return (f"must be printable ASCII without spaces or line breaks (gRPC metadata carries "
+                f"nothing else), got {bad!a}")
+    return None
+
+
+def bearer_matches(values: list, token: str) -> bool:
+    """Whether a call's `authorization` metadata `values` carry `token`: exactly one value
+    (two are refused whatever their order), `Bearer TOKEN` with the scheme in any case (RFC
+    7235), the token compared in constant time. The one check of both engines."""
+    if len(values) != 1 or not isinstance(values[0], str):
+        return False
+    scheme, _, given = values[0].partition(" ")
+    return scheme.lower() == "bearer" and hmac.compare_digest(given.encode(), token.encode())
+
+
 GRPC_CODES = {
     pb.UNKNOWN_MAP: grpc.StatusCode.NOT_FOUND,
     pb.TOO_LARGE: grpc.StatusCode.RESOURCE_EXHAUSTED,

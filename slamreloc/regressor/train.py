@@ -58,11 +58,14 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
                     resume: bool = False, weights: np.ndarray | None = None,
                     fine_tune: bool = False,
                     on_epoch_end: Callable[[int, float], None] | None = None,
-                    on_step: Callable[[], None] | None = None) -> dict:
+                    on_step: Callable[[], None] | None = None,
+                    settings: dict[str, str] | None = None) -> dict:
     """Fit `model` to (N, D) descriptors -> (N, 3) world points (metres). Returns training stats.
 
     checkpoint: a file to save training state to every `config.checkpoint_every_s` seconds
-    and on Ctrl-C (which then raises `Interrupted`); resume: continue from it.
+    and on Ctrl-C (which then raises `Interrupted`); resume: continue from it. settings: the
+    run's settings (`checkpoint.run_settings`), kept in the checkpoint so that a resumed run
+    is checked against them before its work (`checkpoint.check_settings`).
     weights: per-sample loss weights (label quality); fine_tune: continue from the model's
     weights, normalisation and regions instead of initialising them from the data.
     on_epoch_end(epoch, loss_m): called after each epoch (0-based) with its mean training
@@ -143,13 +146,14 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
                 on_epoch_end(epoch, losses[-1])
             if checkpoint and time.monotonic() - last_save > config.checkpoint_every_s:
                 save_checkpoint(checkpoint, fp, epoch + 1, losses, model, opt, sched, gen,
-                                average)
+                                average, settings)
                 last_save = time.monotonic()
     except KeyboardInterrupt:
         if not checkpoint:
             raise
         # the interrupted epoch is redone from the state it had reached
-        save_checkpoint(checkpoint, fp, epoch, losses, model, opt, sched, gen, average)
+        save_checkpoint(checkpoint, fp, epoch, losses, model, opt, sched, gen, average,
+                        settings)
         raise Interrupted(
             f"{checkpoint}: training interrupted at epoch {epoch + 1}/{config.epochs}; its "
             "state is saved there: run the same command with `resume` to continue") from None

@@ -346,12 +346,20 @@ class MapRegistry:
                     raise
                 time.sleep(0.05)
 
-    def watch(self, interval_s: float, on_reload=None) -> threading.Thread:
+    def watch(self, interval_s: float, on_reload=None, on_failure=None) -> threading.Thread:
         """Reload any map whose folder was replaced, checking every `interval_s` seconds;
         `on_reload(ServedMap)` after each swap. Stops with `close`. A map that fails to load
-        is reported once per version of its folder, and retried when the folder changes; a
-        map whose load (a ReloadMap's) is running is looked at again next time."""
+        is reported once per version of its folder (`on_failure(message)`, else a warning
+        that is shown every time, not once per text as Python's filter would), and retried
+        when the folder changes; a map whose load (a ReloadMap's) is running is looked at
+        again next time."""
         failed: dict[str, tuple[int, int, int]] = {}
+
+        def report(message: str) -> None:
+            if on_failure is not None:
+                on_failure(message)
+            else:  # no registry: Python's default filter would show a text only once
+                warnings.warn_explicit(message, UserWarning, __file__, 0, registry=None)
 
         def run():
             while not self._stop.wait(interval_s):
@@ -368,12 +376,11 @@ class MapRegistry:
                         if err.kind != pb.OVERLOADED:  # a load still running: try again later
                             failed[name] = stamp
                         if not self._stop.is_set():
-                            warnings.warn(err.message, stacklevel=1)
+                            report(err.message)
                         continue
                     except Exception as err:  # noqa: BLE001 - the watch carries on
                         failed[name] = stamp
-                        warnings.warn(f"map {quoted(name)}: {type(err).__name__}: {err}",
-                                      stacklevel=1)
+                        report(f"map {quoted(name)}: {type(err).__name__}: {err}")
                         continue
                     failed.pop(name, None)
                     if changed and on_reload is not None:

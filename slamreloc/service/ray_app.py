@@ -40,7 +40,6 @@ Binding: Serve's gRPC proxy listens on all interfaces (`[::]:PORT`) whatever `ho
 
 from __future__ import annotations
 
-import hmac
 import re
 import sys
 import time
@@ -56,9 +55,16 @@ from slamreloc import __version__
 from slamreloc.errors import InputError
 from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
-from slamreloc.proto.messages import ERROR_METADATA_KEY, ServiceError, quoted
+from slamreloc.proto.messages import (
+    ERROR_METADATA_KEY,
+    ServiceError,
+    bearer_matches,
+    map_name_problem,
+    quoted,
+    token_problem,
+)
 from slamreloc.service import MAX_REPLICAS
-from slamreloc.service.server import WATCH_RULE, check_seconds, read_token, token_problem
+from slamreloc.service.server import WATCH_RULE, check_seconds, read_token
 
 if TYPE_CHECKING:
     from ray.serve.deployment import Application
@@ -69,6 +75,7 @@ APP_NAME = "slamreloc"
 ROUTE_PREFIX = "/slamreloc"
 SERVICER_FUNCTION = "slamreloc.proto.relocalizer_pb2_grpc.add_RelocalizerServicer_to_server"
 REPLICA_CPUS = 0.25  # Ray CPUs reserved per map replica (fractional: several share a core)
+MIN_REPLICA_CPUS = 0.01  # the least a replica may reserve (Ray refuses far smaller shares)
 ROUTER_CPUS = 0.1  # the router only forwards bytes
 OBJECT_STORE_BYTES = 96 << 20  # Ray's shared-memory object store (requests are small)
 MAX_REQUEST_BYTES = 32 << 20  # as `slamreloc serve --max-request-mb 32`
@@ -149,9 +156,8 @@ class Router:
         self._requests += 1
         if self._token is None:
             return
-        given = [v for k, v in context.invocation_metadata() if k == "authorization"]
-        if len(given) != 1 or not hmac.compare_digest(  # two values: refused, in any order
-                str(given[0]).encode(), f"Bearer {self._token}".encode()):
+        if not bearer_matches([v for k, v in context.invocation_metadata()
+                               if k == "authorization"], self._token):
             raise ServiceError(pb.UNAUTHENTICATED, "missing or wrong token")
 
     def _handle(self, name: str) -> DeploymentHandle:
@@ -239,8 +245,13 @@ def check_maps(maps: dict[str, Path]) -> dict[str, Path]:
         raise InputError("no maps to serve")
     out = {}
     for name, path in maps.items():
+        problem = map_name_problem(name)  # the rule of the gRPC engine, then Ray's own
+        if problem:
+            raise InputError(f"map name {quoted(name)} {problem}")
         if not MAP_NAME.fullmatch(name):
             raise InputError(f"map name {name!r}: letters, digits and _ . : - only on Ray Serve")
+        if "\0" in str(path):
+            raise InputError(f"map {quoted(name)}: its folder's path holds a NUL byte")
         path = Path(path).resolve()
         if not path.is_dir():
             raise InputError(f"{path}: not a map folder")
@@ -254,8 +265,8 @@ def application(maps: dict[str, Path], replicas: int = 1, *, replica_cpus: float
     Ray CPUs each) behind one `Router`."""
     if not 1 <= replicas <= MAX_REPLICAS:
         raise InputError(f"`replicas` {replicas}: 1 to {MAX_REPLICAS}")
-    if not 0 < replica_cpus <= 64:
-        raise InputError(f"replica_cpus {replica_cpus}: more than 0, at most 64")
+    if not MIN_REPLICA_CPUS <= replica_cpus <= 64:
+        raise InputError(f"`replica_cpus` {replica_cpus}: {MIN_REPLICA_CPUS} to 64")
     if token is not None and token_problem(token):
         raise InputError(f"the token {token_problem(token)}")
     check_seconds(watch_s, "watch_s", **WATCH_RULE)
@@ -290,7 +301,7 @@ def build_app(args: dict[str, Any]) -> Application:
     token = None
     if "token_file" in args:  # given: it must hold a token (empty is not "no token")
         path = args["token_file"]
-        if not isinstance(path, str) or not path.strip():
+        if not isinstance(path, str) or not path.strip() or "\0" in path:
             raise InputError(f"args: `token_file` must name a file, got {repr(path)[:40]}")
         token = read_token(Path(path), environment=False)
     return application({str(k): Path(v) for k, v in maps.items()},

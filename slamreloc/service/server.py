@@ -23,7 +23,6 @@ carries on. Nothing on the wire is pickled: protobuf only.
 from __future__ import annotations
 
 import errno
-import hmac
 import os
 import signal
 import stat
@@ -44,14 +43,17 @@ from slamreloc import __version__
 from slamreloc.errors import InputError, OutOfMemory, is_out_of_memory
 from slamreloc.io.address import bind_problem, check_host, is_loopback, listen_address
 from slamreloc.io.fileio import relation, resolved
+from slamreloc.io.pem import read_pem
 from slamreloc.map.format import META
 from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
     ERROR_METADATA_KEY,
     ServiceError,
+    bearer_matches,
     quoted,
     saved_map_name_problem,
+    token_problem,
 )
 from slamreloc.service import TOKEN_ENV
 from slamreloc.service.localize import localize
@@ -62,8 +64,8 @@ from slamreloc.slam.live_map import LiveMapConfig
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["Relocalizer"].full_name
 
 
+MAX_SESSION_KEYFRAMES = 500  # a learning session's map: ~1000 rows each, ~0.3 MB a keyframe
 MIN_WATCH_S = 0.01  # the shortest `watch_s`: a check of every map folder per interval
-MIN_TOKEN = 16  # characters
 
 
 @dataclass(frozen=True)
@@ -86,7 +88,10 @@ class ServeConfig:
     # NAME); None: a save is refused (FAILED_PRECONDITION)
     learned_maps: Path | None = None
     max_learned_maps: int = 64  # maps sessions may save under new names (each stays loaded)
-    live: LiveMapConfig = field(default_factory=LiveMapConfig)  # learning sessions' maps
+    # learning sessions' maps: each grows to MAX_SESSION_KEYFRAMES keyframes at most (its
+    # memory and per-frame time bounded), then tracks on in what it holds
+    live: LiveMapConfig = field(
+        default_factory=lambda: LiveMapConfig(max_keyframes=MAX_SESSION_KEYFRAMES))
 
     def check(self) -> None:
         """InputError for a configuration that must not run (a non-local bind without a token,
@@ -172,19 +177,6 @@ def read_token(token_file: Path | None, environment: bool = True) -> str | None:
     if problem:
         raise InputError(f"{source} {problem}")
     return token
-
-
-def token_problem(token: str) -> str | None:
-    """Why `token` cannot be the server's token (None when it can): at least MIN_TOKEN
-    characters of printable ASCII without spaces - what gRPC metadata carries, so a client
-    can send it at all."""
-    if len(token) < MIN_TOKEN:
-        return f"must have at least {MIN_TOKEN} characters"
-    bad = next((c for c in token if not 0x21 <= ord(c) <= 0x7E), None)
-    if bad is not None:
-        return (f"must be printable ASCII without spaces or line breaks (gRPC metadata carries "
-                f"nothing else), got {bad!a}")
-    return None
 
 
 _LOG_LOCK = threading.Lock()
@@ -273,12 +265,8 @@ class RelocalizerService:
         refused whatever their order), compared in constant time."""
         if self.config.token is None:
             return True
-        given = [v for k, v in context.invocation_metadata() if k == "authorization"]
-        if len(given) != 1 or not isinstance(given[0], str):
-            return False
-        scheme, _, token = given[0].partition(" ")  # the scheme's case does not matter
-        return (scheme.lower() == "bearer"
-                and hmac.compare_digest(token.encode(), self.config.token.encode()))
+        return bearer_matches([v for k, v in context.invocation_metadata()
+                               if k == "authorization"], self.config.token)
 
     def _unary(self, parse, handle):
         """A unary method: count, authenticate, parse the bytes, answer or refuse."""
@@ -702,16 +690,10 @@ def unexpected(err: Exception) -> ServiceError:
 def read_tls_pair(cert: Path, key: Path) -> tuple[bytes, bytes]:
     """(key, certificate chain) PEM bytes, each checked to parse as what it should be;
     InputError naming the file (and its setting) that is not."""
-    from slamreloc.io.fileio import read_bytes
-
     out = []
     for path, option, what in ((key, "tls_key", "private key"),
                                (cert, "tls_cert", "certificate")):
-        data = read_bytes(path, f"TLS {what} (`{option}`)", 1 << 20)
-        problem = pem_problem(data, what)
-        if problem:
-            raise InputError(f"{path}: `{option}` is not a PEM {what} ({problem})")
-        out.append(data)
+        out.append(read_pem(path, what, option))
     problem = pair_problem(out[0], out[1])
     if problem:
         raise InputError(f"{key}: `tls_key` does not belong to the certificate in {cert} "
@@ -777,32 +759,6 @@ def pair_problem(key: bytes, cert: bytes) -> str | None:
             return "their public keys differ"
     except Exception:  # noqa: BLE001 - parsed above; an exotic key type: let gRPC say
         return None
-    return None
-
-
-def pem_problem(data: bytes, what: str) -> str | None:
-    """Why `data` is not a PEM `what` ("private key" or "certificate"), or None."""
-    marker = b"PRIVATE KEY-----" if what == "private key" else b"-----BEGIN CERTIFICATE-----"
-    if data.startswith(b"\xef\xbb\xbf"):  # Python's parsers skip it, gRPC's TLS does not
-        return ("it starts with a UTF-8 byte-order mark, which gRPC's TLS does not read: save "
-                "it without")
-    if marker not in data:
-        return "no " + ("'PRIVATE KEY'" if what == "private key" else "'BEGIN CERTIFICATE'") \
-            + " block"
-    try:
-        from cryptography import x509
-        from cryptography.hazmat.primitives.serialization import load_pem_private_key
-    except ImportError:
-        return None
-    try:
-        if what == "private key":
-            load_pem_private_key(data, password=None)
-        else:
-            x509.load_pem_x509_certificates(data)
-    except (ValueError, TypeError) as err:  # cryptography's parse errors
-        return " ".join(str(err).split())[:200] or type(err).__name__
-    except Exception as err:  # noqa: BLE001 - an unsupported algorithm, a Rust-side error
-        return f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"
     return None
 
 
@@ -919,7 +875,8 @@ def start_server(maps: dict[str, Path], config: ServeConfig = ServeConfig()) -> 
     server.start()
     if config.watch_s > 0:
         registry.watch(config.watch_s, lambda m: _log(f"map {quoted(m.name)} replaced on disk: "
-                                                      f"now version {m.version}"))
+                                                      f"now version {m.version}"),
+                       lambda message: _log(f"warning: {message}"))
     return RunningServer(server, service, registry, config.host, port, threads_before)
 
 

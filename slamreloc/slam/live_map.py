@@ -21,6 +21,7 @@ frame in multi-session); poses are world_from_cam, points in metres.
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -42,6 +43,20 @@ from slamreloc.slam.events import FrameData
 from slamreloc.slam.keyframes import KeyframeRows, KeyframeStore, LiveDatabase
 from slamreloc.slam.learner import BackgroundLearner, LearnerConfig
 from slamreloc.types import Camera, Features
+
+
+@contextmanager
+def _tracker_thread():
+    """The tracker's torch work in one thread while the learner trains in its own: OpenMP's
+    team size is per thread, and a team of two here waits, operation by operation, for the
+    core the learner holds (RedKitchen stream, 2 cores: a feature link's matching took 22 ms
+    a pair, 5 ms alone)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 @dataclass(frozen=True)
@@ -76,6 +91,15 @@ class LiveMapConfig:
     keep_fraction: float = 0.5
     ratio: float = 0.9
     guided: GuidedConfig = field(default_factory=GuidedConfig)
+    # feature links (`link`): each keyframe's keypoints registered by PnP on the depth points
+    # of the last `link_keyframes` keyframes of its segment (0: none); a link needs
+    # `link_min_inliers` within `link_max_error_px`
+    link_keyframes: int = 3
+    link_min_inliers: int = 40
+    link_max_error_px: float = 3.0
+    # the most keyframes the map takes (None: no bound); past it the map stops growing and
+    # tracking goes on in it (the service bounds its learning sessions' memory so)
+    max_keyframes: int | None = None
 
 
 @dataclass(frozen=True)
@@ -156,7 +180,7 @@ class LiveMap:
     def add_keyframe(self, frame: FrameData, key: int) -> int:
         """The keyframe's rows (keypoints with valid depth, the strongest first); returns how
         many. Frames without image or depth add none."""
-        if frame.image is None or frame.depth is None:
+        if frame.image is None or frame.depth is None or self.full:
             return 0
         t0 = time.perf_counter()
         self.camera = self.camera or frame.camera
@@ -171,11 +195,45 @@ class LiveMap:
                                     feats.keypoints[ok].astype(np.float32),
                                     feats.descriptors[ok].astype(np.float16),
                                     points[ok].astype(np.float32)))
+        self.link(key, frame.index, feats, frame.camera)
         self.t_keyframes_s += time.perf_counter() - t0
         self._since_submit += 1
         if self._since_submit >= self.config.train_every:
             self.train()
         return len(ok)
+
+    @property
+    def full(self) -> bool:
+        """Whether the map holds `max_keyframes` keyframes of this session (it grows no more)."""
+        most = self.config.max_keyframes
+        return most is not None and sum(k.key is not None for k in self.store.keyframes) >= most
+
+    def link(self, key: int, index: int, feats: Features, camera: Camera) -> int:
+        """Feature links of keyframe `key` (processed frame `index`): its keypoints matched to
+        the rows of the last `link_keyframes` keyframes of its track segment and registered by
+        PnP on their depth points give cam_old_from_cam_new, a between-factor tighter than the
+        odometry's (`GraphConfig.link_sigma_*`); returns how many were added. Depth makes the
+        links metric, and they hold where depth odometry slides (flat walls, glass)."""
+        c = self.config
+        if self.backend is None or c.link_keyframes <= 0 or len(feats) < c.link_min_inliers:
+            return 0
+        frames = self.backend.frames
+        segment = frames[index].segment
+        recent = [k for k in reversed(self.store.keyframes[:-1])
+                  if k.key is not None and frames[k.frame].segment == segment
+                  and len(k.keypoints) >= c.link_min_inliers][:c.link_keyframes]
+        query = feats.descriptors.astype(np.float32)
+        pnp = PnPConfig(max_error_px=c.link_max_error_px, min_inliers=c.link_min_inliers)
+        links = []
+        for old in recent:
+            with _tracker_thread():
+                m = match_descriptors(query, old.descriptors.astype(np.float32), c.ratio)
+            est = estimate_pose(feats.keypoints[m[:, 0]].astype(np.float64),
+                                old.points_cam[m[:, 1]].astype(np.float64), camera.pinhole, pnp)
+            if est.success:
+                links.append((old.key, key, est.cam_from_world.inverse()))
+        self.backend.graph.add_links(links)
+        return len(links)
 
     def train(self, final: bool = False) -> None:
         """Hand the learner the database as the graph places it now (a round starts at once
@@ -243,6 +301,10 @@ class LiveMap:
                   near: Rigid3 | None = None) -> LiveLocalization:
         """`allowed`: mask over the database's frames; `near`: the tracked cam_from_world
         (map frame), which narrows the database search (`loop_search_*`)."""
+        with _tracker_thread():
+            return self._localize_here(feats, camera, allowed, near)
+
+    def _localize_here(self, feats, camera, allowed, near) -> LiveLocalization:
         t0 = time.perf_counter()
         live = self.database()
         n = len(feats)

@@ -240,7 +240,8 @@ def _sigterm_interrupts(enabled: bool):
 
 
 def live_map_report(mapper, t_backend_s: float) -> dict:
-    """What the report says of a learned map: its rows and keyframes, each training round
+    """What the report says of a learned map: its rows, keyframes and feature links (the
+    keyframes' registrations on each other, `LiveMap.link`), each training round
     (start and end in seconds since the session started, rows, from scratch or warm), the
     learner's busy share of the session's wall time, and the writes."""
     live = mapper.live_map
@@ -248,6 +249,7 @@ def live_map_report(mapper, t_backend_s: float) -> dict:
     return {"out": str(mapper.out), "n_rows": live.store.n_rows,
             "n_keyframes": sum(k.key is not None for k in live.store.keyframes),
             "n_prior_frames": sum(k.key is None for k in live.store.keyframes),
+            "n_feature_links": live.backend.graph.n_links if live.backend is not None else 0,
             "keyframe_rows_s": round(live.t_keyframes_s, 3),
             "rounds": [{"started_s": round(r.started_s, 3), "ended_s": round(r.ended_s, 3),
                         "n_rows": r.n_rows, "scratch": r.scratch,
