@@ -95,8 +95,11 @@ def test_one_option_name_is_one_flag():
             seen.setdefault(p.name, {}).setdefault(flags[0], command_name)
     clashes = {name: flags for name, flags in seen.items() if len(flags) > 1}
     assert not clashes, f"one option name, several flags: {clashes}"
-    assert _flags() == {name: next(iter(flags)) for name, flags in seen.items()}
+    program = {p.name for p in root.params}  # the program's own options precede the command
+    assert _flags() == {name: ("slamreloc " if name in program else "") + next(iter(flags))
+                        for name, flags in seen.items()}
     assert {"port", "scale", "scale_from_depth", "limit", "topic"} <= set(seen)
+    assert with_flags("`topic` pose=NAME") == "slamreloc --topic pose=NAME"
     # a name that is no option stays as written
     assert with_flags("`scale` and `scale_from_depth`: give one; `max_image_size` 2") == \
         "--scale and --scale-from-depth: give one; `max_image_size` 2"

@@ -344,7 +344,7 @@ def test_text_files_over_their_bound_are_refused_in_the_same_shape(tmp_path):
     finally:
         set_limits(**vars(InputLimits()))
     assert re.search(BOUND_SHAPE.format(name="max_text_bytes", upper="MAX_TEXT_BYTES")
-                     .replace("--limit", "`limit`"), str(err.value)), err.value
+                     .replace("slamreloc --limit", "`limit`"), str(err.value)), err.value
 
 
 def test_native_libraries_add_no_lines_to_the_error(small_map, tmp_path):

@@ -495,10 +495,6 @@ def _check_schema(meta: dict, version: int, path) -> None:
                         f"one of {', '.join(PRECISIONS)}", lambda v: v in PRECISIONS)
         _check_optional(train, "epochs", "train.", path, "a whole number of epochs, 0 or more",
                         lambda v: _is_int(v) and v >= 0)
-    dataset = meta.get("dataset")
-    if isinstance(dataset, dict):  # `metric` decides whether the map's units are metres
-        _check_optional(dataset, "metric", "dataset.", path, "true or false",
-                        lambda v: isinstance(v, bool))
     _check_optional(meta, "timings_s", "", path, "an object of seconds",
                     lambda v: isinstance(v, dict) and all(_is_number(t) and t >= 0
                                                           for t in v.values()))
