@@ -37,7 +37,6 @@ from slamreloc.proto.messages import (
     map_name_problem,
     token_problem,
 )
-from slamreloc.service import maps as maps_module
 from slamreloc.service import server as server_module
 from slamreloc.service.maps import MapRegistry, ServedMap, folder_stamp
 from slamreloc.service.server import (
