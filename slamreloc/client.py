@@ -30,7 +30,7 @@ import numpy as np
 from slamreloc.errors import InputError, quoted
 from slamreloc.geometry import Rigid3
 from slamreloc.io.address import target_problem
-from slamreloc.io.pem import pem_problem, read_pem
+from slamreloc.io.pem import check_pem, read_pem
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
     CLIENT_TIMEOUT_S,
@@ -161,13 +161,9 @@ class Client:
             if problem:
                 raise InputError(f"the token {problem}")
         if tls_ca is not None:
-            if isinstance(tls_ca, (bytes, bytearray, memoryview)):
-                ca = bytes(tls_ca)
-                problem = pem_problem(ca, "certificate")
-                if problem:
-                    raise InputError(f"`tls_ca` is not a PEM certificate ({problem})")
-            else:
-                ca = read_pem(tls_ca, "certificate", "tls_ca")
+            ca = (check_pem(bytes(tls_ca), "certificate", "tls_ca")
+                  if isinstance(tls_ca, (bytes, bytearray, memoryview))
+                  else read_pem(tls_ca, "certificate", "tls_ca"))
             self.channel = grpc.secure_channel(address, grpc.ssl_channel_credentials(ca),
                                                options)
         else:

@@ -16,10 +16,17 @@ def read_pem(path: Path, what: str, setting: str) -> bytes:
     such a PEM (`pem_problem`)."""
     from slamreloc.io.fileio import read_bytes
 
-    data = read_bytes(path, f"TLS {what} (`{setting}`)", MAX_PEM_BYTES)
+    return check_pem(read_bytes(path, f"TLS {what} (`{setting}`)", MAX_PEM_BYTES), what,
+                     setting, path)
+
+
+def check_pem(data: bytes, what: str, setting: str, path: Path | None = None) -> bytes:
+    """`data` if it is a PEM `what` (`pem_problem`); else InputError naming its `setting`
+    (and the file it came from, where it came from one)."""
     problem = pem_problem(data, what)
     if problem:
-        raise InputError(f"{path}: `{setting}` is not a PEM {what} ({problem})")
+        where = f"{path}: " if path is not None else ""
+        raise InputError(f"{where}`{setting}` is not a PEM {what} ({problem})")
     return data
 
 

@@ -76,6 +76,11 @@ class KeyframeStore:
     def n_keyframes(self) -> int:
         return len(self.keyframes)
 
+    @property
+    def n_session_keyframes(self) -> int:
+        """The keyframes of this session (graph keys), not a prior map's fixed frames."""
+        return sum(k.key is not None for k in self.keyframes)
+
     def database(self, poses: dict[int, Rigid3], version: tuple = ()) -> LiveDatabase:
         """Every row in the map frame, graph keyframes placed with `poses` (key ->
         world_from_cam); frames without rows are left out."""

@@ -206,7 +206,7 @@ class LiveMap:
     def full(self) -> bool:
         """Whether the map holds `max_keyframes` keyframes of this session (it grows no more)."""
         most = self.config.max_keyframes
-        return most is not None and sum(k.key is not None for k in self.store.keyframes) >= most
+        return most is not None and self.store.n_session_keyframes >= most
 
     def link(self, key: int, index: int, feats: Features, camera: Camera) -> int:
         """Feature links of keyframe `key` (processed frame `index`): its keypoints matched to
@@ -225,13 +225,14 @@ class LiveMap:
         query = feats.descriptors.astype(np.float32)
         pnp = PnPConfig(max_error_px=c.link_max_error_px, min_inliers=c.link_min_inliers)
         links = []
-        for old in recent:
-            with _tracker_thread():
+        with _tracker_thread():
+            for old in recent:
                 m = match_descriptors(query, old.descriptors.astype(np.float32), c.ratio)
-            est = estimate_pose(feats.keypoints[m[:, 0]].astype(np.float64),
-                                old.points_cam[m[:, 1]].astype(np.float64), camera.pinhole, pnp)
-            if est.success:
-                links.append((old.key, key, est.cam_from_world.inverse()))
+                est = estimate_pose(feats.keypoints[m[:, 0]].astype(np.float64),
+                                    old.points_cam[m[:, 1]].astype(np.float64),
+                                    camera.pinhole, pnp)
+                if est.success:
+                    links.append((old.key, key, est.cam_from_world.inverse()))
         self.backend.graph.add_links(links)
         return len(links)
 

@@ -247,8 +247,8 @@ def live_map_report(mapper, t_backend_s: float) -> dict:
     live = mapper.live_map
     learner = live.learner
     return {"out": str(mapper.out), "n_rows": live.store.n_rows,
-            "n_keyframes": sum(k.key is not None for k in live.store.keyframes),
-            "n_prior_frames": sum(k.key is None for k in live.store.keyframes),
+            "n_keyframes": live.store.n_session_keyframes,
+            "n_prior_frames": live.store.n_keyframes - live.store.n_session_keyframes,
             "n_feature_links": live.backend.graph.n_links if live.backend is not None else 0,
             "keyframe_rows_s": round(live.t_keyframes_s, 3),
             "rounds": [{"started_s": round(r.started_s, 3), "ended_s": round(r.ended_s, 3),
