@@ -216,6 +216,31 @@ def test_learner_rounds_scratch_then_bounded_warm_windows():
     assert not learner.rounds[-1].scratch and learner.rounds[-1].n_rows == 5000
 
 
+def test_more_new_rows_than_a_warm_window_makes_a_scratch_round():
+    """Rows grown by less than `regrow`, but more new rows than `round_rows`: a warm window
+    would leave some of them out, so the round trains every row from scratch; fewer new rows
+    than the window: warm."""
+    from slamreloc.regressor.model import RegressorConfig
+    from slamreloc.regressor.train import TrainConfig
+    from slamreloc.slam.learner import BackgroundLearner, LearnerConfig
+
+    rng = np.random.default_rng(3)
+    desc = rng.standard_normal((4000, 32)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    pts = rng.uniform(-1, 1, (4000, 3)).astype(np.float32)
+    config = LearnerConfig(warm_epochs=1, scratch_epochs=1, round_rows=1000, min_rows=500,
+                           train=TrainConfig(batch_size=256), background=False)
+    learner = BackgroundLearner(RegressorConfig(in_dim=32, hidden=(64, 32)), config)
+    for n in (2000, 3000, 3900):  # 1000 new: warm; then 900 new after a warm round: warm
+        learner.submit(desc[:n], pts[:n])
+    assert [r.scratch for r in learner.rounds] == [True, False, False]
+    learner = BackgroundLearner(RegressorConfig(in_dim=32, hidden=(64, 32)), config)
+    for n in (2000, 3001):  # 1001 new, 1.5x the rows
+        learner.submit(desc[:n], pts[:n])
+    assert [r.scratch for r in learner.rounds] == [True, True]
+    assert learner.rounds[-1].n_rows == 3001
+
+
 def test_learner_on_the_submitting_thread_is_reproducible():
     """`background=False` (`slam --learn-every`): each submission's round has ended when
     `submit` returns, no thread is started, and the same submissions give the same model."""

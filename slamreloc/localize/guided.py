@@ -56,7 +56,10 @@ class GuidedConfig:
 class GuidedMatcher:
     """Query keypoints -> the map's database world points, gated by a camera pose."""
 
-    def __init__(self, database: MapDatabase, config: GuidedConfig = GuidedConfig()):
+    def __init__(self, database: MapDatabase, config: GuidedConfig = GuidedConfig(),
+                 descriptors: np.ndarray | None = None):
+        """`descriptors`: the database's descriptors as float32 (N, D) where the caller holds
+        them already (a live map keeps them as it grows), else converted here."""
         self.db = database
         self.config = config
         world_from_cam = np.asarray(database.world_from_cam, np.float64)
@@ -66,7 +69,8 @@ class GuidedMatcher:
         self._tree: cKDTree | None = None  # over the rows' world points (`near_points`)
         # the descriptors as float32 (twice the float16 map's bytes: 55 MB for RedKitchen's
         # 107k rows): converting the gathered rows at each query cost 4 ms of its ~40
-        self._descriptors = np.asarray(database.descriptors, np.float32)
+        self._descriptors = np.asarray(database.descriptors if descriptors is None
+                                       else descriptors, np.float32)
 
     def nearby_rows(self, cam_from_world: Rigid3, allowed: np.ndarray | None = None,
                     n_frames: int | None = None, max_angle_deg: float | None = None

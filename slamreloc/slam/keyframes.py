@@ -52,6 +52,11 @@ class KeyframeStore:
     def __init__(self) -> None:
         self.keyframes: list[KeyframeRows] = []
         self.n_rows = 0
+        # every row's descriptor as float32, in `database`'s row order, grown as keyframes
+        # come (capacity doubling): searches need float32, and converting the whole map
+        # at each of its versions cost a keyframe 24 ms at 97k rows
+        self._desc32 = np.zeros((0, 0), np.float32)
+        self._n_desc32 = (0, 0)  # (keyframes, rows) already in it
 
     @staticmethod
     def from_database(db: MapDatabase) -> KeyframeStore:
@@ -80,6 +85,23 @@ class KeyframeStore:
     def n_session_keyframes(self) -> int:
         """The keyframes of this session (graph keys), not a prior map's fixed frames."""
         return sum(k.key is not None for k in self.keyframes)
+
+    def descriptors_f32(self) -> np.ndarray:
+        """(n_rows, D) float32 view of every row's descriptor, in `database`'s row order (rows
+        are only appended, so a view taken earlier stays right for the rows it covers)."""
+        done, n = self._n_desc32
+        new = [k.descriptors for k in self.keyframes[done:] if len(k.keypoints)]
+        total = n + sum(len(d) for d in new)
+        if new and total > len(self._desc32):
+            grown = np.empty((max(total, 2 * len(self._desc32)), new[0].shape[1]), np.float32)
+            if n:
+                grown[:n] = self._desc32[:n]
+            self._desc32 = grown
+        for d in new:
+            self._desc32[n:n + len(d)] = d
+            n += len(d)
+        self._n_desc32 = (len(self.keyframes), n)
+        return self._desc32[:n]
 
     def database(self, poses: dict[int, Rigid3], version: tuple = ()) -> LiveDatabase:
         """Every row in the map frame, graph keyframes placed with `poses` (key ->
