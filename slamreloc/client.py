@@ -38,6 +38,8 @@ from slamreloc.proto.messages import (
     GRPC_CODES,
     camera_msg,
     rigid_from_msg,
+    map_name_problem,
+    saved_map_name_problem,
     token_problem,
     transform_msg,
 )
@@ -120,6 +122,17 @@ def _camera(camera: Camera | str | None) -> pb.Camera | None:
 MAX_MESSAGE_BYTES = (2 << 30) - 1  # gRPC's message size is an int32
 
 
+def _check_map_name(map: str, what: str = "map", rule=map_name_problem) -> str:
+    """`map` unless it breaks the server's rule for map names (`map_name_problem`; "" is the
+    server's one map): InputError naming `what`, before anything is sent."""
+    if not isinstance(map, str):
+        raise InputError(f"`{what}` is {type(map).__name__}, not text")
+    problem = rule(map) if map else None
+    if problem:
+        raise InputError(f"`{what}` {quoted(map)} {problem}")
+    return map
+
+
 def _check_arguments(address, token, tls_ca, timeout_s, max_message_bytes) -> None:
     """InputError naming the first argument of `Client` that it could not use (the rules of
     the server and of clients/cpp: `target_problem`, `token_problem`, CLIENT_TIMEOUT_S)."""
@@ -185,7 +198,7 @@ class Client:
         map's, scaled to the image, when None. depth: float32 metres (H, W), refines the pose
         on the map's surface; in the pixels of `depth_camera` (the camera that took it, where
         it is not registered to the image), else of the image (registered)."""
-        req = pb.LocalizeRequest(map=map, image=image_msg(image))
+        req = pb.LocalizeRequest(map=_check_map_name(map), image=image_msg(image))
         if camera is not None:
             req.camera.CopyFrom(_camera(camera))
         if depth is not None:
@@ -201,7 +214,7 @@ class Client:
         return list(self._call(self.stub.ListMaps, pb.ListMapsRequest()).maps)
 
     def reload_map(self, map: str = "") -> pb.ReloadMapResponse:
-        return self._call(self.stub.ReloadMap, pb.ReloadMapRequest(map=map))
+        return self._call(self.stub.ReloadMap, pb.ReloadMapRequest(map=_check_map_name(map)))
 
     def session(self, map: str = "", odometry: str = "client",
                 depth_camera: Camera | None = None,
@@ -210,7 +223,7 @@ class Client:
         depth where it is not registered to the images (`Frame.depth_camera`), else None.
         learn: no map; the session learns one from the frames' depth (`ClientSession.save`
         writes it on the server)."""
-        opening = pb.SessionOpen(map=map, odometry=odometry, learn=learn,
+        opening = pb.SessionOpen(map=_check_map_name(map), odometry=odometry, learn=learn,
                                  depth_units_per_metre=depth_units_per_metre)
         if depth_camera is not None:
             opening.depth_camera.CopyFrom(camera_msg(depth_camera.pinhole).pinhole)
@@ -345,6 +358,9 @@ class ClientSession:
         served as the map `name` from then on; saving again replaces it. The session carries
         on. RemoteError where the server refuses (FAILED_PRECONDITION: no `--learned-maps`, no
         training round yet, a name taken; BAD_REQUEST: not a plain map name)."""
+        if not name:
+            raise InputError("`name` is empty: the name to save the map under")
+        _check_map_name(name, "name", saved_map_name_problem)
         return self._answer(pb.SessionRequest(save=pb.SessionSave(name=name))).saved
 
     def _answer(self, request: pb.SessionRequest) -> pb.SessionUpdate:

@@ -45,3 +45,20 @@ def quoted(text, limit: int = QUOTE_LIMIT) -> str:
     if len(text) <= limit:
         return repr(text)
     return f"{text[:limit]!r}... ({len(text)} characters)"
+
+
+WORD_LIMIT = 300  # characters of one space-free run an error line shows
+
+
+def terminal_line(text: str, limit: int = WORD_LIMIT) -> str:
+    """`text` as one error line a terminal may show: characters that are not printable
+    (an ESC sequence in a file name listed in a dataset, a line break) as their escapes, and
+    any run without spaces over `limit` characters cut in its middle, so a 2 MB name makes a
+    line that still ends with the problem."""
+    def shown(word: str) -> str:
+        word = "".join(c if c.isprintable() else ascii(c)[1:-1] for c in word)
+        if len(word) <= limit:
+            return word
+        half = limit // 2
+        return f"{word[:half]}...({len(word)} characters)...{word[-half:]}"
+    return " ".join(shown(w) for w in text.split(" "))

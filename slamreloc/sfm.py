@@ -126,8 +126,8 @@ class SfmConfig:
             raise InputError(f"`mapper` must be one of {', '.join(MAPPERS)}, got "
                              f"{self.mapper!r}")
         if self.scale is not None and not 0 < self.scale < 1e6:
-            raise InputError(f"`scale` must be a positive number of metres per SfM unit, got "
-                             f"{self.scale}")
+            raise InputError(f"`scale` must be metres per SfM unit, more than 0 and under "
+                             f"1e6, got {self.scale:g}")
         if self.scale is not None and self.scale_from_depth:
             raise InputError("`scale` and `scale_from_depth`: give one of them")
         initial_camera(self, None)  # a bad --camera fails before any work

@@ -191,6 +191,18 @@ def test_errors_name_the_file_or_server_and_exit_2(client_binary, server, sequen
     # usage
     line = _error_line(run_client(client_binary, str(sequence)))
     assert "--server" in line
+    # round 9, F9: a map name the server's rule refuses is refused before anything is sent
+    for name, why in (("a\udcff", "not valid UTF-8"), ("a b", "space"), ("x" * 129, "128"),
+                      ("", "empty")):
+        line = _error_line(run_client(client_binary, "--server", address, "--map", name,
+                                      str(sequence)))
+        assert line.startswith("error: --map '") and why in line, line
+    # round 9, F8: a NUL byte in rgb.txt is named with its line
+    tum = tmp_path / "nul_tum"
+    tum.mkdir()
+    (tum / "rgb.txt").write_bytes(b"# list\n0.1 rgb/a\x00b.png\n")
+    line = _error_line(run_client(client_binary, "--server", address, str(tum)))
+    assert f"{tum / 'rgb.txt'}:2: image list holds a NUL byte" in line, line
 
 
 def test_an_image_the_server_refuses_is_reported_and_the_rest_localized(client_binary, server,

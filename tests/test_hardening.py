@@ -450,14 +450,28 @@ def test_a_huge_map_name_is_refused_unknown_map(served):
     running, _ = served
     name = "x" * 100_000
     with Client(running.address, timeout_s=30, max_message_bytes=1 << 20) as client:
-        err = _refusal(lambda: client.reload_map(name))
+        for call in (lambda: client.reload_map(name), lambda: client.session(map=name)):
+            with pytest.raises(InputError, match="more than 128"):  # the client's own check
+                call()
+        stub = client.stub  # the server's answer to a client that sends it anyway
+
+        def raw(method, request):
+            try:
+                answer = method(request, timeout=30, metadata=client.metadata)
+                return answer if isinstance(answer, pb.ReloadMapResponse | pb.LocalizeResponse) \
+                    else list(answer)
+            except grpc.RpcError as rpc:
+                raise RemoteError.from_rpc(rpc) from None
+
+        err = _refusal(lambda: raw(stub.ReloadMap, pb.ReloadMapRequest(map=name)))
         assert err.kind == "UNKNOWN_MAP" and err.code == grpc.StatusCode.NOT_FOUND
         assert len(err.message) < 400
-        err = _refusal(lambda: client.localize(b"\x89PNG", map=name))
+        err = _refusal(lambda: raw(stub.Localize, pb.LocalizeRequest(
+            map=name, image=pb.Image(encoded=b"\x89PNG"))))
         assert err.kind == "UNKNOWN_MAP" and len(err.message) < 400
-        with pytest.raises(RemoteError) as refused, client.session(map=name) as session:
-            del session
-        assert refused.value.kind == "UNKNOWN_MAP" and len(refused.value.message) < 400
+        err = _refusal(lambda: raw(stub.Session, iter([pb.SessionRequest(
+            open=pb.SessionOpen(map=name))])))
+        assert err.kind == "UNKNOWN_MAP" and len(err.message) < 400
         with (pytest.raises(RemoteError) as refused,
               client.session(map="m", odometry="o" * 100_000) as session):
             del session

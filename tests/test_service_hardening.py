@@ -610,6 +610,28 @@ def test_wire_timestamp_uses_the_file_rule(server):
     assert "timestamps are seconds" in errors[0].message and "nanoseconds" in errors[0].message
 
 
+def test_session_timestamps_increase_or_are_all_zero(server):
+    """Round 9, F7: a frame at or before the last frame's instant is refused (one instant, two
+    images), as a trajectory file's repeated stamp is; the session carries on; frames that
+    all give 0 (no timestamps) are taken."""
+    def frame(stamp):
+        return pb.SessionRequest(frame=pb.SessionFrame(
+            image=pb.Image(encoded=_image()), timestamp=stamp,
+            odometry_world_from_cam=pb.Transform(qw=1)))
+
+    updates = _session(server.address, [pb.SessionRequest(open=pb.SessionOpen()), frame(2.0),
+                                        frame(1.5), frame(2.0), frame(3.0)])
+    kinds = [u.WhichOneof("message") for u in updates]
+    assert kinds == ["opened", "frame", "error", "error", "frame", "closed"], kinds
+    for error in (updates[2].error, updates[3].error):
+        assert error.kind == pb.BAD_REQUEST and "is not after the previous frame's 2 s" in \
+            error.message
+    assert updates[4].frame.index == 1
+    updates = _session(server.address, [pb.SessionRequest(open=pb.SessionOpen()), frame(0.0),
+                                        frame(0.0)])
+    assert [u.WhichOneof("message") for u in updates] == ["opened", "frame", "frame", "closed"]
+
+
 # ---- round 4 #8: a depth map too small names its field once ----------------------------------
 @pytest.mark.parametrize("learn", [True, False])
 def test_a_depth_map_too_small_names_its_field_once(server, learn):

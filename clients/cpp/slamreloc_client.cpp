@@ -93,6 +93,7 @@ const char* code_name(grpc::StatusCode code) {
 }
 
 constexpr std::size_t kMinToken = 16;                 // the server's rule (`token_problem`)
+constexpr std::size_t kMaxMapName = 128;              // characters (`MAX_MAP_NAME`)
 constexpr std::uintmax_t kMaxPemBytes = 1u << 20;      // slamreloc.io.pem.MAX_PEM_BYTES
 constexpr std::uintmax_t kMaxImageBytes = 64u << 20;   // the client's gRPC message bound
 constexpr std::uintmax_t kMaxListBytes = 1u << 30;     // rgb.txt, as the Python TUM reader
@@ -170,6 +171,60 @@ std::string token_problem(const std::string& token) {
     if (c < 0x21 || c > 0x7E)
       return "must be printable ASCII without spaces or line breaks (gRPC metadata carries "
              "nothing else)";
+  return "";
+}
+
+// `text` as given, for a message: in quotes, its first 80 bytes, bytes that are not printable
+// ASCII as \xHH (a name may hold anything; the terminal must not take it as commands).
+std::string shown(const std::string& text) {
+  static const char* hex = "0123456789abcdef";
+  std::string out = "'";
+  for (std::size_t i = 0; i < text.size() && i < 80; ++i) {
+    const unsigned char c = text[i];
+    if (c >= 0x20 && c < 0x7F && c != '\\' && c != '\'') {
+      out += static_cast<char>(c);
+    } else {
+      out += "\\x";
+      out += hex[c >> 4];
+      out += hex[c & 0xF];
+    }
+  }
+  return out + (text.size() > 80 ? "'..." : "'");
+}
+
+// Why `name` cannot name a served map (empty when it can): the server's rule
+// (`map_name_problem`): valid UTF-8, 1 to kMaxMapName characters, none of them a control,
+// format, line or space character. (Its composed-form rule is left to the server.)
+std::string map_name_problem(const std::string& name) {
+  if (name.empty()) return "is empty (give a map name, or leave --map out)";
+  std::size_t chars = 0;
+  for (std::size_t i = 0; i < name.size(); ++chars) {
+    const unsigned char c = name[i];
+    const int n = c < 0x80            ? 1
+                  : (c >> 5) == 0x6   ? 2
+                  : (c >> 4) == 0xE   ? 3
+                  : (c >> 3) == 0x1E  ? 4
+                                      : 0;
+    if (n == 0 || i + n > name.size()) return "is not valid UTF-8 text";
+    char32_t cp = n == 1 ? c : c & (0x7F >> n);
+    for (int k = 1; k < n; ++k) {
+      const unsigned char cc = name[i + k];
+      if ((cc >> 6) != 0x2) return "is not valid UTF-8 text";
+      cp = (cp << 6) | (cc & 0x3F);
+    }
+    const char32_t least[] = {0, 0, 0x80, 0x800, 0x10000};
+    if (cp < least[n] || cp > 0x10FFFF || (cp >= 0xD800 && cp <= 0xDFFF))
+      return "is not valid UTF-8 text";
+    const bool bad = cp <= 0x20 || (cp >= 0x7F && cp <= 0xA0) || cp == 0xAD || cp == 0x1680 ||
+                     (cp >= 0x2000 && cp <= 0x200F) || (cp >= 0x2028 && cp <= 0x202F) ||
+                     (cp >= 0x205F && cp <= 0x206F) || cp == 0x3000 || cp == 0xFEFF;
+    if (bad) return "holds a control, format or space character: printable characters "
+                    "without spaces only";
+    i += n;
+  }
+  if (chars > kMaxMapName)
+    return "has " + std::to_string(chars) + " characters, more than " +
+           std::to_string(kMaxMapName);
   return "";
 }
 
@@ -324,6 +379,8 @@ Options parse_args(int argc, char** argv) {
       if (!problem.empty()) throw Error("--server '" + value.substr(0, 80) + "' " + problem);
       opts.server = value;
     } else if (arg == "--map") {
+      const std::string problem = map_name_problem(value);
+      if (!problem.empty()) throw Error("--map " + shown(value) + " " + problem);
       opts.call.map = value;
     } else if (arg == "--token") {
       opts.call.token = strip_blanks(value);
@@ -365,7 +422,14 @@ std::vector<fs::path> sequence_images(const fs::path& dir) {
   std::vector<fs::path> images;
   const fs::path list = dir / "rgb.txt";
   if (fs::exists(list, ec)) {  // rgb.txt: slamreloc.datasets.tum's rules
-    std::istringstream in(read_file(list, "image list", kMaxListBytes));
+    const std::string text = read_file(list, "image list", kMaxListBytes);
+    const auto nul = text.find('\0');
+    if (nul != std::string::npos)  // the Python readers' rule: no text file holds one
+      throw Error(list.string() + ":" +
+                  std::to_string(1 + std::count(text.begin(), text.begin() + nul, '\n')) +
+                  ": image list holds a NUL byte (byte " + std::to_string(nul) +
+                  "); text files have none");
+    std::istringstream in(text);
     std::map<double, std::pair<int, std::string>> seen;  // stamp -> (first line, its file)
     std::set<std::string> stems;
     std::string line;

@@ -9,7 +9,7 @@ from contextlib import contextmanager
 from typing import NoReturn
 
 from slamreloc.cli.commands import _flags, app, with_flags
-from slamreloc.errors import Interrupted, SlamrelocError, is_out_of_memory
+from slamreloc.errors import Interrupted, SlamrelocError, is_out_of_memory, terminal_line
 from slamreloc.runtime.progress import stop_bars
 
 __all__ = ["_flags", "app", "main", "run", "with_flags"]
@@ -137,7 +137,7 @@ def _run_app() -> int | None:
 
     problem = _command_line_problem(sys.argv[1:])
     if problem:
-        print(f"error: {problem}", file=sys.stderr)
+        print(f"error: {terminal_line(problem)}", file=sys.stderr)
         return 2
     try:
         return app(standalone_mode=False)
@@ -151,7 +151,7 @@ def _run_app() -> int | None:
             raise
         where = getattr(getattr(err, "ctx", None), "command_path", None) or "slamreloc"
         message = " ".join(err.format_message().split()).rstrip(".")
-        print(f"error: {message} (see {where} --help)", file=sys.stderr)
+        print(f"error: {terminal_line(message)} (see {where} --help)", file=sys.stderr)
         return 2
     except typer.Abort as err:  # how typer on plain click answers a Ctrl-C
         if _after_interrupt(err):
@@ -236,7 +236,7 @@ def main() -> None:
     except (SlamrelocError, ValueError, OSError) as err:
         # one line, whatever the message holds (some libraries' messages span lines)
         message = with_flags(' '.join(str(err).split())) or type(err).__name__
-        print(f"error: {message}", file=sys.stderr)
+        print(f"error: {terminal_line(message)}", file=sys.stderr)
         sys.exit(2)
     except Exception as err:  # an allocation that failed is one line too
         if _after_interrupt(err):  # e.g. a library's import cut short by Ctrl-C / SIGTERM

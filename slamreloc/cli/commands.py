@@ -37,6 +37,7 @@ SPLIT_HELP = ("train | test | all | a role (kidnap, ...) | a sequence, or a comm
 MAX_EPOCHS = 100_000
 MAX_AUGMENT_VIEWS = 16  # simulated views per mapping image: each adds about a third of the rows
 MAX_ROUNDS = 1000
+MAX_FRAMES = 10_000_000  # a count of frames an option gives (a day of video at 100 Hz: 8.6M)
 
 
 def check_range(flag: str, value: int | float | None, low: int | float,
@@ -450,11 +451,10 @@ def check_slam_options(map_dir: Path | None, out: Path | None, save_every: float
     if learn_every is not None and out is None:
         raise InputError("--learn-every applies only with --out (the rounds of the map learned "
                          "while tracking): give --out, or leave --learn-every out")
-    if learn_every is not None and learn_every < 1:
-        raise InputError(f"--learn-every must be >= 1 (keyframes between rounds), got "
-                         f"{learn_every}")
-    if kidnap_from is not None and kidnap_from < 0:
-        raise InputError(f"--kidnap-from must be >= 0, got {kidnap_from}")
+    check_range("--learn-every", learn_every, 1, MAX_FRAMES)  # keyframes between rounds
+    check_range("--kidnap-every", kidnap_every, 0, MAX_FRAMES)
+    check_range("--kidnap-skip", kidnap_skip, 0, MAX_FRAMES)
+    check_range("--kidnap-from", kidnap_from, 0, MAX_FRAMES)
     for flag, value in (("--kidnap-skip", kidnap_skip), ("--kidnap-from", kidnap_from)):
         if value is not None and kidnap_every == 0:
             raise InputError(f"{flag} applies only with --kidnap-every N (N > 0; 0: the camera "

@@ -37,7 +37,7 @@ from slamreloc.datasets.colmap_check import check_model
 from slamreloc.datasets.io import check_frame_files, read_text
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3, pose_gap, same_pose, unit_quaternion, values_agree
-from slamreloc.io.fileio import open_regular
+from slamreloc.io.fileio import open_regular, optional_file
 from slamreloc.io.jsonio import read_json
 from slamreloc.types import Camera, Frame
 
@@ -259,7 +259,7 @@ def load_colmap(root: Path) -> Dataset:
             timestamp=len(frames) / 30.0))
     splits, split_files = {}, {}
     for split, fname in (("train", "TrainSplit.txt"), ("test", "TestSplit.txt")):
-        if (root / fname).is_file():
+        if optional_file(root / fname, "split file"):
             splits[split] = _read_split(root / fname)
             split_files[split] = root / fname
     if not splits:  # no split files: everything is for mapping

@@ -48,7 +48,7 @@ from slamreloc.errors import InputError
 from slamreloc.io.fileio import open_regular
 from slamreloc.geometry import (MAX_COORDINATE, Rigid3, matrix_to_quat, nearest_stamps,
                                 pose_gap, same_pose, unit_quaternion)
-from slamreloc.io.images import check_encoded_image, check_image_size
+from slamreloc.io.images import check_encoded_image, check_image_size, clean_depth_m
 from slamreloc.runtime.progress import console
 from slamreloc.types import Camera, Frame, k_matrix_problem
 
@@ -430,10 +430,10 @@ def colour_file(msg: Any, source: str) -> tuple[bytes, str, tuple[int, int]]:
 
 
 def depth_millimetres(depth: np.ndarray) -> np.ndarray:
-    """float depth in metres -> uint16 millimetres; non-finite, non-positive and out of range
-    (over 65.534 m) values become 0, "no measurement"."""
-    mm = np.round(np.nan_to_num(depth.astype(np.float64), nan=0.0, posinf=0.0) * 1000.0)
-    return np.where((mm > 0) & (mm <= MAX_DEPTH_MM), mm, 0).astype(np.uint16)
+    """float depth in metres -> uint16 millimetres; what is no measurement by the rule of
+    float depth (`clean_depth_m`: non-finite, non-positive, over 65.534 m) becomes 0."""
+    mm = np.round(clean_depth_m(depth.astype(np.float64)) * 1000.0)
+    return np.where(mm <= MAX_DEPTH_MM, mm, 0).astype(np.uint16)
 
 
 def _depth_file(msg: Any, source: str) -> tuple[bytes, str, tuple[int, int]]:

@@ -25,7 +25,7 @@ from slamreloc.datasets.io import (
 )
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
-from slamreloc.io.fileio import read_bytes
+from slamreloc.io.fileio import optional_file, read_bytes
 from slamreloc.io.jsonio import parse_json
 from slamreloc.types import Camera, Frame
 
@@ -62,7 +62,7 @@ def load_sevenscenes(root: Path) -> Dataset:
         raise InputError(f"{root}: 7-Scenes layout but no frame-XXXXXX.color.* files found")
     splits, split_files = {}, {}
     for split, fname in (("train", "TrainSplit.txt"), ("test", "TestSplit.txt")):
-        if (root / fname).is_file():
+        if optional_file(root / fname, "split file"):
             splits[split] = _read_split(root / fname)
             split_files[split] = root / fname
     return Dataset(root, "synthetic" if scene else "7scenes", sequences, splits,
@@ -92,14 +92,14 @@ def _camera(root: Path) -> Camera:
     if first is None:
         raise InputError(f"{root}: no seq-XX/frame-XXXXXX.color.* images found")
     width, height = image_size(first)
-    if (root / "camera.txt").is_file():  # a COLMAP camera string: any lens model
+    if optional_file(root / "camera.txt", "camera"):  # a COLMAP camera string: any lens model
         path = root / "camera.txt"
         camera = Camera.parse(read_text(path, "camera", 1 << 12), str(path))
         if (camera.width, camera.height) != (width, height):
             raise InputError(f"{path}: camera is {camera.width}x{camera.height} but {first} is "
                              f"{width}x{height}")
         return camera
-    if (root / "intrinsics.txt").is_file():
+    if optional_file(root / "intrinsics.txt", "intrinsics"):
         k = read_intrinsics(root / "intrinsics.txt")
         try:
             return Camera(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])

@@ -15,6 +15,7 @@ import numpy as np
 from slamreloc.datasets.base import Dataset
 from slamreloc.datasets.io import check_frame_files, image_size, read_intrinsics, read_text
 from slamreloc.errors import InputError
+from slamreloc.io.fileio import optional_file
 from slamreloc.geometry import parse_stamp, read_tum_trajectory
 from slamreloc.types import Camera, Frame
 
@@ -63,9 +64,10 @@ def load_tum(root: Path) -> Dataset:
     rgb = _read_list(root / "rgb.txt", 2)
     if not rgb:
         raise InputError(f"{root / 'rgb.txt'}: no images listed")
-    depth = _read_list(root / "depth.txt", 2) if (root / "depth.txt").is_file() else []
+    depth = (_read_list(root / "depth.txt", 2)
+             if optional_file(root / "depth.txt", "depth list") else [])
     gt = (read_tum_trajectory(root / "groundtruth.txt", numeric_stamps=True)
-          if (root / "groundtruth.txt").is_file() else [])
+          if optional_file(root / "groundtruth.txt", "ground truth") else [])
     depth_t = np.array([float(r[0]) for r in depth])
     gt_t = np.array([float(stamp) for stamp, _ in gt])
     names = [Path(rel).stem for _, rel in rgb]
@@ -73,7 +75,7 @@ def load_tum(root: Path) -> Dataset:
         dup = next(n for n in names if names.count(n) > 1)
         raise InputError(f"{root / 'rgb.txt'}: image {dup!r} is listed more than once")
     width, height = image_size(root / rgb[0][1])
-    own = (root / "intrinsics.txt").is_file()
+    own = optional_file(root / "intrinsics.txt", "intrinsics")
     k = read_intrinsics(root / "intrinsics.txt") if own else None  # its errors name it
     try:
         if own:

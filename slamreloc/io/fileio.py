@@ -85,12 +85,18 @@ def read_bytes(path: str | Path, what: str, limit: int | str) -> bytes:
 def read_text(path: str | Path, what: str, limit: int | str) -> str:
     """`read_bytes` as UTF-8 text (a leading byte-order mark, which some editors write, is
     dropped: every text file is read the same way, JSON's too); InputError for bytes that are
-    not UTF-8."""
+    not UTF-8 or that hold a NUL byte (no text format has one; as a name it would be cut)."""
     data = read_bytes(path, what, limit)
     try:
-        return data.decode("utf-8-sig")
+        text = data.decode("utf-8-sig")
     except UnicodeDecodeError as err:
         raise InputError(f"{path}: {what} is not UTF-8 text (byte {err.start})") from None
+    nul = data.find(b"\0")
+    if nul >= 0:
+        line = data.count(b"\n", 0, nul) + 1
+        raise InputError(f"{path}:{line}: {what} holds a NUL byte (byte {nul}); text files "
+                         "have none")
+    return text
 
 
 def sha256_of(f: BinaryIO) -> str:
@@ -105,6 +111,21 @@ def _own_test(value) -> tuple:
     """`check_outputs`' folder or file entry as (is_own or None or ..., the kind's name or
     None)."""
     return value if isinstance(value, tuple) else (value, None)
+
+
+def optional_file(path: Path, what: str) -> bool:
+    """Whether a dataset's optional file (intrinsics.txt, depth.txt, a split file) is there:
+    False where nothing is at `path`, True for a file (or a link to one); InputError for
+    anything else there (a folder, a named pipe, a device, a broken link), which is neither
+    "absent" (a default would be taken silently) nor readable."""
+    if not os.path.lexists(path):
+        return False
+    st = _stat(path)
+    if st is None:
+        raise InputError(f"{path}: {what} is a broken link")
+    if not stat.S_ISREG(st.st_mode):
+        raise InputError(f"{path}: {what} is {_kind(st.st_mode)}, not a file")
+    return True
 
 
 def _kind(mode: int) -> str:
@@ -224,8 +245,8 @@ def busy_writer(out: str | Path) -> str | None:
     import fcntl
 
     try:
-        fd = os.open(write_lock_path(out), os.O_RDONLY)
-    except OSError:
+        fd = os.open(write_lock_path(out), os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError:  # none, or a link: no writer's lock (a writer refuses a link)
         return None
     try:
         try:

@@ -38,6 +38,7 @@ LIBJPEG_WARNINGS = LIBJPEG_CORRUPT + ("Warning: ", "Unknown Adobe color transfor
                                       "Application transferred too many scanlines")
 _STDERR_LOCK = threading.Lock()
 INVALID_DEPTH = (0, 65535)  # raw uint16 values that mean "no measurement"
+MAX_DEPTH_M = 65.534  # the deepest depth kept (uint16 millimetres' largest measurement)
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 JPEG_MAGIC = b"\xff\xd8"
 # formats Pillow reads the header of and OpenCV decodes (Pillow's format name -> shown name)
@@ -353,8 +354,22 @@ def read_depth(path: str | Path, units_per_metre: float = 1000.0,
     if size is not None and (raw.shape[1], raw.shape[0]) != tuple(size):
         raise InputError(f"{path}: depth is {raw.shape[1]}x{raw.shape[0]}, its image is "
                          f"{size[0]}x{size[1]}")
+    return depth_from_raw(raw, units_per_metre)
+
+
+def depth_from_raw(raw: np.ndarray, units_per_metre: float) -> np.ndarray:
+    """float32 metres from raw uint16 depth: raw 0 and 65535 mean "no measurement" (0), as
+    in every reader (depth files, the service's UINT16 and PNG16 depth, ROS bags)."""
     depth = raw.astype(np.float32) / units_per_metre
     depth[np.isin(raw, INVALID_DEPTH)] = 0.0
+    return depth
+
+
+def clean_depth_m(depth: np.ndarray) -> np.ndarray:
+    """float depth in metres with every value that is no measurement set to 0, in place: NaN,
+    +-inf (REP 118's too near / too far), 0 or negative, and beyond MAX_DEPTH_M. The one rule
+    of float depth (the service's FLOAT32_METRES, a ROS bag's 32FC1)."""
+    depth[~np.isfinite(depth) | (depth <= 0) | (depth > MAX_DEPTH_M)] = 0.0
     return depth
 
 

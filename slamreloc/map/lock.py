@@ -9,9 +9,11 @@ folders that are such debris (`_leftovers`), never a user's file of a like name.
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import os
 import shutil
+import stat
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -30,9 +32,6 @@ from slamreloc.map.format import (
 )
 
 _HELD: set[str] = set()  # maps whose write lock this process holds
-
-
-
 
 MAP_FILES = frozenset({META, WEIGHTS, DATABASE, SURFACE, PROVENANCE, LEGACY_WEIGHTS})
 
@@ -57,7 +56,7 @@ def _leftovers(out: Path) -> list[Path]:
                     and entry.is_dir(follow_symlinks=False) and _dead_writer(int(pid))):
                 continue
             path = Path(entry.path)
-            if is_map(path) if kind == "old" else _only_map_files(path):
+            if is_map(path) if kind == "old" else only_map_files(path):
                 found.append(path)
     return sorted(found)
 
@@ -86,7 +85,7 @@ def _dead_writer(pid: int) -> bool:
     return False
 
 
-def _only_map_files(folder: Path) -> bool:
+def only_map_files(folder: Path) -> bool:
     """Whether `folder` holds nothing but regular files a map writer writes."""
     try:
         return all(e.name in MAP_FILES and e.is_file(follow_symlinks=False)
@@ -110,7 +109,7 @@ def map_write_lock(out: str | Path, what: str = "this map") -> Iterator[None]:
     out.parent.mkdir(parents=True, exist_ok=True)
     lock = write_lock_path(out)
     while True:
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = _open_lock(lock, out)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -127,6 +126,10 @@ def map_write_lock(out: str | Path, what: str = "this map") -> Iterator[None]:
         if same:
             break
         os.close(fd)
+    if not _lock_record_or_empty(fd):
+        os.close(fd)
+        raise InputError(f"{lock}: holds something that is not a slamreloc write lock; "
+                         f"refusing to overwrite it (move it to write {out.name})")
     try:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n{what}\n".encode(), 0)
@@ -139,6 +142,36 @@ def map_write_lock(out: str | Path, what: str = "this map") -> Iterator[None]:
             lock.unlink(missing_ok=True)  # while still holding it (see above)
     finally:
         os.close(fd)  # releases the lock
+
+
+def _open_lock(lock: Path, out: Path) -> int:
+    """The lock file's descriptor, created if absent; a symbolic link, a FIFO, a device or a
+    folder at its path is refused, never followed, written or waited on."""
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK
+                     | os.O_CLOEXEC, 0o644)
+    except OSError as err:
+        if err.errno in (errno.ELOOP, errno.EISDIR, errno.ENXIO):
+            raise InputError(f"{lock}: not a regular file (a link, folder or device); "
+                             f"refusing to use it as the write lock of {out.name}") from None
+        raise
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise InputError(f"{lock}: not a regular file (a link, folder or device); refusing "
+                         f"to use it as the write lock of {out.name}")
+    return fd
+
+
+def _lock_record_or_empty(fd: int) -> bool:
+    """Whether the lock file is empty or holds a writer's record ("PID\nWHAT\n", as a
+    killed writer leaves it): anything else is a user's file of that name."""
+    size = os.fstat(fd).st_size
+    if size == 0:
+        return True
+    if size > 4096:
+        return False
+    pid, _, rest = os.pread(fd, size, 0).partition(b"\n")
+    return pid.isdigit() and rest.count(b"\n") <= 1 and rest.isascii()
 
 
 def _recover(out: Path) -> None:

@@ -18,7 +18,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.map.format import DATABASE, FORMAT_VERSION, META, WEIGHTS, is_map, sha256_file
-from slamreloc.map.lock import fsync_dir, map_write_lock
+from slamreloc.map.lock import MAP_FILES, fsync_dir, map_write_lock, only_map_files
 from slamreloc.map.meta import MapMeta
 from slamreloc.map.weights import weight_arrays
 from slamreloc.regressor.model import SceneCoordinateRegressor
@@ -26,10 +26,30 @@ from slamreloc.map.scene_map import MapDatabase, SceneMap
 
 
 def check_map_target(out: Path) -> None:
-    """Raise unless `out` is absent, an empty folder, or a slamreloc map (to be replaced)."""
+    """Raise unless `out` is absent, an empty folder, or a slamreloc map holding nothing but
+    a map's files (to be replaced whole: anything else in it would go with it)."""
     out = Path(out)
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not is_map(out))):
         raise InputError(f"{out}: exists and is not a slamreloc map; refusing to overwrite it")
+    if out.is_dir():
+        foreign = sorted(e.name for e in os.scandir(out)
+                         if e.name not in MAP_FILES or not e.is_file(follow_symlinks=False))
+        if foreign and is_map(out):
+            raise InputError(f"{out}: also holds {', '.join(map(repr, foreign[:3]))}"
+                             f"{' ...' if len(foreign) > 3 else ''}, which is not a map's; "
+                             "refusing to replace it (move those out first)")
+
+
+def _clear_own_path(path: Path, out: Path) -> None:
+    """Make way for this writer's temporary `path` beside `out`: a leftover of a writer of
+    this process id (a map's files only) is removed; anything else there is a user's and is
+    refused, never deleted."""
+    if not os.path.lexists(path):
+        return
+    if path.is_symlink() or not path.is_dir() or not only_map_files(path):
+        raise InputError(f"{path}: in the way of writing {out.name} and not a map writer's "
+                         "leftover; refusing to delete it (move it)")
+    shutil.rmtree(path)
 
 
 def _crash_point(name: str) -> None:
@@ -75,6 +95,7 @@ def _swap_in(tmp: Path, out: Path) -> None:
         os.replace(tmp, out)
     elif not _exchange(tmp, out):
         old = out.parent / f".{out.name}.old-{os.getpid()}"
+        _clear_own_path(old, out)
         os.replace(out, old)
         _crash_point("between-renames")
         os.replace(tmp, out)
@@ -96,7 +117,7 @@ def save_map(out: str | Path, meta: MapMeta, model: SceneCoordinateRegressor, db
     with map_write_lock(out):
         check_map_target(out)
         tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
-        shutil.rmtree(tmp, ignore_errors=True)
+        _clear_own_path(tmp, out)
         tmp.mkdir(parents=True)
         try:
             files = {

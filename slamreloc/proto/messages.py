@@ -19,7 +19,14 @@ import numpy as np
 
 from slamreloc.errors import InputError, quoted
 from slamreloc.geometry import MAX_COORDINATE, Rigid3, unit_quaternion
-from slamreloc.io.images import check_image_size, decode_image, decode_rgb, encoded_header
+from slamreloc.io.images import (
+    check_image_size,
+    clean_depth_m,
+    decode_image,
+    decode_rgb,
+    depth_from_raw,
+    encoded_header,
+)
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.types import Camera
 
@@ -295,7 +302,7 @@ def depth_from_msg(msg: pb.Depth, registered_size: tuple[int, int] | None,
             if raw.ndim != 2 or raw.dtype != np.uint16:
                 raise InputError(f"a 16-bit single-channel PNG is needed, got {raw.dtype} "
                                  f"{raw.shape}")
-            depth = raw.astype(np.float32) / units
+            depth = depth_from_raw(raw, units)
         else:
             check_image_size(msg.width, msg.height, what, "depth")
             item = DEPTH_ITEM_BYTES[msg.encoding]
@@ -304,11 +311,11 @@ def depth_from_msg(msg: pb.Depth, registered_size: tuple[int, int] | None,
                 raise InputError(f"{msg.width}x{msg.height} needs {expected} bytes, got "
                                  f"{len(msg.data)}")
             if msg.encoding == pb.Depth.FLOAT32_METRES:
-                depth = np.frombuffer(msg.data, "<f4").reshape(msg.height, msg.width).copy()
+                depth = clean_depth_m(np.frombuffer(msg.data, "<f4")
+                                      .reshape(msg.height, msg.width).copy())
             else:
-                depth = (np.frombuffer(msg.data, "<u2").reshape(msg.height, msg.width)
-                         .astype(np.float32) / units)
-        depth[~np.isfinite(depth) | (depth < 0) | (depth > 1e3)] = 0.0
+                depth = depth_from_raw(np.frombuffer(msg.data, "<u2")
+                                       .reshape(msg.height, msg.width), units)
         if registered_size is not None and (depth.shape[1], depth.shape[0]) != registered_size:
             w, h = registered_size
             raise InputError(f"registered depth is {depth.shape[1]}x{depth.shape[0]}, the image "

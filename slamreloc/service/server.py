@@ -64,7 +64,7 @@ from slamreloc.slam.live_map import LiveMapConfig
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["Relocalizer"].full_name
 
 
-MAX_SESSION_KEYFRAMES = 500  # a learning session's map: ~1000 rows each, ~0.3 MB a keyframe
+MAX_SESSION_KEYFRAMES = 500  # a learning session's map: ~1000 rows, 3-4 MB of memory each
 MIN_WATCH_S = 0.01  # the shortest `watch_s`: a check of every map folder per interval
 
 

@@ -85,6 +85,7 @@ class Session:
         self.odometry_name = odometry if front_end is None else front_end.name
         self.live_map: LiveMap | None = None
         self.camera = None if served is None else served.scene_map.camera  # frames' default
+        self.last_stamp: float | None = None  # the last accepted frame's (0: none given)
         if served is None:  # learning: the map grows from the frames (as `slam --out`)
             self.live_map = LiveMap(live or LiveMapConfig())
             self.mapper = load_plugin("live_mapping", live_map=self.live_map, out=None)
@@ -145,6 +146,7 @@ class Session:
             check_stamp(msg.timestamp, "frame.timestamp")  # the rule of trajectory files too
         except InputError as err:
             raise ServiceError(pb.BAD_REQUEST, str(err)) from None
+        self._check_order(msg.timestamp)
         if self.live_map is not None:
             self.live_map.learner.check()  # a failed round: INTERNAL, before this frame
         t0 = time.perf_counter()
@@ -152,6 +154,7 @@ class Session:
                                     self.depth_camera)
         if self.camera is None:
             self.camera = camera  # the default of the frames that follow
+        self.last_stamp = msg.timestamp
         out = pb.FrameResult(index=step.index, state=STATES[step.state],
                              backend_ms=1000 * (time.perf_counter() - t0))
         if step.world_from_cam is not None:
@@ -159,6 +162,16 @@ class Session:
             out.world_from_cam.CopyFrom(transform_msg(step.world_from_cam))
         out.events.extend(self._events(step.events))
         return out
+
+    def _check_order(self, stamp: float) -> None:
+        """A session's timestamps increase from frame to frame (0 throughout: none given): a
+        frame at or before the last one's instant is refused, as a trajectory file's repeated
+        instant is (one instant, two images: which is that instant's is not for the server to
+        guess)."""
+        last = self.last_stamp
+        if last is not None and stamp <= last and not stamp == last == 0:
+            raise ServiceError(pb.BAD_REQUEST, f"frame.timestamp: {stamp:.17g} s is not after "
+                               f"the previous frame's {last:.17g} s (timestamps must increase)")
 
     def _events(self, events) -> list[pb.SessionEvent]:
         out = []

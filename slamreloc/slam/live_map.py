@@ -34,6 +34,7 @@ from slamreloc.geometry import Rigid3, project, reprojection_px
 from slamreloc.localize.guided import GuidedConfig, GuidedMatcher
 from slamreloc.localize.localizer import REGRESSOR_PNP, Localization
 from slamreloc.localize.pnp import PnPConfig, PoseEstimate, estimate_pose, refine_from
+from slamreloc.map.format import SURFACE
 from slamreloc.map.meta import CameraMeta, DatasetMeta, FeatureMeta, MapMeta, RegressorMeta
 from slamreloc.map.scene_map import SceneMap
 from slamreloc.map.write import save_map
@@ -417,6 +418,7 @@ class LiveMap:
         db = live.database
         learner = self.learner
         n_new = sum(1 for k in live.keys if k is not None)
+        surface = None if self.prior is None else self.prior.surface
         meta = MapMeta(
             features=FeatureMeta(self.config.features, self.extractor.config_dict()),
             regressor=RegressorMeta(self.config.arch, model.config.to_dict(),
@@ -430,5 +432,9 @@ class LiveMap:
                     "median_reproj_error_px": None},
             camera=CameraMeta.from_camera(self.camera),
             dataset=dataset,
-            timings_s={"keyframes_s": round(self.t_keyframes_s, 3)})
-        return save_map(out, meta, model, db)
+            timings_s={"keyframes_s": round(self.t_keyframes_s, 3)},
+            surface=None if surface is None else self.prior.info.surface)
+        # a prior map's fused depth surface is kept (`evaluate --depth` refines on it where
+        # the session's queries see its places); the session's own keyframes add none
+        return save_map(out, meta, model, db,
+                        extra=None if surface is None else {SURFACE: surface.to_arrays()})

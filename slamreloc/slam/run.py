@@ -164,8 +164,10 @@ def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = Sl
                 if mapper.save() is None:
                     raise InputError(
                         f"{mapper.out}: no map written: the session labelled "
-                        f"{mapper.live_map.store.n_rows} keypoints with depth, a map needs "
-                        f"{config.live.learner.min_rows} (`live`.learner.min_rows)")
+                        f"{mapper.live_map.store.n_rows} keypoints with depth in "
+                        f"{mapper.live_map.store.n_keyframes} keyframes; a map needs "
+                        f"{config.live.learner.min_rows}: track a longer split (`split`) or "
+                        "frames with more texture and valid depth")
         except KeyboardInterrupt:
             if mapper is None or mapper.out is None:
                 raise
