@@ -8,8 +8,10 @@ import grpc
 import pytest
 
 from slamreloc.client import Client, RemoteError
+from slamreloc.errors import InputError
 from slamreloc.datasets import load_dataset
 from slamreloc.map.scene_map import SceneMap
+from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.service.server import ServeConfig, start_server
 from slamreloc.slam.feed import read_frames
 from slamreloc.slam.live_map import LiveMapConfig
@@ -54,8 +56,10 @@ def test_a_session_learns_saves_and_serves_its_map(learning_server, frames):
             assert err.value.kind == "BAD_DEPTH" and "frame.depth" in str(err.value)
             # a client never names a server path
             for bad in ("../escape", "a/b", ".hidden", "", "two words"):
-                with pytest.raises(RemoteError) as err:
+                with pytest.raises(InputError, match="`name`"):  # refused before it is sent
                     session.save(bad)
+                with pytest.raises(RemoteError) as err:  # and by the server, if sent anyway
+                    session._answer(pb.SessionRequest(save=pb.SessionSave(name=bad)))
                 assert err.value.kind == "BAD_REQUEST", bad
             saved = session.save("learned")
             assert saved.name == "learned" and saved.map_version and saved.num_points > 500

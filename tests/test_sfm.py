@@ -163,7 +163,7 @@ def test_bad_inputs_are_one_line_errors(photos, scene_dir, tmp_path):
     _one_line_error([str(photos), "--out", str(tmp_path / "c"), "--scale-from-depth"],
                     "--scale-from-depth needs depth")
     _one_line_error([str(scene_dir), "--out", str(tmp_path / "c"), "--scale", "-1"],
-                    "--scale must be a positive number")
+                    "--scale must be metres per SfM unit")
     _one_line_error([str(photos), "--out", str(tmp_path / "d"), "--camera", "OPENCV 320 240 1"],
                     "--camera: OPENCV takes 8 parameters")
     _one_line_error([str(photos), "--out", str(photos / "inside")], "--out")
