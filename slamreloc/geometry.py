@@ -137,8 +137,11 @@ def align_poses(source: list[Rigid3], target: list[Rigid3], with_scale: bool = T
     b = np.array([p.translation for p in target])
     mu_a, mu_b = a.mean(0), b.mean(0)
     spread = float(np.sum((a - mu_a) ** 2))
+    # centres that coincide to within rounding (1e-12 of their size) leave the scale
+    # undetermined: 1, not a ratio of rounding errors
+    rounding = len(a) * (1e-12 * max(1.0, float(np.abs(a).max(initial=0.0)))) ** 2
     scale = (float(np.sum((b - mu_b) * ((a - mu_a) @ rot.T)) / spread)
-             if spread > 0 and with_scale else 1.0)
+             if spread > rounding and with_scale else 1.0)
     return Sim3(scale, rot, mu_b - scale * rot @ mu_a)
 
 
