@@ -103,6 +103,9 @@ def depth_msg(depth: np.ndarray, camera: Camera | None = None) -> pb.Depth:
     """float32 metres (H, W), 0 where unknown; `camera`: the camera that took the depth when it
     is not registered to the image (`Frame.depth_camera`; sent as its pinhole camera, any
     size: the server scales it to the depth map)."""
+    if np.asarray(depth).dtype.kind != "f":  # raw sensor units sent as metres: 1732 m
+        raise InputError(f"depth is {np.asarray(depth).dtype}: metres are floats (float32 "
+                         "metres, or raw uint16 with depth_encoding=\"uint16\" in a session)")
     d = np.ascontiguousarray(depth, "<f4")
     if d.ndim != 2:
         raise ValueError(f"depth is (H, W), got shape {d.shape}")
@@ -344,7 +347,12 @@ class ClientSession:
             frame.camera.CopyFrom(_camera(camera))
         if depth is not None:
             if depth_encoding == "uint16":
-                d = np.ascontiguousarray(depth, "<u2")
+                raw = np.asarray(depth)
+                if raw.dtype.kind not in "ui" or (raw.size and (raw.min() < 0
+                                                                or raw.max() > 65535)):
+                    raise InputError(f"depth is {raw.dtype}: depth_encoding=\"uint16\" "
+                                     "sends raw whole units 0..65535 (metres: float32)")
+                d = np.ascontiguousarray(raw, "<u2")
                 frame.depth.CopyFrom(pb.Depth(encoding=pb.Depth.UINT16, width=d.shape[1],
                                               height=d.shape[0], data=d.tobytes()))
             else:

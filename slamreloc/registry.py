@@ -28,3 +28,12 @@ PRESETS: dict[str, dict] = {
 # map updates from unlabelled sequences (pseudo_label: finetune from the map's weights, or
 # retrain from scratch)
 UPDATES = ("finetune", "retrain")
+# former presets: the configs a preset name made in earlier versions, which maps made then
+# record under that name (`wide`'s tail was (512, 512, 128) until 0.2)
+FORMER_PRESETS: dict[str, tuple[dict, ...]] = {
+    "wide": ({"hidden": (2048, 512, 512, 128), "head": "clusters", "n_clusters": 1024},),
+}
+# what a map records as `dataset.kind`: the layout the readers detected
+# (`slamreloc.datasets.Dataset.kind`), or "session" for a map a service session learned from
+# frames sent over the wire
+DATASET_KINDS = ("7scenes", "synthetic", "tum", "colmap", "rosbag", "session")

@@ -39,7 +39,7 @@ import numpy as np
 
 from slamreloc.camera_models import MODELS, PARAMS, colmap_head
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import check_outputs, write_json
+from slamreloc.io.fileio import check_outputs, make_temp_dir, naming_output, write_json
 from slamreloc.map.lock import map_write_lock
 from slamreloc.io.video import is_video, video_frames
 from slamreloc.runtime.progress import console, make_progress
@@ -587,7 +587,8 @@ def run_sfm(source: Path, out: Path, config: SfmConfig = SfmConfig(),
                              "folder of images has none (leave it out)")
     made = [p for p in out.absolute().parents if not p.exists()]  # folders this run makes
     try:
-        with map_write_lock(out, "this dataset"):  # a second writer fails at once, not late
+        # a second writer fails at once, not late; a full disk names the output
+        with map_write_lock(out, "this dataset"), naming_output(out):
             return _run_into(source, out, config, progress)
     except BaseException:
         for folder in made:  # nearest first: a failed run leaves no folder it made
@@ -602,12 +603,7 @@ def _run_into(source: Path, out: Path, config: SfmConfig, progress: bool) -> dic
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(f"{out}: exists and is not empty; choose a new folder")
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f"{out.name}.tmp-{os.getpid()}"
-    if tmp.is_dir() and not tmp.is_symlink():  # a leftover of this process id: ours
-        shutil.rmtree(tmp, ignore_errors=True)
-    elif tmp.exists() or tmp.is_symlink():
-        tmp.unlink()
-    tmp.mkdir()
+    tmp = make_temp_dir(out.parent / f"{out.name}.tmp-{os.getpid()}", str(out))
     try:
         summary = _run(source, tmp, config, progress)
         if out.exists():

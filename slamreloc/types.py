@@ -236,7 +236,8 @@ def frame_name_problem(name: str) -> str | None:
     its image's path relative to the dataset root (`seq-01/frame-000000`), which export writes
     into lines (a COLMAP images.txt, a TUM names sidecar) and the viewer looks up in the
     dataset: non-empty, without line breaks or other control characters (a space, as photos'
-    names have, is kept), relative, never leaving the root (`..`)."""
+    names have, is kept), relative, never leaving the root (`..`), and in one spelling only
+    (no empty or `.` part), so that a name compares equal to the dataset's own."""
     if not name:
         return "is empty"
     if any(not c.isprintable() and c != " " for c in name):  # photos' names hold spaces
@@ -244,6 +245,8 @@ def frame_name_problem(name: str) -> str | None:
     parts = name.replace("\\", "/").split("/")
     if name.startswith("/") or ".." in parts:
         return "is not a path inside the dataset (absolute, or with '..')"
+    if "" in parts or "." in parts:  # one file, one name: `a/./b` and `a//b` are `a/b`
+        return "is not a plain relative path (an empty or '.' part, as in 'a//b' or 'a/./b')"
     return None
 
 

@@ -13,6 +13,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+import torch
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
@@ -20,6 +21,8 @@ from slamreloc import __version__
 from slamreloc.errors import InputError
 from slamreloc.io.jsonio import parse_json
 from slamreloc.map.format import DATABASE, FORMAT_VERSION, MAP_FORMAT, WEIGHTS
+from slamreloc.registry import DATASET_KINDS, PRESETS
+from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.map.meta import (CameraMeta, DatasetMeta, FeatureMeta, MapMeta, RegressorMeta,
                                 SurfaceMeta, UpdateMeta)
 from slamreloc.types import Camera, frame_name_problem, lens_camera_problem
@@ -42,16 +45,43 @@ def shuffled(draw, doc: dict) -> dict:
 
 
 @st.composite
-def some_keys(draw, typed: dict) -> dict:
+def some_keys(draw, typed: dict, strict: tuple[str, ...] = ()) -> dict:
     """A JSON object with some of the keys `typed` names (key -> strategy of the right type),
-    each of the right type or, sometimes, any JSON value; and sometimes an unknown key."""
+    each of the right type or, sometimes, any JSON value (never for `strict` keys, which the
+    schema checks: counts, sizes, kinds); and sometimes an unknown key."""
     doc = {}
     for key, strategy in typed.items():
         if draw(st.booleans()):
-            doc[key] = draw(strategy | finite_json)
+            doc[key] = draw(strategy if key in strict else strategy | finite_json)
     if draw(st.booleans()):
         doc["x_" + draw(st.text("abc", max_size=3))] = draw(finite_json)
     return draw(shuffled(doc))
+
+
+def _size(config: dict) -> int:
+    """The number of parameters of a regressor config (built on the meta device)."""
+    with torch.device("meta"):
+        return SceneCoordinateRegressor(RegressorConfig.from_dict(config)).num_parameters()
+
+
+def _arch_for(config: dict, draw) -> str:
+    """The preset name a map records with `config`: the preset's own where the config is one,
+    any preset's otherwise (a config made in code)."""
+    head = config.get("head", "regression")
+    fixed = (tuple(config["hidden"]), head, config.get("n_clusters", 1) if head == "clusters"
+             else 1)
+    for name, preset in PRESETS.items():
+        p_head = preset.get("head", "regression")
+        if fixed == (tuple(preset["hidden"]), p_head, preset.get("n_clusters", 1)
+                     if p_head == "clusters" else 1):
+            return name
+    return draw(st.sampled_from(sorted(PRESETS)))
+
+
+def _counts_where_named(record: dict) -> dict:
+    """`record` with each key named as a count (`n_*`) holding one (a whole number >= 0)."""
+    return {k: (abs(v) if isinstance(v, int) and not isinstance(v, bool) else 3)
+            if k.startswith("n_") else v for k, v in record.items()}
 
 
 @st.composite
@@ -88,13 +118,14 @@ def metadata(draw) -> dict:
                                tuple(camera.get("distortion", ()))) is None)
     doc = {"format": MAP_FORMAT,
            "features": draw(shuffled(features)),
-           "regressor": draw(shuffled({"arch": draw(st.sampled_from(["wide", "tiny"])),
+           "regressor": draw(shuffled({"arch": _arch_for(config, draw),
                                        "config": draw(shuffled(config)),
-                                       "parameters": draw(st.integers(0, 10 ** 8)),
+                                       "parameters": _size(config),
                                        **draw(some_keys({}))})),
            "labels": draw(shuffled({"n_labelled": draw(st.integers(0, 10 ** 7)),
                                     **draw(st.dictionaries(st.text("nm_", max_size=5),
-                                                           finite_json, max_size=3))})),
+                                                           finite_json, max_size=3).map(
+                                        _counts_where_named))})),
            "camera": draw(shuffled(camera))}
     doc["format_version" if version > 1 or draw(st.booleans()) else "version"] = version
     if version > 1:
@@ -107,16 +138,19 @@ def metadata(draw) -> dict:
         | finite_json.filter(lambda v: not isinstance(v, dict) or not {"precision", "epochs"}
                              & set(v)),  # typed fields: checked (test_schema_types...)
         "timings_s": st.dictionaries(st.text("abc_", max_size=5), st.floats(0, 100), max_size=3),
-        "dataset": some_keys({"root": st.text(max_size=8), "kind": st.text(max_size=8),
+        "dataset": some_keys({"root": st.text(max_size=8),
+                              "kind": st.sampled_from(DATASET_KINDS) | st.none(),
                               "split": st.text(max_size=5), "metric": st.booleans(),
-                              "poses": st.text(max_size=8)}) | finite_json,
-        "surface": some_keys({"n_points": st.integers(0, 10 ** 6),
-                              "voxel_m": st.floats(0.001, 1.0) | st.integers(1, 2)}),
+                              "poses": st.text(max_size=8)}, strict=("kind",)) | finite_json,
+        "surface": some_keys({"n_points": st.integers(0, 10 ** 6) | st.none(),
+                              "voxel_m": st.floats(0.001, 1.0) | st.integers(1, 2)},
+                             strict=("n_points", "voxel_m")),
         "pseudo_label": some_keys({"source_map": st.text(max_size=8),
                                    "n_frames_registered": st.integers(0, 1000),
                                    "dataset": st.dictionaries(st.sampled_from(["root", "split"]),
                                                               st.none() | st.text(max_size=4)),
-                                   "history": st.lists(st.text(max_size=5), max_size=3)}),
+                                   "history": st.lists(st.text(max_size=5), max_size=3)},
+                                  strict=("n_frames_registered",)),
         "frame_names": st.lists(st.text(max_size=8).filter(lambda n: frame_name_problem(n)
                                                            is None), max_size=4),
         "tag": finite_json,
@@ -195,7 +229,35 @@ def test_typed_views_read_what_the_metadata_records(doc):
     (lambda d: {**d, "regressor": {**d["regressor"], "config": {"in_dim": 8, "hidden": [4],
                                                                  "depth": 3}}},
      "unknown key 'regressor.config.depth'"),
-    (lambda d: {**d, "labels": {"n_labelled": -1}}, "'labels.n_labelled' must not be negative"),
+    (lambda d: {**d, "labels": {"n_labelled": -1}},
+     "'labels.n_labelled' is a count, a whole number >= 0; got -1"),
+    # round 10: counts, sizes and names that must mean what they say
+    (lambda d: {**d, "labels": {"n_labelled": 3, "n_keyframes": -3}},
+     "'labels.n_keyframes' is a count, a whole number >= 0; got -3"),
+    (lambda d: {**d, "labels": {"n_labelled": 3, "labelled_fraction": 2}},
+     "'labels.labelled_fraction' must be a fraction in [0, 1], got 2"),
+    (lambda d: {**d, "surface": {"n_points": -1}},
+     "'surface.n_points' is a count, a whole number >= 0; got -1"),
+    (lambda d: {**d, "surface": {"n_points": 5, "voxel_m": 0}},
+     "'surface.voxel_m' must be a voxel size > 0 (metres), got 0"),
+    (lambda d: {**d, "pseudo_label": {"n_frames_registered": "3"}},
+     "'pseudo_label.n_frames_registered' is a count, a whole number >= 0; got '3'"),
+    (lambda d: {**d, "dataset": {**d["dataset"], "kind": "bogus"}},
+     "'dataset.kind' must be one of 7scenes, synthetic, tum, colmap, rosbag, session, got 'bogus'"),
+    (lambda d: {**d, "files": {**d["files"], "unknown.npz": SHA}},
+     "'files' lists 'unknown.npz', which is not a file a map of format 2 holds"),
+    (lambda d: {**d, "files": {**d["files"], "slamreloc_map.json": SHA}},
+     "'files' lists 'slamreloc_map.json', which is not a file a map of format 2 holds"),
+    (lambda d: {**d, "regressor": {"arch": "paper", "config": {
+        "in_dim": 8, "hidden": [512, 512, 512, 128]}, "parameters": _size(
+            {"in_dim": 8, "hidden": [512, 512, 512, 128]})}},
+     "'regressor.arch' is 'paper', but 'regressor.config' is the 'tiny' architecture"),
+    (lambda d: {**d, "regressor": {**d["regressor"], "parameters": 7}},
+     "'regressor.parameters' is 7, but the recorded config has 195 parameters"),
+    (lambda d: {**d, "frame_names": ["seq-01/./frame-000000"]},
+     "'frame_names'[0] 'seq-01/./frame-000000' is not a plain relative path"),
+    (lambda d: {**d, "frame_names": ["seq-01//frame-000000"]},
+     "'frame_names'[0] 'seq-01//frame-000000' is not a plain relative path"),
     (lambda d: {**d, "labels": []}, "'labels' must be an object, got []"),
     (lambda d: {**d, "camera": {**d["camera"], "width": 0}},
      "'camera.width' must be in 1..65536, got 0"),
@@ -277,7 +339,8 @@ def test_a_camera_is_recorded_as_the_camera_writes_itself():
 
 def _built() -> MapMeta:
     return MapMeta(features=FeatureMeta("sift", {"max_keypoints": 256, "upsample": True}),
-                   regressor=RegressorMeta("tiny", {"in_dim": 8, "hidden": [16]}, 200),
+                   regressor=RegressorMeta("tiny", {"in_dim": 8, "hidden": [16]},
+                                           _size({"in_dim": 8, "hidden": [16]})),
                    train={"epochs": 2, "precision": "fp32"},
                    labels={"n_labelled": 20, "median_reproj_error_px": None},
                    camera=CameraMeta(64, 48, 60.0, 60.0, 32.0, 24.0),

@@ -83,7 +83,7 @@ def test_a_users_folder_named_like_the_writers_own_is_kept(tiny_map, tmp_path, k
     mine.mkdir()
     (mine / "notes.txt").write_text("mine\n")
     monkeypatch.setenv("SLAMRELOC_NO_RENAME_EXCHANGE", "1")  # the .old folder's path
-    with pytest.raises(InputError, match="not a map writer's leftover"):
+    with pytest.raises(InputError, match="not made by this process"):
         _resave(tiny_map, out)
     assert (mine / "notes.txt").read_text() == "mine\n" and _tree(out) == before
 

@@ -747,11 +747,16 @@ def test_a_served_map_keeps_the_database_it_was_loaded_with(map_copy):
 
 
 def test_map_info_counts_the_loaded_rows(map_copy):
-    """Finding 7: num_points is the database's rows as loaded, not what the metadata says;
-    size_bytes is measured at load, not at the first answer."""
-    meta = json.loads((map_copy / META).read_text())
+    """Finding 7: num_points is the database's rows as loaded (metadata that says otherwise
+    is refused at load since the tenth round); size_bytes is measured at load, not at the
+    first answer."""
+    good = (map_copy / META).read_text()
+    meta = json.loads(good)
     meta["labels"]["n_labelled"] = 0
     (map_copy / META).write_text(json.dumps(meta))
+    with pytest.raises(InputError, match="'labels.n_labelled' 0"):
+        ServedMap.load("m", map_copy)
+    (map_copy / META).write_text(good)
     served = ServedMap.load("m", map_copy)
     size = served.size_bytes
     (map_copy / DATABASE).write_bytes(bytes(1 << 20))

@@ -189,6 +189,30 @@ def test_a_file_system_error_is_one_typed_line(learning, monkeypatch, code, kind
     assert not (folder / "diskfull").exists()
 
 
+@pytest.mark.parametrize("in_the_way", ["link", "hard link", "notes"])
+def test_a_save_the_map_writer_refuses_is_one_typed_line(learning, tmp_path, in_the_way):
+    """Tenth round, G3: the map writer's refusal of what is in the way (a link or a user's file
+    at its lock, a user's file in the map's folder) is FAILED_PRECONDITION naming it relative
+    to the learned maps' folder, never the server's path (it was INTERNAL, with a traceback);
+    nothing is written or changed."""
+    running, folder, client, session = learning
+    name = f"g3{in_the_way[0]}{len(in_the_way)}"
+    victim = tmp_path / "victim.txt"
+    victim.write_text("")
+    if in_the_way == "link":
+        (folder / f".{name}.lock").symlink_to(victim)
+    elif in_the_way == "hard link":
+        os.link(victim, folder / f".{name}.lock")
+    else:
+        assert session.save(name).map_version
+        (folder / name / "notes.txt").write_text("the operator's")
+    before = tree(folder)
+    err = refused(lambda: session.save(name), "FAILED_PRECONDITION")
+    assert "nothing was written" in str(err) and str(folder) not in str(err), err
+    assert str(tmp_path) not in str(err) and victim.read_text() == "" and tree(folder) == before
+    assert client.health().serving
+
+
 class Gate:
     """Holds the first call of a function until `open`; `entered` once it is held."""
 

@@ -14,8 +14,9 @@ from slamreloc.map.scene_map import SceneMap
 from slamreloc.viewer.data import SceneData, ViewerInputs
 from slamreloc.viewer.images import open_dataset
 from slamreloc.viewer.map_view import load_map
+from slamreloc.io.jsonio import report_kind
 from slamreloc.viewer.reports import (read_evaluate, read_json, read_pseudo_label,
-                                      recorded_dataset, report_kind)
+                                      recorded_dataset)
 from slamreloc.viewer.slam_report import read_slam_report
 from slamreloc.viewer.trajectories import (attach_truth, read_trajectory, truth_by_stamp,
                                            truth_trajectory)

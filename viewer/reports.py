@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 from slamreloc.errors import InputError
@@ -13,6 +14,7 @@ from slamreloc.io.jsonio import Json
 from slamreloc.io.jsonio import read_json as read_json_file
 from slamreloc.viewer.data import (EvalReport, FrameView, PseudoLabelReport, QueryView,
                                    Trajectory)
+from slamreloc.types import frame_name_problem
 from slamreloc.viewer.images import frames_by_name
 
 
@@ -21,46 +23,92 @@ MAX_INT = 2 ** 63 - 1  # a report's counts and indices: int64 (numpy reads them 
 
 def read_json(path: str | Path) -> dict:
     """A report: a JSON object (bounded size and depth; `slamreloc.io.jsonio`) whose numbers
-    are all finite floats or integers within int64: an integer literal of 400 digits or a
-    `1e400` (infinite once read) is refused here, naming the file and the field, not left to
-    fail in whatever converts it later."""
+    are all finite floats or integers within int64 (`check_values`: an integer literal of 400
+    digits or a `1e400`, infinite once read, is refused here, naming the file and the field,
+    not left to fail in whatever converts it later), and whose counts and measures have the
+    meaning their names give them."""
     path = Path(path)
     # missing, or there and not a regular file (a named pipe, a device, a folder): one line
     # naming its kind, read without blocking (`open_regular`), before the JSON reader's own
     open_regular(path, "report").close()
     data = read_json_file(path, "JSON")
-    check_numbers(data, path)
+    check_values(data, path)
     return data
 
 
-def check_numbers(value, source) -> None:
-    """InputError naming `source` and the field of the first number that is not a finite
-    float or an integer within +-MAX_INT (iterative: any nesting)."""
-    stack = [(value, "")]
+# Report fields by their names, as every slamreloc report writes them: `n_*` / `num_*` are
+# counts, `*_m` / `*_cm` / `*_deg` / `*_px` / `*_s` / `*_ms` distances, errors, angles and
+# durations, never negative (null: not measured; an object of such, as `timings_s`, holds them
+# per stage). A report's own `poses` maps frame names, not fields.
+COUNT = re.compile(r"(n|num)_\w+")
+MEASURE = re.compile(r"\w+_(m|cm|deg|px|s|ms)")
+NAMES = ("poses",)
+
+
+def check_values(value, source) -> None:
+    """InputError naming `source` and the field of the first value that breaks the report
+    rules: a number that is not a finite float or an integer within +-MAX_INT, a count
+    (`COUNT`) that is not a whole number >= 0, a measure (`MEASURE`) that is not a number >= 0,
+    or a key of `poses` that cannot name a frame (`frame_name_problem`). Iterative: any
+    nesting."""
+    stack = [(value, "", "top")]
     while stack:
-        v, where = stack.pop()
+        v, where, rule = stack.pop()
         if isinstance(v, dict):
-            stack.extend((c, f"{where}.{k}" if where else str(k)) for k, c in v.items())
-        elif isinstance(v, list):
-            stack.extend((c, f"{where}[{i}]") for i, c in enumerate(v))
-        elif isinstance(v, bool):
+            for k, c in v.items():
+                field = f"{where}.{k}" if where else str(k)
+                if rule == "names":
+                    problem = frame_name_problem(k)
+                    if problem:
+                        raise InputError(f"{source}: {where}: the frame name {k[:80]!r} "
+                                         f"{problem}")
+                    stack.append((c, field, None))
+                else:
+                    stack.append((c, field, _rule(k, rule)))
             continue
-        elif isinstance(v, int) and abs(v) > MAX_INT:
-            raise InputError(f"{source}: {where or 'the value'}: an integer of "
-                             f"{len(str(abs(v)))} digits, out of range (at most {MAX_INT})")
-        elif isinstance(v, float) and not math.isfinite(v):
-            raise InputError(f"{source}: {where or 'the value'}: a number beyond the range of "
-                             "a float (read as infinite)")
+        if isinstance(v, list):
+            # a list under a count or measure holds counts or measures
+            inner = rule if rule in ("count", "measure") else None
+            stack.extend((c, f"{where}[{i}]", inner) for i, c in enumerate(v))
+            continue
+        _check_scalar(v, where, rule, source)
 
 
-def report_kind(data: dict) -> str:
-    if "per_query" in data or "n_queries" in data:
-        return "evaluate"
-    if "n_pseudo_labels" in data or "n_new_points" in data:
-        return "pseudo-label"
-    if any(k in data for k in ("ate_rmse_m", "n_kidnaps", "events", "graph_edges")):
-        return "slam"
-    return "other"
+def _rule(key: str, parent: str | None) -> str | None:
+    """The rule for the value under `key` (inside an object checked by `parent`'s rule;
+    "top": the report itself)."""
+    if parent == "measure":  # an object of measures: each of its values is one
+        return "measure"
+    if key in NAMES and parent == "top":  # a report's own `poses` (not `dataset.poses`)
+        return "names"
+    if COUNT.fullmatch(key):
+        return "count"
+    return "measure" if MEASURE.fullmatch(key) else None
+
+
+def _check_scalar(v, where: str, rule: str | None, source) -> None:
+    field = where or "the value"
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) > MAX_INT:
+        raise InputError(f"{source}: {field}: an integer of {len(str(abs(v)))} digits, out of "
+                         f"range (at most {MAX_INT})")
+    if isinstance(v, float) and not math.isfinite(v):
+        raise InputError(f"{source}: {field}: a number beyond the range of a float (read as "
+                         "infinite)")
+    if rule is None or v is None:
+        return
+    number = isinstance(v, (int, float)) and not isinstance(v, bool)
+    if rule == "count" and not (number and isinstance(v, int) and v >= 0):
+        raise InputError(f"{source}: {field} is a count, a whole number >= 0; got {_short(v)}")
+    if rule == "measure" and not (number and v >= 0):
+        raise InputError(f"{source}: {field} is a measure (distance, angle or time), a number "
+                         f">= 0; got {_short(v)}")
+    if rule == "names":
+        raise InputError(f"{source}: {field} must be an object of frame names, got {_short(v)}")
+
+
+def _short(v) -> str:
+    text = repr(v)
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def recorded_dataset(path: Path, data: dict) -> str | None:

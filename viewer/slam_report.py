@@ -11,8 +11,10 @@ All format knowledge of the slam report lives here, tolerant of missing keys:
                                "to" | "j": int, "accepted": bool,
                                "a" | "from_position": [x,y,z], "b" | "to_position": [x,y,z]}]
     "kidnap_frames" | "kidnaps": [int, ...]         (frames where the camera was teleported)
-    "trajectory": "TRAJ.txt"                         (relative to the report; else the first
-                                                      estimate trajectory given to the viewer)
+    "trajectory": "TRAJ.txt"                         (relative to the report, and read: a
+                                                      missing or unreadable one is an error;
+                                                      without the field, the first estimate
+                                                      trajectory given to the viewer)
 
 Frame indices resolve to positions through the trajectory (its i-th pose, or the pose whose
 stamp equals the index / the event's timestamp)."""
@@ -61,8 +63,14 @@ def _accepted(e: Json) -> bool:
     return True
 
 
-def _opt_int(field: Json | None) -> int | None:
-    return None if field is None else field.int()
+def _opt_index(field: Json | None) -> int | None:
+    """A frame index (a whole number >= 0), or None where the field is absent."""
+    if field is None:
+        return None
+    if field.int() < 0:
+        raise InputError(f"{field.source}: {field.where} is a frame index, a whole number "
+                         f">= 0; got {field.value}")
+    return field.value
 
 
 def _position(e: Json) -> np.ndarray | None:
@@ -85,7 +93,7 @@ def _end(e: Json, positions: tuple[str, ...], indices: tuple[str, ...], locate):
     field = _first(e, *positions)
     if field is not None:
         return field.array((3,))
-    return locate(_opt_int(_first(e, *indices)), None)
+    return locate(_opt_index(_first(e, *indices)), None)
 
 
 class _Locator:
@@ -113,13 +121,14 @@ def read_slam_report(path: Path, data: dict, trajectories: list[Trajectory]) -> 
     report = Json(data, path)
     traj = None
     name = report.opt("trajectory", Json.str)
-    if name:
-        candidate = Path(path).parent / name
-        if candidate.is_file():
-            try:
-                traj = read_trajectory(candidate, kind="estimate")
-            except InputError as err:
-                raise InputError(f"{path}: its 'trajectory' {err}") from None
+    if name == "":
+        raise InputError(f"{path}: 'trajectory' is empty: name the trajectory file, or null")
+    if name:  # named: it must be there and be one (`--trajectory`'s rule)
+        try:
+            traj = read_trajectory(Path(path).parent / name, kind="estimate",
+                                   allow_empty=True)
+        except InputError as err:
+            raise InputError(f"{path}: its 'trajectory' {err}") from None
     if traj is None:
         traj = next((t for t in trajectories if t.kind == "estimate"), None)
     locate = _Locator(traj)
@@ -133,7 +142,7 @@ def read_slam_report(path: Path, data: dict, trajectories: list[Trajectory]) -> 
         if raw_type in IGNORED:
             continue
         kind = TYPE_ALIASES.get(raw_type, "other")
-        frame = _opt_int(_first(e, "frame", "index"))
+        frame = _opt_index(_first(e, "frame", "index"))
         stamp = e.opt("timestamp", Json.number)
         pos = _position(e)
         if pos is None:
@@ -142,7 +151,7 @@ def read_slam_report(path: Path, data: dict, trajectories: list[Trajectory]) -> 
     known_kidnaps = {ev.frame for ev in events if ev.type == "kidnap"}
     kidnaps = _first(report, "kidnap_frames", "kidnaps")
     for f in [] if kidnaps is None else kidnaps.list():
-        f = f.int()
+        f = _opt_index(f)
         if f not in known_kidnaps:
             events.append(SlamEvent(f, None, "kidnap", True, locate(f, None), "kidnap"))
 

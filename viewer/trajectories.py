@@ -16,17 +16,19 @@ from slamreloc.viewer.images import frames_by_name
 
 GT_NAME = re.compile(r"(^|[^a-z])(gt|groundtruth|ground_truth|ground-truth)([^a-z]|$)", re.I)
 
-def read_trajectory(path: str | Path, kind: str | None = None) -> Trajectory:
+def read_trajectory(path: str | Path, kind: str | None = None,
+                    allow_empty: bool = False) -> Trajectory:
     """A TUM file `stamp tx ty tz qx qy qz qw` (camera-to-world), read by the core's
     `read_named_trajectory`: the first column may also be a frame name (older `evaluate`
     files), and the sidecar `<stem>.names.txt` that `evaluate --trajectory` writes names
-    numeric stamps."""
+    numeric stamps. `allow_empty`: a file of no poses is a trajectory of none (a slam
+    session that never anchored writes one), else an error."""
     path = Path(path)
     # missing, or there and not a regular file (a named pipe, a device, a folder): one line
     # naming its kind, checked without blocking (`open_regular`)
     open_regular(path, "trajectory").close()
     tum = read_named_trajectory(path)
-    if not tum.poses:
+    if not tum.poses and not allow_empty:
         raise InputError(f"{path}: no poses in the trajectory file")
     if kind is None:
         kind = "groundtruth" if GT_NAME.search(path.stem) else "estimate"

@@ -3,6 +3,7 @@ each importing its pipeline only when it runs. Bad input: one line on stderr, ex
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -216,6 +217,9 @@ def main() -> None:
     import warnings
 
     _quiet_native_logs()
+    for stream in (sys.stdout, sys.stderr):  # a terminal that cannot show every character
+        with contextlib.suppress(AttributeError, ValueError):  # of a file name: escaped
+            stream.reconfigure(errors="backslashreplace")
 
     warnings.formatwarning = (
         lambda message, *args, **kwargs: f"warning: {with_flags(str(message))}\n")

@@ -28,7 +28,7 @@ from slamreloc.geometry import (
     write_tum_trajectory,
 )
 from slamreloc.io.fileio import check_outputs, outputs_together, reads_as, write_json
-from slamreloc.io.jsonio import read_json
+from slamreloc.io.jsonio import read_json, report_kind
 from slamreloc.localize.evaluate import (
     EvaluationConfig,
     evaluate_map,
@@ -104,15 +104,20 @@ def recorded_inputs(map_dir: Path) -> dict[str, Path | None]:
 
 
 def read_report(path: Path) -> dict:
-    """A report a command may replace: a JSON object that is not a map's own file (a map's
-    metadata is a JSON object too)."""
+    """A report a command may replace: a report of slamreloc's (`report_kind`: evaluate,
+    slam, pseudo-label; not any JSON object, as a dataset's scene.json) that is not a map's
+    own file."""
     if is_map(path.parent):
         raise InputError(f"{path}: a file of the map {path.parent}")
-    return read_json(path, "report")
+    data = read_json(path, "report")
+    if report_kind(data) == "other":
+        raise InputError(f"{path}: a JSON file that is no slamreloc report")
+    return data
 
 
 # `check_outputs`' `files` entry of a --report
-REPORT_FILE = reads_as(read_report, "a JSON report outside any map folder")
+REPORT_FILE = reads_as(read_report, "a slamreloc report (evaluate, slam or pseudo-label) "
+                                    "outside any map folder")
 
 
 def sidecar(trajectory: Path | None) -> Path | None:

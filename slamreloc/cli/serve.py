@@ -58,6 +58,9 @@ def serve(
     workers: Annotated[int, typer.Option(
         help="localizations at once (the cores are split between them)")] = 1,
     max_sessions: Annotated[int, typer.Option(help="SLAM sessions open at once")] = 8,
+    max_learning_sessions: Annotated[int, typer.Option(
+        help="of those, sessions that learn their map (no map; about 2 GB each when full)")]
+    = 2,
     token_file: Annotated[Optional[Path], typer.Option(
         help=f"file holding the token every call must carry (or ${TOKEN_ENV})")] = None,
     tls_cert: Annotated[Optional[Path], typer.Option(help="TLS certificate (PEM)")] = None,
@@ -116,7 +119,8 @@ def serve(
     from slamreloc.service.server import ServeConfig, serve_forever
 
     serve_forever(named, ServeConfig(
-        host=host, port=port, workers=workers, max_sessions=max_sessions, token=token,
+        host=host, port=port, workers=workers, max_sessions=max_sessions,
+        max_learning_sessions=max_learning_sessions, token=token,
         tls_cert=tls_cert, tls_key=tls_key, max_request_bytes=int(max_request_mb * (1 << 20)),
         watch_s=watch, learned_maps=learned_maps,
         max_learned_maps=(ServeConfig.max_learned_maps if max_learned_maps is None

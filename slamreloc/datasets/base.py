@@ -15,7 +15,7 @@ class Dataset:
     where they do not, each frame's `depth_camera` and `rgb_from_depth` place its depth."""
 
     root: Path
-    kind: str  # "7scenes" | "tum" | "synthetic"
+    kind: str  # one of registry.DATASET_KINDS: "7scenes" | "synthetic" | "tum" | "colmap" ...
     sequences: dict[str, list[Frame]]
     splits: dict[str, list[str]] = field(default_factory=dict)  # "train"/"test" -> sequences
     depth_registered: bool = False

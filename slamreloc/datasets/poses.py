@@ -37,6 +37,7 @@ from slamreloc.datasets.colmap import MODEL_DIRS, find_model, read_model_poses
 from slamreloc.errors import InputError
 from slamreloc.geometry import (
     Rigid3,
+    names_sidecar,
     nearest_stamps,
     read_named_trajectory,
     read_names_sidecar,
@@ -97,11 +98,24 @@ class FrameKey:
         return FrameKey(frame.name, image, frame.timestamp, frame.sequence)
 
 
+def read_own_trajectory(path: Path) -> None:
+    """A TUM trajectory slamreloc wrote: every writer of one (`evaluate`, `slam`, `export
+    --tum`) puts its frame names in the sidecar beside it (`names_sidecar`), which a dataset's
+    own trajectory (a TUM dataset's groundtruth.txt) lacks. InputError otherwise."""
+    sidecar = names_sidecar(path)
+    if not sidecar.is_file():
+        raise InputError(f"{path}: no {sidecar.name} beside it, so not a trajectory slamreloc "
+                         "wrote")
+    read_names_sidecar(sidecar)
+    read_tum_trajectory(path)
+
+
 # `check_outputs`' `files` entries: a TUM trajectory output (`--trajectory`, `export --tum`)
 # and the frame-names sidecar written beside it (`names_sidecar`) may replace only their kind
 NAMES_FILE = reads_as(read_names_sidecar, "a frame-names file ('stamp name' lines)")
-TUM_FILE = reads_as(read_tum_trajectory,
-                    "a TUM trajectory ('timestamp tx ty tz qx qy qz qw' lines)")
+TUM_FILE = reads_as(read_own_trajectory,
+                    "a TUM trajectory slamreloc wrote (its frame names in the .names.txt file "
+                    "beside it)")
 
 
 def _refuse_repeated_names(path: Path) -> None:

@@ -149,6 +149,12 @@ def _sequence(seq_dir: Path, camera: Camera, registered: bool) -> list[Frame]:
             sequence=seq_dir.name, timestamp=float(len(frames)) / 30.0,
             depth_camera=SEVENSCENES_DEPTH_CAMERA if unregistered else None,
             rgb_from_depth=rgb_from_depth if unregistered else None))
+    # a frame whose pose or depth is there without its image would vanish from the dataset
+    for other in sorted([*seq_dir.glob("frame-*.pose.txt"), *seq_dir.glob("frame-*.depth.png")]):
+        stem = other.name.split(".")[0]
+        if stem not in first:
+            raise InputError(f"{other}: frame {seq_dir.name}/{stem} has no colour image "
+                             f"({stem}.color.png or .jpg); restore it, or remove its files")
     return frames
 
 

@@ -54,11 +54,13 @@ class Sift(Extractor):
 
     def extract_grey(self, grey: np.ndarray) -> Features:
         scale = 1.0
-        if not self.config.upsample:
+        kps, desc = (), None  # an image a pixel wide (`--limit min_image_side=1`): no features
+        if not self.config.upsample and min(grey.shape[:2]) >= 2:
             grey = cv2.resize(grey, (grey.shape[1] // 2, grey.shape[0] // 2),
                               interpolation=cv2.INTER_AREA)
             scale = 2.0
-        kps, desc = self._sift.detectAndCompute(grey, None)
+        if self.config.upsample or scale == 2.0:
+            kps, desc = self._sift.detectAndCompute(grey, None)
         if desc is None or len(kps) == 0:
             return Features(np.zeros((0, 2), np.float32), np.zeros((0, self.dim), np.float32),
                             np.zeros(0, np.float32))

@@ -354,9 +354,8 @@ def check_outputs(outputs: dict[str, str | Path | None],
         if not want_dir:
             named = Path(out)  # as `atomic_file` names its temporary
             tmp = named.with_name(f".{named.stem}.tmp-{os.getpid()}{named.suffix}")
-            if (tmp.exists() or tmp.is_symlink()) and not tmp.is_file():
-                raise InputError(f"{out}: {option} cannot be written: its temporary path {tmp} "
-                                 "exists and is not a regular file")
+            if os.path.lexists(tmp):
+                raise InputError(temp_in_the_way(tmp, f"{out}: {option}"))
         _check_writable(Path(out), option)
 
 
@@ -385,16 +384,54 @@ def outputs_together() -> Iterator[None]:
         raise KeyboardInterrupt
 
 
+def temp_in_the_way(tmp: Path, what: str) -> str:
+    """The refusal of a writer whose temporary path (named with its process id) is taken: by
+    a user's file, a link, or a killed writer's leftover whose process id this one has again
+    (as in a container). None of them is this process's to delete or write through."""
+    return (f"{what} cannot be written: its temporary path {tmp} is in the way, and not made "
+            "by this process (a user's, or a killed writer's with this process id); "
+            "refusing to delete or write through it (move it)")
+
+
+@contextmanager
+def naming_output(path: str | Path) -> Iterator[None]:
+    """An OSError raised while the output `path` is written that names no file (a full disk:
+    `[Errno 28] No space left on device`) is raised again naming `path`."""
+    try:
+        yield
+    except OSError as err:
+        if err.filename is None and err.errno is not None:
+            raise OSError(err.errno, err.strerror or str(err), str(path)) from None
+        raise
+
+
+def make_temp_dir(tmp: Path, what: str) -> Path:
+    """Make the writer's temporary folder `tmp` (named with this process id) beside its
+    output `what`: a new folder, never an existing path (`temp_in_the_way`), which a writer
+    removes only after making it here."""
+    try:
+        os.mkdir(tmp)
+    except FileExistsError:
+        raise InputError(temp_in_the_way(tmp, what)) from None
+    return tmp
+
+
 @contextmanager
 def atomic_file(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside `path` (same suffix); rename it over `path` on success,
-    remove it on failure."""
+    """Yield a temporary path beside `path` (same suffix), made here as a new empty file
+    (never an existing one, nor through a link: `temp_in_the_way`); rename it over `path` on
+    success, remove it on failure."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
     try:
-        yield tmp
-        os.replace(tmp, path)
+        os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644))
+    except FileExistsError:
+        raise InputError(temp_in_the_way(tmp, str(path))) from None
+    try:
+        with naming_output(path):
+            yield tmp
+            os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
 

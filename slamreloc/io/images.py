@@ -11,6 +11,7 @@ error is an `InputError` naming the source (a file, or a request on the wire).
 from __future__ import annotations
 
 import io
+import math
 import os
 import struct
 import sys
@@ -39,6 +40,9 @@ LIBJPEG_WARNINGS = LIBJPEG_CORRUPT + ("Warning: ", "Unknown Adobe color transfor
 _STDERR_LOCK = threading.Lock()
 INVALID_DEPTH = (0, 65535)  # raw uint16 values that mean "no measurement"
 MAX_DEPTH_M = 65.534  # the deepest depth kept (uint16 millimetres' largest measurement)
+# raw depth units per metre taken (the wire's `units_per_metre`): from 1 / MAX_DEPTH_M (fewer
+# would leave no raw value within MAX_DEPTH_M, so no depth at all) to a micrometre
+DEPTH_UNITS_PER_METRE = (1 / MAX_DEPTH_M, 1e6)
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 JPEG_MAGIC = b"\xff\xd8"
 # formats Pillow reads the header of and OpenCV decodes (Pillow's format name -> shown name)
@@ -359,10 +363,21 @@ def read_depth(path: str | Path, units_per_metre: float = 1000.0,
 
 def depth_from_raw(raw: np.ndarray, units_per_metre: float) -> np.ndarray:
     """float32 metres from raw uint16 depth: raw 0 and 65535 mean "no measurement" (0), as
-    in every reader (depth files, the service's UINT16 and PNG16 depth, ROS bags)."""
+    in every reader (depth files, the service's UINT16 and PNG16 depth, ROS bags), and so
+    does a depth beyond MAX_DEPTH_M once scaled (float depth's rule, `clean_depth_m`)."""
     depth = raw.astype(np.float32) / units_per_metre
-    depth[np.isin(raw, INVALID_DEPTH)] = 0.0
+    depth[np.isin(raw, INVALID_DEPTH) | (depth > MAX_DEPTH_M)] = 0.0
     return depth
+
+
+def depth_units_problem(units: float) -> str | None:
+    """Why `units` cannot be raw depth units per metre (None when it can): the one rule of
+    `DEPTH_UNITS_PER_METRE`, for a frame's depth and a session's default alike."""
+    low, high = DEPTH_UNITS_PER_METRE
+    if not (math.isfinite(units) and low <= units <= high):
+        return (f"must be in [{low:.4f}, {high:g}] (fewer units per metre leave no raw value "
+                f"within {MAX_DEPTH_M} m), got {units:g}")
+    return None
 
 
 def clean_depth_m(depth: np.ndarray) -> np.ndarray:

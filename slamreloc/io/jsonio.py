@@ -202,3 +202,15 @@ class Json:
         null."""
         field = self.get(key)
         return None if field is None else read(field)
+
+
+def report_kind(data: dict) -> str:
+    """The slamreloc command a REPORT.json came from, by the keys each writes: "evaluate",
+    "pseudo-label", "slam", or "other" (no report of slamreloc's)."""
+    if "per_query" in data or "n_queries" in data:
+        return "evaluate"
+    if "n_pseudo_labels" in data or "n_new_points" in data:
+        return "pseudo-label"
+    if any(k in data for k in ("ate_rmse_m", "n_kidnaps", "events", "graph_edges")):
+        return "slam"
+    return "other"

@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import atomic_file, marked_file, outputs_together
+from slamreloc.io.fileio import (atomic_file, make_temp_dir, marked_file, naming_output,
+                                 outputs_together)
 from slamreloc.geometry import Rigid3, matrix_to_quat, write_tum_trajectory
 from slamreloc.io.images import pixel_colours, read_image
 from slamreloc.runtime.progress import track
@@ -165,9 +166,8 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
         path = images.get(name)
         names.append(os.path.relpath(path, root) if path is not None and root is not None
                      else name)
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
-    _remove(tmp)  # a leftover of this process id: ours
-    tmp.mkdir(parents=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = make_temp_dir(out.with_name(f".{out.name}.tmp-{os.getpid()}"), str(out))
     try:
         # COLMAP's pixel centres are at +0.5 (slamreloc: OpenCV, at integers)
         (tmp / "cameras.txt").write_text(
@@ -201,8 +201,8 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
                                       zip(image_id[rows].tolist(), point2d_index[rows].tolist()))
                 f.write(f"{p + 1} {x!r} {y!r} {z!r} {r} {g} {b} {points.error_px[p]:.6f} "
                         f"{track_text}\n")
-        if out.exists():
-            if not is_colmap_model(out):  # changed since `check_outputs`: not ours to replace
+        if out.exists():  # an empty folder, or a model (`check_outputs`)
+            if any(out.iterdir()) and not is_colmap_model(out):  # changed since: not ours
                 raise InputError(f"{out}: is no longer a COLMAP model; refusing to replace it")
             shutil.rmtree(out)
         os.replace(tmp, out)
@@ -221,14 +221,6 @@ def is_colmap_model(folder: Path) -> bool:
     entries = list(Path(folder).iterdir())
     return bool(entries) and all(e.name in COLMAP_MODEL_FILES and e.is_file()
                                  and not e.is_symlink() for e in entries)
-
-
-def _remove(path: Path) -> None:
-    """Remove whatever is at `path` (a folder, a file, a pipe, a link)."""
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path)
-    elif path.exists() or path.is_symlink():
-        path.unlink()
 
 
 def write_ply(path: Path, points: ExportPoints) -> None:
@@ -316,7 +308,8 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
                        coloured_from_images=bool(images))
     with outputs_together():  # interrupted: all new, or all as they were
         if colmap is not None:
-            write_colmap(scene_map, Path(colmap), points, images, root)
+            with naming_output(colmap):
+                write_colmap(scene_map, Path(colmap), points, images, root)
         if ply is not None:
             write_ply(Path(ply), points)
         if tum is not None:

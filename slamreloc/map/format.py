@@ -44,6 +44,9 @@ META, WEIGHTS, DATABASE = "slamreloc_map.json", "regressor.npz", "database.npz"
 SURFACE = "surface.npz"  # optional
 PROVENANCE = "provenance.npz"  # optional: written by a map update
 LEGACY_WEIGHTS = "regressor.pt"  # format 1
+# every file a map folder holds (its writer's; `files` in the metadata names those of them
+# it checksums)
+MAP_FILES = frozenset({META, WEIGHTS, DATABASE, SURFACE, PROVENANCE, LEGACY_WEIGHTS})
 LABELLED, PSEUDO, NEW = 0, 1, 2  # provenance `source` of a database row: labelled when the map
 # was built, a map label inherited by a registered frame (pseudo-label), triangulated anew
 MAX_ARRAY_BYTES = 16 << 30
@@ -224,8 +227,12 @@ def check_database(arrays: dict[str, np.ndarray], path: Path, dim: int,
                          f"names in {META}")
     rot = poses[:, :3, :3].astype(np.float64)
     ortho = np.abs(np.swapaxes(rot, 1, 2) @ rot - np.eye(3)).max(initial=0.0)
-    if ortho > 1e-3 or np.abs(poses[:, 3] - [0, 0, 0, 1]).max(initial=0.0) > 1e-6:
+    if (ortho > 1e-3 or np.abs(poses[:, 3] - [0, 0, 0, 1]).max(initial=0.0) > 1e-6
+            or (np.linalg.det(rot) <= 0).any()):  # a reflection is no rotation
         raise InputError(f"{path}: 'world_from_cam' holds matrices that are not rigid poses")
+    if len(poses) and np.abs(poses[:, :3, 3]).max() > MAX_COORDINATE:  # `Rigid3`'s bound
+        raise InputError(f"{path}: 'world_from_cam' places a camera beyond "
+                         f"{MAX_COORDINATE:g} m")
 
 
 def check_provenance(arrays: dict[str, np.ndarray], path: Path, n_rows: int) -> None:

@@ -21,19 +21,9 @@ from pathlib import Path
 
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import lock_record, write_lock_path
-from slamreloc.map.format import (
-    DATABASE,
-    LEGACY_WEIGHTS,
-    META,
-    PROVENANCE,
-    SURFACE,
-    WEIGHTS,
-    is_map,
-)
+from slamreloc.map.format import MAP_FILES, is_map
 
 _HELD: set[str] = set()  # maps whose write lock this process holds
-
-MAP_FILES = frozenset({META, WEIGHTS, DATABASE, SURFACE, PROVENANCE, LEGACY_WEIGHTS})
 
 
 def _leftovers(out: Path) -> list[Path]:
@@ -145,8 +135,9 @@ def map_write_lock(out: str | Path, what: str = "this map") -> Iterator[None]:
 
 
 def _open_lock(lock: Path, out: Path) -> int:
-    """The lock file's descriptor, created if absent; a symbolic link, a FIFO, a device or a
-    folder at its path is refused, never followed, written or waited on."""
+    """The lock file's descriptor, created if absent; a symbolic link, a hard link (a file of
+    several names), a FIFO, a device or a folder at its path is refused, never followed,
+    written or waited on."""
     try:
         fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK
                      | os.O_CLOEXEC, 0o644)
@@ -155,9 +146,14 @@ def _open_lock(lock: Path, out: Path) -> int:
             raise InputError(f"{lock}: not a regular file (a link, folder or device); "
                              f"refusing to use it as the write lock of {out.name}") from None
         raise
-    if not stat.S_ISREG(os.fstat(fd).st_mode):
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode):
         os.close(fd)
         raise InputError(f"{lock}: not a regular file (a link, folder or device); refusing "
+                         f"to use it as the write lock of {out.name}")
+    if info.st_nlink != 1:  # a hard link: writing the record would change another file
+        os.close(fd)
+        raise InputError(f"{lock}: a file with {info.st_nlink} names (hard links); refusing "
                          f"to use it as the write lock of {out.name}")
     return fd
 

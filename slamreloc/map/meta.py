@@ -38,14 +38,17 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Callable
 
+import torch
+
 from slamreloc import __version__
 from slamreloc.camera_models import distortion_problem
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import read_bytes
 from slamreloc.io.jsonio import parse_json
-from slamreloc.map.format import DATABASE, FORMAT_VERSION, LEGACY_WEIGHTS, MAP_FORMAT, META, WEIGHTS
-from slamreloc.registry import PRECISIONS, PRESETS
-from slamreloc.regressor.model import RegressorConfig
+from slamreloc.map.format import (DATABASE, FORMAT_VERSION, LEGACY_WEIGHTS, MAP_FILES, MAP_FORMAT,
+                                  META, WEIGHTS)
+from slamreloc.registry import DATASET_KINDS, FORMER_PRESETS, PRECISIONS, PRESETS
+from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig
 from slamreloc.types import Camera, camera_problem, frame_name_problem, lens_camera_problem
 
@@ -364,6 +367,20 @@ class MapMeta(_Record):
         """Database rows the regressor was trained on."""
         return self.labels["n_labelled"]
 
+    def check_database_counts(self, n_rows: int, n_frames: int, path: Path) -> None:
+        """InputError naming `path` (the database file) where the label counts disagree with
+        the database read: `labels.n_labelled` is its rows; `labels.n_frames` (the frames a
+        map was labelled from) and `labels.n_keyframes` (a session's keyframes) are at most
+        its training frames, which an update or a later session adds to."""
+        if self.n_labelled != n_rows:
+            raise InputError(f"{path}: holds {n_rows} rows, but {META} says "
+                             f"'labels.n_labelled' {self.n_labelled}")
+        for key in ("n_frames", "n_keyframes"):
+            n = self.labels.get(key)
+            if _is_int(n) and n > n_frames:
+                raise InputError(f"{path}: holds {n_frames} training frames, but {META} says "
+                                 f"'labels.{key}' {n}")
+
     @property
     def label_reproj_error_px(self) -> float | None:
         """Median reprojection error (pixels) of the training tracks triangulated with the
@@ -483,9 +500,21 @@ def _check_schema(meta: dict, version: int, path) -> None:
     need(reg, "parameters", int, "regressor.")
     cfg = need(reg, "config", dict, "regressor.")
     _check_regressor_config(cfg, path)
+    _check_regressor_record(reg, path)
     labels = need(meta, "labels", dict, "")
-    if need(labels, "n_labelled", int, "labels.") < 0:
-        raise InputError(f"{path}: 'labels.n_labelled' must not be negative")
+    need(labels, "n_labelled", int, "labels.")
+    for section in ("labels", "surface", "pseudo_label"):
+        _check_counts(meta.get(section), section, path)
+    _check_optional(labels, "labelled_fraction", "labels.", path, "a fraction in [0, 1]",
+                    lambda v: _is_number(v) and 0 <= v <= 1)
+    surface = meta.get("surface")
+    if isinstance(surface, dict):
+        _check_optional(surface, "voxel_m", "surface.", path, "a voxel size > 0 (metres)",
+                        lambda v: _is_number(v) and 0 < v < math.inf)
+    dataset = meta.get("dataset")
+    if isinstance(dataset, dict):
+        _check_optional(dataset, "kind", "dataset.", path,
+                        f"one of {', '.join(DATASET_KINDS)}", lambda v: v in DATASET_KINDS)
     _check_optional(labels, "median_reproj_error_px", "labels.", path,
                     f"a number of pixels in [0, {MAX_LABEL_ERROR_PX:g}] or null",
                     lambda v: _is_number(v) and 0 <= v <= MAX_LABEL_ERROR_PX)
@@ -531,9 +560,53 @@ def _check_schema(meta: dict, version: int, path) -> None:
     if version >= 2:
         files = need(meta, "files", dict, "")
         for name in (WEIGHTS, DATABASE):
-            digest = need(files, name, str, "files.")
-            if len(digest) != 64 or any(c not in "0123456789abcdef" for c in digest):
+            need(files, name, str, "files.")
+        for name, digest in files.items():  # what the folder's reader checks, and only that
+            if name not in MAP_FILES or name in (META, LEGACY_WEIGHTS):
+                raise InputError(f"{path}: 'files' lists {_short(name)}, which is not a file "
+                                 f"a map of format {version} holds")
+            if (not isinstance(digest, str) or len(digest) != 64
+                    or any(c not in "0123456789abcdef" for c in digest)):
                 raise InputError(f"{path}: 'files.{name}' must be a SHA-256 hex digest")
+
+
+def _check_counts(section, where: str, path) -> None:
+    """InputError for a count of the record (a key `n_*`) that is not a whole number >= 0
+    (null: not counted)."""
+    if not isinstance(section, dict):
+        return
+    for key, val in section.items():
+        if key.startswith("n_") and val is not None and not (_is_int(val) and val >= 0):
+            raise InputError(f"{path}: '{where}.{key}' is a count, a whole number >= 0; got "
+                             f"{_short(val)}")
+
+
+def _check_regressor_record(reg: dict, path) -> None:
+    """A config (already checked) that is a preset's (today's, or one a name made in an earlier
+    version: FORMER_PRESETS) is recorded under that preset's name in `arch` (a config made in
+    code, no preset's, may carry any preset name); `parameters` is the config's size."""
+    cfg, arch = reg["config"], reg["arch"]
+    made_by = [name for name, preset in _preset_configs() if preset == _arch_of(cfg)]
+    if made_by and arch not in made_by:
+        raise InputError(f"{path}: 'regressor.arch' is {_short(arch)}, but 'regressor.config' "
+                         f"is the '{made_by[0]}' architecture")
+    with torch.device("meta"):  # the size alone: no memory for the weights
+        size = SceneCoordinateRegressor(RegressorConfig.from_dict(cfg)).num_parameters()
+    if reg["parameters"] != size:
+        raise InputError(f"{path}: 'regressor.parameters' is {reg['parameters']}, but the "
+                         f"recorded config has {size} parameters")
+
+
+def _arch_of(cfg: dict) -> tuple:
+    """What a preset fixes of a config: its layer widths, head and (a clusters head's) count."""
+    head = cfg.get("head", "regression")
+    return tuple(cfg["hidden"]), head, cfg.get("n_clusters", 1) if head == "clusters" else 1
+
+
+def _preset_configs() -> list[tuple[str, tuple]]:
+    """(name, `_arch_of` its config) for every preset, today's and former ones."""
+    return [(name, _arch_of(preset)) for name in PRESETS
+            for preset in (PRESETS[name], *FORMER_PRESETS.get(name, ()))]
 
 
 def _check_optional(obj: dict, key: str, where: str, path, want: str,

@@ -122,6 +122,8 @@ class SceneMap:
         arrays = read_npz(path, "training database", expected, self.digests)
         names = None if self.info.frame_names is None else list(self.info.frame_names)
         check_database(arrays, path, self.info.regressor.to_config().in_dim, names)
+        self.info.check_database_counts(len(arrays["points"]), len(arrays["world_from_cam"]),
+                                        path)
         return MapDatabase(*(arrays[k] for k in DB_KEYS[:4]), names or [],
                            arrays["world_from_cam"])
 

@@ -86,6 +86,8 @@ def _read_legacy_weights(path: Path,
 
 # the model's scales (descriptor spread, output scale, cluster offset scale): > 0 as trained
 POSITIVE_BUFFERS = ("in_std", "out_scale", "offset_scale")
+MIN_SCALE = 1e-9  # a scale below this blows a descriptor up past float32's range
+MAX_WEIGHT = 1e9  # any weight or buffer (the output's mean and scale: metres, `Rigid3`'s bound)
 
 
 def _build_regressor(cfg: RegressorConfig, state: dict[str, torch.Tensor],
@@ -93,7 +95,8 @@ def _build_regressor(cfg: RegressorConfig, state: dict[str, torch.Tensor],
     """Check the weights against the config (on the meta device: no memory is allocated for
     a config that a corrupted file blew up), then build the model."""
     with torch.device("meta"):
-        expected = {k: tuple(v.shape) for k, v in SceneCoordinateRegressor(cfg).state_dict().items()}
+        expected = {k: tuple(v.shape)
+                    for k, v in SceneCoordinateRegressor(cfg).state_dict().items()}
     missing = sorted(set(expected) - set(state))
     extra = sorted(set(state) - set(expected))
     if missing or extra:
@@ -106,11 +109,15 @@ def _build_regressor(cfg: RegressorConfig, state: dict[str, torch.Tensor],
                              f"{shape}")
         if not tensor.is_floating_point():
             raise InputError(f"{path}: {key} has dtype {tensor.dtype}, expected floats")
+        tensor = tensor.float()  # as the model holds it: 1e300 in float64 is infinite there
         if not bool(torch.isfinite(tensor).all()):
-            raise InputError(f"{path}: {key} holds NaN or infinite values")
-        if key in POSITIVE_BUFFERS and not bool((tensor > 0).all()):
-            raise InputError(f"{path}: {key} holds values <= 0; it is a scale the regressor "
-                             "divides or multiplies by, positive when trained")
+            raise InputError(f"{path}: {key} holds NaN or infinite values (as float32)")
+        if bool((tensor.abs() > MAX_WEIGHT).any()):
+            raise InputError(f"{path}: {key} holds values beyond {MAX_WEIGHT:g}, which no "
+                             "training makes (the regression would overflow)")
+        if key in POSITIVE_BUFFERS and not bool((tensor >= MIN_SCALE).all()):
+            raise InputError(f"{path}: {key} holds values below {MIN_SCALE:g}; it is a scale "
+                             "the regressor divides or multiplies by, positive when trained")
     model = SceneCoordinateRegressor(cfg)
     model.load_state_dict({k: v.float() for k, v in state.items()})
     return model.eval()

@@ -11,14 +11,16 @@ import ctypes
 import errno
 import json
 import os
-import shutil
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.map.format import DATABASE, FORMAT_VERSION, META, WEIGHTS, is_map, sha256_file
-from slamreloc.map.lock import MAP_FILES, fsync_dir, map_write_lock, only_map_files
+from slamreloc.io.fileio import naming_output
+from slamreloc.map.format import (DATABASE, FORMAT_VERSION, MAP_FILES, META, WEIGHTS, is_map,
+                                  sha256_file)
+from slamreloc.map.lock import fsync_dir, map_write_lock
 from slamreloc.map.meta import MapMeta
 from slamreloc.map.weights import weight_arrays
 from slamreloc.regressor.model import SceneCoordinateRegressor
@@ -41,15 +43,49 @@ def check_map_target(out: Path) -> None:
 
 
 def _clear_own_path(path: Path, out: Path) -> None:
-    """Make way for this writer's temporary `path` beside `out`: a leftover of a writer of
-    this process id (a map's files only) is removed; anything else there is a user's and is
-    refused, never deleted."""
+    """Make way for this writer's temporary `path` beside `out` (named with this process's
+    id): a folder this process made there and could not remove (`_MADE`) is removed now;
+    anything else there is refused, never deleted - a user's, or a killed writer's whose
+    process id this process has again (as in a container), which the message asks to move."""
     if not os.path.lexists(path):
         return
-    if path.is_symlink() or not path.is_dir() or not only_map_files(path):
-        raise InputError(f"{path}: in the way of writing {out.name} and not a map writer's "
-                         "leftover; refusing to delete it (move it)")
-    shutil.rmtree(path)
+    if path not in _MADE or path.is_symlink() or not path.is_dir():
+        raise InputError(f"{path}: in the way of writing {out.name}, and not made by this "
+                         "process (a user's, or a killed writer's with this process id); "
+                         "refusing to delete it (move it)")
+    _remove_old_copy(path, out)
+
+
+def _remove_old_copy(old: Path, out: Path) -> None:
+    """Remove `old`, a folder this writer made or moved aside (the temporary folder, or the
+    map `out` held before the swap): its map files are deleted; anything else in it (a file
+    someone wrote into the map's folder while the new map was being written) is moved into
+    `out`, where it was put, never deleted. A folder that cannot be removed is remembered
+    (`_MADE`), so that this process may remove it at its next write, and said on stderr."""
+    _MADE.add(old)
+    try:
+        for entry in os.scandir(old):
+            path = Path(entry.path)
+            if entry.name in MAP_FILES and entry.is_file(follow_symlinks=False):
+                path.unlink()
+            elif out.is_dir() and not os.path.lexists(out / entry.name):
+                os.rename(path, out / entry.name)
+                print(f"note: {out / entry.name}: written into {out.name} while it was being "
+                      "replaced; kept", file=sys.stderr)
+            else:
+                raise OSError(errno.EEXIST, "a file that is not the map's is in the way", path)
+        old.rmdir()
+        _MADE.discard(old)
+    except FileNotFoundError:
+        _MADE.discard(old)
+    except OSError as err:
+        print(f"warning: {old}: not removed ({err.strerror or err}); this process removes "
+              "it at its next write of the map", file=sys.stderr)
+
+
+# temporary and old folders this process made beside maps and has not removed yet (a removal
+# that failed: `_remove_old_copy`)
+_MADE: set[Path] = set()
 
 
 def _crash_point(name: str) -> None:
@@ -100,7 +136,7 @@ def _swap_in(tmp: Path, out: Path) -> None:
         _crash_point("between-renames")
         os.replace(tmp, out)
         fsync_dir(out.parent)
-        shutil.rmtree(old, ignore_errors=True)
+        _remove_old_copy(old, out)
     fsync_dir(out.parent)
 
 
@@ -114,11 +150,12 @@ def save_map(out: str | Path, meta: MapMeta, model: SceneCoordinateRegressor, db
     Refuses to replace an existing non-empty folder that is not a slamreloc map, and fails at
     once if another process is writing `out`."""
     out = Path(out)
-    with map_write_lock(out):
+    with map_write_lock(out), naming_output(out):
         check_map_target(out)
         tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
         _clear_own_path(tmp, out)
         tmp.mkdir(parents=True)
+        _MADE.add(tmp)
         try:
             files = {
                 WEIGHTS: _write_npz(tmp / WEIGHTS, weight_arrays(model)),
@@ -148,8 +185,8 @@ def save_map(out: str | Path, meta: MapMeta, model: SceneCoordinateRegressor, db
             _crash_point("before-swap")
             _swap_in(tmp, out)
             _crash_point("after-swap")
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
+        finally:  # the old map after the swap (its files), or the new one that was not used
+            _remove_old_copy(tmp, out)
     return out
 
 

@@ -25,6 +25,7 @@ from slamreloc.io.images import (
     decode_image,
     decode_rgb,
     depth_from_raw,
+    depth_units_problem,
     encoded_header,
 )
 from slamreloc.proto import relocalizer_pb2 as pb
@@ -283,8 +284,9 @@ def depth_from_msg(msg: pb.Depth, registered_size: tuple[int, int] | None,
     height), which depth registered to it must have; None for depth of its own camera."""
     units = msg.units_per_metre or units_per_metre or 1000.0
     try:
-        if not (np.isfinite(units) and 1e-3 <= units <= 1e6):
-            raise InputError(f"units_per_metre must be in [0.001, 1e6], got {units:g}")
+        problem = depth_units_problem(units)
+        if problem:
+            raise InputError(f"units_per_metre {problem}")
         if msg.encoding != pb.Depth.PNG16 and msg.encoding not in DEPTH_ITEM_BYTES:
             raise InputError(f"unknown encoding {msg.encoding} (PNG16, UINT16 or "
                              "FLOAT32_METRES)")

@@ -27,7 +27,7 @@ from slamreloc.io.fileio import relation, resolved
 from slamreloc.localize.localizer import RegressorLocalizer
 from slamreloc.map.format import DATABASE, META, PROVENANCE
 from slamreloc.proto import relocalizer_pb2 as pb
-from slamreloc.proto.messages import ServiceError, quoted
+from slamreloc.proto.messages import ServiceError, map_name_problem, quoted
 from slamreloc.map.scene_map import SceneMap
 
 
@@ -215,8 +215,11 @@ class MapRegistry:
             return next(iter(maps.values()))
         if name not in maps:
             known = ", ".join(quoted(n) for n in sorted(maps))
-            raise ServiceError(pb.UNKNOWN_MAP, f"no map named {quoted(name)} (served: {known})"
-                               if name else f"name a map (served: {known})")
+            problem = map_name_problem(name) if name else None  # the clients' rule, said
+            raise ServiceError(pb.UNKNOWN_MAP, f"no map named {quoted(name)}"
+                               + (f": the name {problem}" if problem else "")
+                               + f" (served: {known})" if name else
+                               f"name a map (served: {known})")
         return maps[name]
 
     def all(self) -> list[ServedMap]:

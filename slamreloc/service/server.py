@@ -74,6 +74,9 @@ class ServeConfig:
     port: int = 50051  # 0: any free port (RunningServer.port says which)
     workers: int = 1  # localizations at once
     max_sessions: int = 8
+    # of those, learning ones (no map: each learns its own, up to ~2 GB of memory when full,
+    # MAX_SESSION_KEYFRAMES keyframes): the server's memory bound for learning
+    max_learning_sessions: int = 2
     token: str | None = None  # required by every call when set
     tls_cert: Path | None = None  # PEM files; both or neither
     tls_key: Path | None = None
@@ -102,6 +105,8 @@ class ServeConfig:
             raise InputError(f"`workers` {self.workers}: 1 to 256")
         if not 1 <= self.max_sessions <= 4096:
             raise InputError(f"`max_sessions` {self.max_sessions}: 1 to 4096")
+        if not 1 <= self.max_learning_sessions <= 4096:
+            raise InputError(f"`max_learning_sessions` {self.max_learning_sessions}: 1 to 4096")
         if not 1 <= self.max_learned_maps <= 4096:
             raise InputError(f"`max_learned_maps` {self.max_learned_maps}: 1 to 4096")
         if not 0 <= self.max_queued <= 4096:
@@ -241,6 +246,7 @@ class RelocalizerService:
         self.stopping = threading.Event()  # set by `RunningServer.stop`: no save starts writing
         self._written: set[Path] = set()  # the learned maps' folders this server wrote
         self.learning: set[Session] = set()  # learning sessions open (their learner threads)
+        self.learning_opening = 0  # learning sessions whose SessionOpen is being processed
         # the learned maps' folder as it was at start-up (resolved, and its identity on disk):
         # a save writes there only while that same folder is still there
         self._learned: tuple[Path, tuple[int, int]] | None = None
@@ -390,10 +396,31 @@ class RelocalizerService:
                     self.learning.discard(learning)
             self._free(state)
 
+    def _reserve_learning(self, state: dict) -> None:
+        """Hold a learning session's place while it opens (OVERLOADED when
+        `max_learning_sessions` are open or opening: the server's memory bound for learning);
+        given back once it is open or refused (`_unreserve_learning`)."""
+        with self._count_lock:
+            busy = len(self.learning) + self.learning_opening
+            if busy >= self.config.max_learning_sessions:
+                instead = "open one with a map, or retry" if self.registry.names else "retry"
+                raise ServiceError(pb.OVERLOADED, f"{busy} learning sessions open, the most "
+                                   "this server takes (each may hold about 2 GB while it "
+                                   f"learns); {instead} later")
+            self.learning_opening += 1
+            state["reserved"] = True
+
+    def _unreserve_learning(self, state: dict) -> None:
+        with self._count_lock:
+            if state.get("reserved"):
+                state["reserved"] = False
+                self.learning_opening -= 1
+
     def _free(self, state: dict) -> None:
         """Give a session's slot back, once: when its stream ends (a client that leaves frees
         it at once, even while the handler still waits on a training round) or its handler
         returns, whichever comes first."""
+        self._unreserve_learning(state)  # a learning session that never opened
         with self._count_lock:
             if state["freed"]:
                 return
@@ -430,14 +457,23 @@ class RelocalizerService:
                     if learn and msg.open.map:
                         raise ServiceError(pb.BAD_REQUEST, "open.learn: a learning session "
                                            f"starts with no map, got map {quoted(msg.open.map)}")
-                    opening = Session(None if learn else self.registry.get(msg.open.map),
-                                      msg.open, self.config.live)
-                    self._opened(state)
+                    if learn:
+                        self._reserve_learning(state)
+                    try:
+                        opening = Session(None if learn else self.registry.get(msg.open.map),
+                                          msg.open, self.config.live)
+                        self._opened(state)
+                    except BaseException:
+                        self._unreserve_learning(state)
+                        raise
                     session = opening
                     if session.learning:
                         state["session"] = session
-                        with self._count_lock:
+                        with self._count_lock:  # from reserved to open in one step
                             self.learning.add(session)
+                            if state.get("reserved"):
+                                state["reserved"] = False
+                                self.learning_opening -= 1
                     yield pb.SessionUpdate(opened=session.opened()).SerializeToString()
                     continue
                 if kind == "save":  # no worker slot: a save computes no localization
@@ -487,7 +523,8 @@ class RelocalizerService:
         name (`saved_map_name_problem`), a target the server may not write (`_target_problem`),
         a map before the first training round has ended, another session's save being written
         (OVERLOADED at once: the save lock is never waited for), a file system error (one
-        line, no server path: `save_refusal`).
+        line, no server path: `save_refusal`), something in the way that the map writer
+        does not take for its own (`_writer_refusal`).
 
         The training round the save waits for (up to 2 x `Session.SAVE_WAIT_S`) runs on the
         session's own learner and holds neither a worker slot nor the save lock: Localize,
@@ -532,10 +569,24 @@ class RelocalizerService:
                 self._save_lock.release()
         except OSError as err:
             raise save_refusal(name, err) from None
+        except InputError as err:  # the map writer's refusal of what is in the way
+            raise self._writer_refusal(name, err) from None
         _log(f"map {quoted(name)} saved by session {session.id}: version {served.version}")
         saved.name, saved.map_version = name, served.version
         saved.num_points = served.scene_map.info.n_labelled
         return saved
+
+    def _writer_refusal(self, name: str, err: InputError) -> ServiceError:
+        """FAILED_PRECONDITION for a save the map writer refused (something in the way in the
+        learned maps' folder that is not the writer's: a link or a user's file at its lock, a
+        folder at its temporary name, other files in the map's folder): its reason, paths
+        given relative to that folder (never the server's own), the whole line logged."""
+        _log(f"map {quoted(name)} not saved: {err}")
+        folder = str(self._learned[0])
+        reason = str(err).replace(folder + os.sep, "").replace(folder, "the folder")
+        return ServiceError(pb.FAILED_PRECONDITION, f"save.name {quoted(name)}: nothing was "
+                            f"written: in the server's folder of learned maps, {reason}; ask "
+                            "its operator")
 
     def _check_target(self, name: str, path: Path) -> None:
         """ServiceError FAILED_PRECONDITION unless a save may write the map NAME at `path`

@@ -20,12 +20,12 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
 import time
 import uuid
 
 from slamreloc.errors import InputError
 from slamreloc.geometry import check_stamp
+from slamreloc.io.images import depth_units_problem
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
     ServiceError,
@@ -74,9 +74,9 @@ class Session:
         self._depth_camera_msg = pb.PinholeCamera()
         self._depth_camera_msg.CopyFrom(request.depth_camera)
         units = request.depth_units_per_metre
-        if units and not (math.isfinite(units) and 1e-3 <= units <= 1e6):
-            raise ServiceError(pb.BAD_DEPTH, "depth_units_per_metre must be in [0.001, 1e6] "
-                               f"(0: 1000), got {units:g}")
+        problem = depth_units_problem(units) if units else None  # 0: 1000
+        if problem:
+            raise ServiceError(pb.BAD_DEPTH, f"depth_units_per_metre {problem}")
         self.depth_units = units
         self.served, self.id = served, uuid.uuid4().hex[:12]
         self.client_odometry = odometry == CLIENT_ODOMETRY

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import read_bytes
+from slamreloc.io.fileio import make_temp_dir, read_bytes
 from slamreloc.synthetic.render import RenderScene, render_frame
 from slamreloc.synthetic.room import build_room
 from slamreloc.synthetic.trajectories import SEQUENCES, make_trajectories
@@ -121,9 +121,7 @@ def render_scene(out_dir: Path, config: SceneConfig = SceneConfig(),
     if _existing(out_dir, config):
         return out_dir
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir.parent / f"{out_dir.name}.tmp-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
+    tmp = make_temp_dir(out_dir.parent / f"{out_dir.name}.tmp-{os.getpid()}", str(out_dir))
     try:
         _write_frames(tmp, config, progress)
         try:
