@@ -55,15 +55,18 @@ def run_cli(argv: list[str], hang_s: float = 60.0) -> tuple[int, str]:
 
 
 def run_cli_output(argv: list[str], hang_s: float = 60.0) -> tuple[int, str, str]:
-    """`slamreloc ARGV` in this process: (exit status, stdout, stderr)."""
+    """`slamreloc ARGV` in this process: (exit status, stdout, stderr). The input bounds a
+    `--limit` sets are put back after it."""
     import io
     import sys
     from contextlib import redirect_stderr, redirect_stdout
 
     from slamreloc import cli
+    from slamreloc.io import limits
 
     err, out = io.StringIO(), io.StringIO()
     old = sys.argv
+    old_limits = limits._current  # a `--limit` holds for its own command, as in its process
     sys.argv = ["slamreloc", *argv]
     try:
         with redirect_stderr(err), redirect_stdout(out), no_hang(hang_s):
@@ -74,6 +77,7 @@ def run_cli_output(argv: list[str], hang_s: float = 60.0) -> tuple[int, str, str
                 code = exit_.code if isinstance(exit_.code, int) else 1
     finally:
         sys.argv = old
+        limits._current = old_limits
     return code, out.getvalue(), err.getvalue()
 
 

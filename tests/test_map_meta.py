@@ -23,8 +23,8 @@ from slamreloc.io.jsonio import parse_json
 from slamreloc.map.format import DATABASE, FORMAT_VERSION, MAP_FORMAT, WEIGHTS
 from slamreloc.registry import DATASET_KINDS, PRESETS
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
-from slamreloc.map.meta import (CameraMeta, DatasetMeta, FeatureMeta, MapMeta, RegressorMeta,
-                                SurfaceMeta, UpdateMeta)
+from slamreloc.map.meta import (TRAIN_RULES, CameraMeta, DatasetMeta, FeatureMeta, MapMeta,
+                                RegressorMeta, SurfaceMeta, UpdateMeta)
 from slamreloc.types import Camera, frame_name_problem, lens_camera_problem
 from tests.fuzzing import damaged_json, fuzz_settings, json_values
 
@@ -135,13 +135,14 @@ def metadata(draw) -> dict:
     optional = {
         "slamreloc_version": st.text(max_size=8) | finite_json,
         "train": st.dictionaries(st.text("abc_", max_size=5), finite_json, max_size=4)
-        | finite_json.filter(lambda v: not isinstance(v, dict) or not {"precision", "epochs"}
+        | finite_json.filter(lambda v: not isinstance(v, dict) or not {"precision", *TRAIN_RULES}
                              & set(v)),  # typed fields: checked (test_schema_types...)
         "timings_s": st.dictionaries(st.text("abc_", max_size=5), st.floats(0, 100), max_size=3),
         "dataset": some_keys({"root": st.text(max_size=8),
                               "kind": st.sampled_from(DATASET_KINDS) | st.none(),
                               "split": st.text(max_size=5), "metric": st.booleans(),
-                              "poses": st.text(max_size=8)}, strict=("kind",)) | finite_json,
+                              "poses": st.sampled_from(["dataset", "slam", "/p/poses.txt"])},
+                             strict=("kind", "poses")) | finite_json,
         "surface": some_keys({"n_points": st.integers(0, 10 ** 6) | st.none(),
                               "voxel_m": st.floats(0.001, 1.0) | st.integers(1, 2)},
                              strict=("n_points", "voxel_m")),
@@ -239,9 +240,13 @@ def test_typed_views_read_what_the_metadata_records(doc):
     (lambda d: {**d, "surface": {"n_points": -1}},
      "'surface.n_points' is a count, a whole number >= 0; got -1"),
     (lambda d: {**d, "surface": {"n_points": 5, "voxel_m": 0}},
-     "'surface.voxel_m' must be a voxel size > 0 (metres), got 0"),
+     "'surface.voxel_m' must be a voxel size in (0, 10] metres, got 0"),
     (lambda d: {**d, "pseudo_label": {"n_frames_registered": "3"}},
      "'pseudo_label.n_frames_registered' is a count, a whole number >= 0; got '3'"),
+    (lambda d: {**d, "dataset": {**d["dataset"], "poses": "colmap"}},
+     "'dataset.poses' must be \"dataset\", \"slam\" or the absolute path of the pose file"),
+    (lambda d: {**d, "surface": {"n_points": 5, "voxel_m": 1e9}},
+     "'surface.voxel_m' must be a voxel size in (0, 10] metres, got 1000000000.0"),
     (lambda d: {**d, "dataset": {**d["dataset"], "kind": "bogus"}},
      "'dataset.kind' must be one of 7scenes, synthetic, tum, colmap, rosbag, session, got 'bogus'"),
     (lambda d: {**d, "files": {**d["files"], "unknown.npz": SHA}},
@@ -272,6 +277,11 @@ def test_typed_views_read_what_the_metadata_records(doc):
     (lambda d: {**d, "frame_names": ["a", 1]}, "'frame_names' must be a list of strings"),
     # round 8: typed fields that other commands act on
     (lambda d: {**d, "train": {"epochs": -1}}, "'train.epochs' must be a whole number"),
+    (lambda d: {**d, "train": {"lr": -1}}, "'train.lr' must be a learning rate in (0, 10], "
+                                           "got -1"),
+    (lambda d: {**d, "train": {"batch_size": 0}}, "'train.batch_size' must be a whole number "
+                                                  "of rows in 1..1048576, got 0"),
+    (lambda d: {**d, "train": {"betas": [0.9]}}, "'train.betas' must be two numbers in [0, 1)"),
     (lambda d: {**d, "timings_s": "x"}, "'timings_s' must be an object of seconds"),
     (lambda d: {k: v for k, v in d.items() if k != "files"}, "missing key 'files'"),
     (lambda d: {**d, "files": {WEIGHTS: "00", DATABASE: SHA}},
@@ -319,12 +329,12 @@ def test_stamped_lays_out_the_metadata_as_save_map_writes_it():
 
 
 def test_values_the_schema_does_not_type_are_kept_verbatim():
-    doc = {**_valid_doc(), "dataset": {"root": 7, "metric": None, "poses": "p.txt"},
+    doc = {**_valid_doc(), "dataset": {"root": 7, "metric": None, "poses": "/p.txt"},
            "pseudo_label": "odd", "slamreloc_version": ["x"]}
     meta = MapMeta.from_json(doc, PATH)
-    assert meta.dataset == DatasetMeta(poses="p.txt", extra={"root": 7, "metric": None})
+    assert meta.dataset == DatasetMeta(poses="/p.txt", extra={"root": 7, "metric": None})
     # read as before the schema: a recorded null is not metric, a root that is no path none
-    assert meta.dataset_root is None and meta.metric is False and meta.poses_source == "p.txt"
+    assert meta.dataset_root is None and meta.metric is False and meta.poses_source == "/p.txt"
     assert meta.pseudo_label is None and meta.n_frames_updated == 0
     assert meta.slamreloc_version is None and meta.extra["slamreloc_version"] == ["x"]
     assert meta.to_json() == doc and list(meta.to_json()["dataset"]) == ["root", "metric", "poses"]

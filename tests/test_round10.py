@@ -125,11 +125,33 @@ def _report(tmp_path: Path, doc: dict, name: str = "r.json") -> Path:
      "poses: the frame name '../../etc/passwd' is not a path inside the dataset"),
     ({"n_pseudo_labels": 1, "poses": {"a\nb": [[1, 0, 0, 0]] * 4}},
      "holds a line break or another control character"),
+    ({"n_queries": 1, "recall": {"1cm1deg": 5.0}}, "recall.1cm1deg is a share, a number in "
+                                                   "[0, 1]; got 5.0"),
+    ({"per_query": [{"name": "a", "rotation_error_deg": 1e6}]},
+     "per_query[0].rotation_error_deg is an angle between two directions, in [0, 180]"),
 ])
 def test_report_fields_of_the_wrong_meaning_are_refused(tmp_path, doc, message):
     path = _report(tmp_path, doc)
     with pytest.raises(InputError) as err:
         read_json(path)
+    assert str(err.value).startswith(f"{path}: ") and message in str(err.value), err.value
+
+
+@pytest.mark.parametrize("doc, message", [
+    ({"n_queries": 2, "n_localized": 3, "per_query": []}, "n_localized 3 is more than "
+                                                          "n_queries 2"),
+    ({"n_queries": 1, "per_query": [{"name": "../../etc/passwd"}]},
+     "per_query[0].name '../../etc/passwd' is not a path inside the dataset"),
+    ({"events": [{"type": "kidnap", "frame": 1, "world_from_cam": [[2, 0, 0, 0], [0, 1, 0, 0],
+                                                                   [0, 0, 1, 0], [0, 0, 0, 1]]}]},
+     "events[0].world_from_cam: rotation"),
+    ({"events": [{"type": "kidnap", "frame": 1, "position": [1e300, 0, 0]}]},
+     "events[0].position lies beyond 1e+09 m"),
+])
+def test_report_entries_that_cannot_be_true_are_refused(viewer_case, tmp_path, doc, message):
+    path = _report(tmp_path, doc)
+    with pytest.raises(InputError) as err:
+        load_scene_data(ViewerInputs(viewer_case.map_dir, reports=[path]))
     assert str(err.value).startswith(f"{path}: ") and message in str(err.value), err.value
 
 
@@ -167,19 +189,20 @@ _MEASURE_KEYS = st.sampled_from(["ate_rmse_m", "translation_error_m", "rotation_
        | st.floats(-1e6, 1e6) | st.text(max_size=4),
        nested=st.booleans())
 def test_counts_and_measures_anywhere_in_a_report(tmp_path_factory, key, value, nested):
-    """A count is null or a whole number >= 0, a measure null or a number >= 0, at any depth;
-    anything else is refused naming the field."""
+    """A count is null or a whole number >= 0, a measure null or a number >= 0 (an angle, at
+    most 180), at any depth; anything else is refused naming the field."""
     tmp = tmp_path_factory.mktemp("r")
     doc = {"events": [], **({"live": {key: value}} if nested else {key: value})}
     field = f"live.{key}" if nested else key
     is_number = isinstance(value, (int, float)) and not isinstance(value, bool)
     ok = value is None or (is_number and value >= 0 and (
-        isinstance(value, int) or not key.startswith(("n_", "num_"))))
+        isinstance(value, int) or not key.startswith(("n_", "num_")))
+        and (value <= 180 or not key.endswith("_deg")))
     path = _report(tmp, doc)
     if ok:
         assert read_json(path) == doc
     else:
-        with pytest.raises(InputError, match=rf"{path}: {field} is a "):
+        with pytest.raises(InputError, match=rf"{path}: {field} is an? "):
             read_json(path)
 
 
@@ -438,13 +461,17 @@ def test_a_full_disk_names_the_output(tiny_map, tmp_path, monkeypatch):
 
 # ---- F6: a terminal that cannot show a file name gets it escaped, not an error ---------------
 def test_output_to_a_terminal_of_another_encoding(small_map, scene_dir, tmp_path):
-    image = tmp_path / "日本.png"
-    shutil.copy(scene_dir / "seq-02" / "frame-000000.color.png", image)
+    """F6, and F7: a name that would split an output line's fields is percent-encoded."""
+    image, spaced = tmp_path / "日本.png", tmp_path / "my photo #1.png"
+    for path in (image, spaced):
+        shutil.copy(scene_dir / "seq-02" / "frame-000000.color.png", path)
     run = subprocess.run([sys.executable, "-m", "slamreloc.cli", "localize",
-                          str(small_map.root), str(image)], capture_output=True,
+                          str(small_map.root), str(image), str(spaced)], capture_output=True,
                          env={**os.environ, "PYTHONIOENCODING": "latin-1"}, timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
-    assert b"\\u65e5\\u672c.png" in run.stdout
+    lines = run.stdout.decode("latin-1").splitlines()
+    assert "\\u65e5\\u672c.png" in lines[0]
+    assert lines[1].split()[0].endswith("my%20photo%20%231.png") and len(lines[1].split()) == 9
 
 
 # ---- F9: an image a pixel wide, allowed by --limit, has no features (no traceback) -----------

@@ -38,10 +38,12 @@ def read_json(path: str | Path) -> dict:
 
 # Report fields by their names, as every slamreloc report writes them: `n_*` / `num_*` are
 # counts, `*_m` / `*_cm` / `*_deg` / `*_px` / `*_s` / `*_ms` distances, errors, angles and
-# durations, never negative (null: not measured; an object of such, as `timings_s`, holds them
-# per stage). A report's own `poses` maps frame names, not fields.
+# durations, never negative, angles (`*_deg`) at most 180; `recall`, `*_fraction` and
+# `*precision_*` shares in [0, 1] (null: not measured; an object of such, as `timings_s`,
+# holds them per stage or threshold). A report's own `poses` maps frame names, not fields.
 COUNT = re.compile(r"(n|num)_\w+")
 MEASURE = re.compile(r"\w+_(m|cm|deg|px|s|ms)")
+FRACTION = re.compile(r"recall|\w+_fraction|\w*precision_\w+")  # shares: [0, 1]
 NAMES = ("poses",)
 
 
@@ -68,7 +70,7 @@ def check_values(value, source) -> None:
             continue
         if isinstance(v, list):
             # a list under a count or measure holds counts or measures
-            inner = rule if rule in ("count", "measure") else None
+            inner = rule if rule in ("count", "measure", "angle", "fraction") else None
             stack.extend((c, f"{where}[{i}]", inner) for i, c in enumerate(v))
             continue
         _check_scalar(v, where, rule, source)
@@ -77,13 +79,17 @@ def check_values(value, source) -> None:
 def _rule(key: str, parent: str | None) -> str | None:
     """The rule for the value under `key` (inside an object checked by `parent`'s rule;
     "top": the report itself)."""
-    if parent == "measure":  # an object of measures: each of its values is one
-        return "measure"
+    if parent in ("measure", "angle", "fraction"):  # an object of such: each value is one
+        return parent
     if key in NAMES and parent == "top":  # a report's own `poses` (not `dataset.poses`)
         return "names"
     if COUNT.fullmatch(key):
         return "count"
-    return "measure" if MEASURE.fullmatch(key) else None
+    if FRACTION.fullmatch(key):
+        return "fraction"
+    if MEASURE.fullmatch(key):
+        return "angle" if key.endswith("_deg") else "measure"
+    return None
 
 
 def _check_scalar(v, where: str, rule: str | None, source) -> None:
@@ -102,6 +108,11 @@ def _check_scalar(v, where: str, rule: str | None, source) -> None:
     if rule == "measure" and not (number and v >= 0):
         raise InputError(f"{source}: {field} is a measure (distance, angle or time), a number "
                          f">= 0; got {_short(v)}")
+    if rule == "angle" and not (number and 0 <= v <= 180):
+        raise InputError(f"{source}: {field} is an angle between two directions, in [0, 180] "
+                         f"degrees; got {_short(v)}")
+    if rule == "fraction" and not (number and 0 <= v <= 1):
+        raise InputError(f"{source}: {field} is a share, a number in [0, 1]; got {_short(v)}")
     if rule == "names":
         raise InputError(f"{source}: {field} must be an object of frame names, got {_short(v)}")
 
@@ -128,9 +139,16 @@ def read_evaluate(path: Path, data: dict, dataset, trajectories: list[Trajectory
         for name, pose in zip(traj.names, traj.poses):
             if name:
                 estimates.setdefault(name, pose)
+    n_queries, n_localized = report.opt("n_queries", Json.int), report.opt("n_localized",
+                                                                            Json.int)
+    if n_queries is not None and n_localized is not None and n_localized > n_queries:
+        raise InputError(f"{path}: n_localized {n_localized} is more than n_queries {n_queries}")
     queries, missing = [], 0
     for q in [] if per_query is None else per_query.list():
         name = q.child("name").str()
+        problem = frame_name_problem(name)
+        if problem:
+            raise InputError(f"{path}: {q.where}.name {name[:80]!r} {problem}")
         frame = by_name.get(name)
         t_err = q.opt("translation_error_m", Json.number)
         r_err = q.opt("rotation_error_deg", Json.number)

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.geometry import unit_quaternion
+from slamreloc.geometry import MAX_COORDINATE, Rigid3, unit_quaternion
 from slamreloc.io.jsonio import Json
 from slamreloc.viewer.data import GraphEdge, SlamEvent, SlamReport, Trajectory
 from slamreloc.viewer.trajectories import read_trajectory
@@ -77,7 +77,11 @@ def _position(e: Json) -> np.ndarray | None:
     if e.has("world_from_cam"):
         field = e.child("world_from_cam")
         rows = 3 if isinstance(field.value, list) and len(field.value) == 3 else 4
-        return field.array((rows, 4))[:3, 3].copy()
+        m = np.eye(4)
+        m[:rows] = field.array((rows, 4))
+        # a pose by every pose reader's rule (rigid, within the coordinate bound)
+        return Rigid3.from_matrix(m, tol=1e-2, source=f"{field.source}: {field.where}"
+                                  ).translation.copy()
     for key in ("position", "pose", "tum"):
         if e.has(key):
             v = e.child(key)
@@ -85,6 +89,8 @@ def _position(e: Json) -> np.ndarray | None:
             values = v.array((7 if n == 7 else 3,))
             if n == 7:  # tx ty tz qx qy qz qw: the quaternion by every pose reader's rule
                 unit_quaternion(values[3:], f"{v.source}: {v.where}")
+            if np.abs(values[:3]).max() > MAX_COORDINATE:
+                raise InputError(f"{v.source}: {v.where} lies beyond {MAX_COORDINATE:g} m")
             return values[:3]
     return None
 

@@ -206,9 +206,22 @@ def localize(map_dir: Path, images: list[Path],
             yield f"error: {path}: {err}", "error"
             continue
         if est.success:
-            yield f"{tum_line(name, est.world_from_cam)} {est.num_inliers}", "ok"
+            yield f"{tum_line(line_name(name), est.world_from_cam)} {est.num_inliers}", "ok"
         else:
-            yield f"# {name}: not localized ({est.num_inliers} inliers)", "failed"
+            yield f"# {line_name(name)}: not localized ({est.num_inliers} inliers)", "failed"
+
+
+def line_name(name: str) -> str:
+    """An image's name as the first field of an output line: as it is, or, where it holds a
+    space, a control character or a `%`, or starts with `#` (it would split the line's
+    fields or read as a comment), percent-encoded (`my%20photo.png`; `urllib.parse.unquote`
+    gives it back)."""
+    from urllib.parse import quote
+
+    if name.startswith("#") or "%" in name or any(c.isspace() or not c.isprintable()
+                                                  for c in name):
+        return quote(name, safe="/")
+    return name
 
 
 def _query_images(paths: list[Path]):

@@ -509,12 +509,16 @@ def _check_schema(meta: dict, version: int, path) -> None:
                     lambda v: _is_number(v) and 0 <= v <= 1)
     surface = meta.get("surface")
     if isinstance(surface, dict):
-        _check_optional(surface, "voxel_m", "surface.", path, "a voxel size > 0 (metres)",
-                        lambda v: _is_number(v) and 0 < v < math.inf)
+        _check_optional(surface, "voxel_m", "surface.", path, "a voxel size in (0, 10] metres",
+                        lambda v: _is_number(v) and 0 < v <= 10)
     dataset = meta.get("dataset")
     if isinstance(dataset, dict):
         _check_optional(dataset, "kind", "dataset.", path,
                         f"one of {', '.join(DATASET_KINDS)}", lambda v: v in DATASET_KINDS)
+        _check_optional(dataset, "poses", "dataset.", path, '"dataset", "slam" or the '
+                        "absolute path of the pose file the map was made from",
+                        lambda v: isinstance(v, str) and (v in ("dataset", "slam")
+                                                          or Path(v).is_absolute()))
     _check_optional(labels, "median_reproj_error_px", "labels.", path,
                     f"a number of pixels in [0, {MAX_LABEL_ERROR_PX:g}] or null",
                     lambda v: _is_number(v) and 0 <= v <= MAX_LABEL_ERROR_PX)
@@ -522,8 +526,8 @@ def _check_schema(meta: dict, version: int, path) -> None:
     if isinstance(train, dict):
         _check_optional(train, "precision", "train.", path,
                         f"one of {', '.join(PRECISIONS)}", lambda v: v in PRECISIONS)
-        _check_optional(train, "epochs", "train.", path, "a whole number of epochs, 0 or more",
-                        lambda v: _is_int(v) and v >= 0)
+        for key, (want, ok) in TRAIN_RULES.items():  # what a retraining would use
+            _check_optional(train, key, "train.", path, want, ok)
     _check_optional(meta, "timings_s", "", path, "an object of seconds",
                     lambda v: isinstance(v, dict) and all(_is_number(t) and t >= 0
                                                           for t in v.values()))
@@ -568,6 +572,29 @@ def _check_schema(meta: dict, version: int, path) -> None:
             if (not isinstance(digest, str) or len(digest) != 64
                     or any(c not in "0123456789abcdef" for c in digest)):
                 raise InputError(f"{path}: 'files.{name}' must be a SHA-256 hex digest")
+
+
+def _in(low: float, high: float, whole: bool = False) -> Callable[[Any], bool]:
+    """A check: a number (a whole one where `whole`) within [low, high]."""
+    return lambda v: (_is_int(v) if whole else _is_number(v)) and low <= v <= high
+
+
+# the recorded training settings a retraining (`pseudo-label --update retrain`) reuses: present
+# and not null, each must be a value training can run with (`train_config`'s fields)
+TRAIN_RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
+    "epochs": ("a whole number of epochs, 0 or more", _in(0, 10 ** 9, whole=True)),
+    "batch_size": ("a whole number of rows in 1..1048576", _in(1, 1 << 20, whole=True)),
+    "lr": ("a learning rate in (0, 10]", lambda v: _is_number(v) and 0 < v <= 10),
+    "weight_decay": ("a number in [0, 10]", _in(0, 10)),
+    "betas": ("two numbers in [0, 1)", lambda v: isinstance(v, list) and len(v) == 2
+              and all(_is_number(b) and 0 <= b < 1 for b in v)),
+    "lr_halvings": ("a whole number in 0..64", _in(0, 64, whole=True)),
+    "noise": ("a number in [0, 10]", _in(0, 10)),
+    "input_dropout": ("a fraction in [0, 1)", lambda v: _is_number(v) and 0 <= v < 1),
+    "average_tail": ("a fraction in [0, 1]", _in(0, 1)),
+    "seed": ("a whole number", _in(-(2 ** 63), 2 ** 63 - 1, whole=True)),
+    "checkpoint_every_s": ("seconds, 0 or more", _in(0, 1e9)),
+}
 
 
 def _check_counts(section, where: str, path) -> None:
