@@ -516,3 +516,36 @@ def test_a_frame_without_its_image_is_named(scene_dir, tmp_path):
     with pytest.raises(InputError, match=r"frame-000015\.(pose\.txt|depth\.png): frame "
                                          r"seq-01/frame-000015 has no colour image"):
         load_dataset(copy)
+
+
+# ---- eleventh round, CLI G1: a file name's undecodable bytes are encoded, not an error -------
+def test_a_line_name_of_undecodable_bytes_is_percent_encoded():
+    from slamreloc.cli.jobs import line_name
+
+    assert line_name(os.fsdecode(b"x\xff.png")) == "x%FF.png"
+    assert line_name("a b/#c.png") == "a%20b/%23c.png" and line_name("plain.png") == "plain.png"
+
+
+# ---- G5: a full disk while the write lock is taken names the lock and leaves none ------------
+def test_a_full_disk_at_the_lock_names_it_and_leaves_none(tiny_map, tmp_path, monkeypatch):
+    from slamreloc.map import lock as map_lock
+
+    def full(fd, data, offset):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(map_lock.os, "pwrite", full)
+    with pytest.raises(OSError) as err:
+        _resave(tiny_map, tmp_path / "m")
+    assert err.value.filename == str(tmp_path / ".m.lock")
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+# ---- G6: surface points beyond the coordinate bound are refused, whatever their dtype --------
+@pytest.mark.parametrize("scale, dtype", [(1e36, np.float32), (1e300, np.float64)])
+def test_surface_points_beyond_the_bound_are_refused(scale, dtype):
+    from slamreloc.map.surface import Surface
+
+    points = (np.ones((4, 3)) * scale).astype(dtype)
+    normals = np.tile(np.array([[0.0, 0.0, 1.0]], dtype), (4, 1))
+    with pytest.raises(InputError, match="surface 'points' beyond 1e\\+09 m"):
+        Surface.from_arrays({"points": points, "normals": normals}, "s.npz")

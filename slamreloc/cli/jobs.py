@@ -220,7 +220,11 @@ def line_name(name: str) -> str:
 
     if name.startswith("#") or "%" in name or any(c.isspace() or not c.isprintable()
                                                   for c in name):
-        return quote(name, safe="/")
+        try:  # a file name's undecodable bytes (surrogates) as the bytes they were
+            raw = name.encode("utf-8", "surrogateescape")
+        except UnicodeEncodeError:
+            raw = name.encode("utf-8", "backslashreplace")
+        return quote(raw, safe="/")
     return name
 
 

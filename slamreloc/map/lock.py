@@ -121,8 +121,12 @@ def map_write_lock(out: str | Path, what: str = "this map") -> Iterator[None]:
         raise InputError(f"{lock}: holds something that is not a slamreloc write lock; "
                          f"refusing to overwrite it (move it to write {out.name})")
     try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n{what}\n".encode(), 0)
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n{what}\n".encode(), 0)
+        except OSError as err:  # a full disk: no lock left behind, the path named
+            lock.unlink(missing_ok=True)
+            raise OSError(err.errno, err.strerror, str(lock)) from None
         _HELD.add(key)
         try:
             _recover(out)

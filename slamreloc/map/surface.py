@@ -25,7 +25,7 @@ import numpy as np
 
 from slamreloc.datasets import Dataset, read_depth
 from slamreloc.errors import InputError
-from slamreloc.geometry import Rigid3, axis_angle_to_matrix, rotation_angle_deg
+from slamreloc.geometry import MAX_COORDINATE, Rigid3, axis_angle_to_matrix, rotation_angle_deg
 from slamreloc.runtime.progress import track
 from slamreloc.rgbd import DepthSampling, backproject, camera_of_depth
 from slamreloc.types import Camera, Frame
@@ -91,6 +91,8 @@ class Surface:
             raise InputError(f"{source}: surface arrays must be floating point")
         if not (np.isfinite(pts).all() and np.isfinite(nrm).all()):
             raise InputError(f"{source}: surface has non-finite values")
+        if len(pts) and np.abs(pts).max() > MAX_COORDINATE:  # the database points' bound
+            raise InputError(f"{source}: surface 'points' beyond {MAX_COORDINATE:g} m")
         # ICP weighs each residual by its normal: a zero or scaled normal would refine poses
         # against a wrong plane without a word
         lengths = np.linalg.norm(nrm.astype(np.float64), axis=1)
