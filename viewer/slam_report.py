@@ -77,11 +77,9 @@ def _position(e: Json) -> np.ndarray | None:
     if e.has("world_from_cam"):
         field = e.child("world_from_cam")
         rows = 3 if isinstance(field.value, list) and len(field.value) == 3 else 4
-        m = np.eye(4)
-        m[:rows] = field.array((rows, 4))
         # a pose by every pose reader's rule (rigid, within the coordinate bound)
-        return Rigid3.from_matrix(m, tol=1e-2, source=f"{field.source}: {field.where}"
-                                  ).translation.copy()
+        return Rigid3.from_matrix(field.array((rows, 4)), tol=1e-2,
+                                  source=f"{field.source}: {field.where}").translation.copy()
     for key in ("position", "pose", "tum"):
         if e.has(key):
             v = e.child(key)

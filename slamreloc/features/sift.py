@@ -52,18 +52,21 @@ class Sift(Extractor):
                                      edgeThreshold=c.edge_threshold,
                                      enable_precise_upscale=c.upsample)
 
+    def _no_features(self) -> Features:
+        return Features(np.zeros((0, 2), np.float32), np.zeros((0, self.dim), np.float32),
+                        np.zeros(0, np.float32))
+
     def extract_grey(self, grey: np.ndarray) -> Features:
         scale = 1.0
-        kps, desc = (), None  # an image a pixel wide (`--limit min_image_side=1`): no features
-        if not self.config.upsample and min(grey.shape[:2]) >= 2:
+        if not self.config.upsample:
+            if min(grey.shape[:2]) < 2:  # a pixel wide (`--limit min_image_side=1`): no halving
+                return self._no_features()
             grey = cv2.resize(grey, (grey.shape[1] // 2, grey.shape[0] // 2),
                               interpolation=cv2.INTER_AREA)
             scale = 2.0
-        if self.config.upsample or scale == 2.0:
-            kps, desc = self._sift.detectAndCompute(grey, None)
+        kps, desc = self._sift.detectAndCompute(grey, None)
         if desc is None or len(kps) == 0:
-            return Features(np.zeros((0, 2), np.float32), np.zeros((0, self.dim), np.float32),
-                            np.zeros(0, np.float32))
+            return self._no_features()
         # OpenCV can return slightly more than nfeatures (ties); keep the strongest.
         order = np.argsort([-k.response for k in kps])[: self.config.max_keypoints]
         xy = np.array([kps[i].pt for i in order], np.float32) * scale

@@ -352,8 +352,7 @@ def check_outputs(outputs: dict[str, str | Path | None],
                                  f"{own_kind or 'this output'}; refusing to replace it (move "
                                  "it or write elsewhere)")
         if not want_dir:
-            named = Path(out)  # as `atomic_file` names its temporary
-            tmp = named.with_name(f".{named.stem}.tmp-{os.getpid()}{named.suffix}")
+            tmp = temp_file_path(Path(out))
             if os.path.lexists(tmp):
                 raise InputError(temp_in_the_way(tmp, f"{out}: {option}"))
         _check_writable(Path(out), option)
@@ -382,6 +381,12 @@ def outputs_together() -> Iterator[None]:
             signal.signal(s, handler)
     if held:
         raise KeyboardInterrupt
+
+
+def temp_file_path(path: Path) -> Path:
+    """The temporary file `atomic_file` writes `path` into: hidden beside it, named with this
+    process id, with `path`'s suffix (a writer that picks its format by suffix keeps it)."""
+    return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
 
 
 def temp_in_the_way(tmp: Path, what: str) -> str:
@@ -423,7 +428,7 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
     success, remove it on failure."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    tmp = temp_file_path(path)
     try:
         os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644))
     except FileExistsError:

@@ -25,6 +25,7 @@ refused with a message naming both versions.
 from __future__ import annotations
 
 import errno
+import os
 import stat
 import zipfile
 from collections.abc import Mapping
@@ -47,6 +48,12 @@ LEGACY_WEIGHTS = "regressor.pt"  # format 1
 # every file a map folder holds (its writer's; `files` in the metadata names those of them
 # it checksums)
 MAP_FILES = frozenset({META, WEIGHTS, DATABASE, SURFACE, PROVENANCE, LEGACY_WEIGHTS})
+
+
+def is_map_file(entry: os.DirEntry) -> bool:
+    """Whether a folder's entry is a file a map writer writes (a regular file, not a link, of
+    one of MAP_FILES' names)."""
+    return entry.name in MAP_FILES and entry.is_file(follow_symlinks=False)
 LABELLED, PSEUDO, NEW = 0, 1, 2  # provenance `source` of a database row: labelled when the map
 # was built, a map label inherited by a registered frame (pseudo-label), triangulated anew
 MAX_ARRAY_BYTES = 16 << 30

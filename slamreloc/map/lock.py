@@ -21,7 +21,7 @@ from pathlib import Path
 
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import lock_record, write_lock_path
-from slamreloc.map.format import MAP_FILES, is_map
+from slamreloc.map.format import is_map, is_map_file
 
 _HELD: set[str] = set()  # maps whose write lock this process holds
 
@@ -78,8 +78,7 @@ def _dead_writer(pid: int) -> bool:
 def only_map_files(folder: Path) -> bool:
     """Whether `folder` holds nothing but regular files a map writer writes."""
     try:
-        return all(e.name in MAP_FILES and e.is_file(follow_symlinks=False)
-                   for e in os.scandir(folder))
+        return all(is_map_file(e) for e in os.scandir(folder))
     except OSError:
         return False
 

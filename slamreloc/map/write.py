@@ -18,7 +18,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import naming_output
-from slamreloc.map.format import (DATABASE, FORMAT_VERSION, MAP_FILES, META, WEIGHTS, is_map,
+from slamreloc.map.format import (DATABASE, FORMAT_VERSION, META, WEIGHTS, is_map, is_map_file,
                                   sha256_file)
 from slamreloc.map.lock import fsync_dir, map_write_lock
 from slamreloc.map.meta import MapMeta
@@ -34,8 +34,7 @@ def check_map_target(out: Path) -> None:
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not is_map(out))):
         raise InputError(f"{out}: exists and is not a slamreloc map; refusing to overwrite it")
     if out.is_dir():
-        foreign = sorted(e.name for e in os.scandir(out)
-                         if e.name not in MAP_FILES or not e.is_file(follow_symlinks=False))
+        foreign = sorted(e.name for e in os.scandir(out) if not is_map_file(e))
         if foreign and is_map(out):
             raise InputError(f"{out}: also holds {', '.join(map(repr, foreign[:3]))}"
                              f"{' ...' if len(foreign) > 3 else ''}, which is not a map's; "
@@ -66,7 +65,7 @@ def _remove_old_copy(old: Path, out: Path) -> None:
     try:
         for entry in os.scandir(old):
             path = Path(entry.path)
-            if entry.name in MAP_FILES and entry.is_file(follow_symlinks=False):
+            if is_map_file(entry):
                 path.unlink()
             elif out.is_dir() and not os.path.lexists(out / entry.name):
                 os.rename(path, out / entry.name)

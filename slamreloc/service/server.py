@@ -410,8 +410,12 @@ class RelocalizerService:
             self.learning_opening += 1
             state["reserved"] = True
 
-    def _unreserve_learning(self, state: dict) -> None:
+    def _unreserve_learning(self, state: dict, opened: Session | None = None) -> None:
+        """Give the place `_reserve_learning` held back; `opened`: the learning session that
+        took it, counted among `learning` in the same step (no other open slips between)."""
         with self._count_lock:
+            if opened is not None:
+                self.learning.add(opened)
             if state.get("reserved"):
                 state["reserved"] = False
                 self.learning_opening -= 1
@@ -469,11 +473,7 @@ class RelocalizerService:
                     session = opening
                     if session.learning:
                         state["session"] = session
-                        with self._count_lock:  # from reserved to open in one step
-                            self.learning.add(session)
-                            if state.get("reserved"):
-                                state["reserved"] = False
-                                self.learning_opening -= 1
+                        self._unreserve_learning(state, opened=session)
                     yield pb.SessionUpdate(opened=session.opened()).SerializeToString()
                     continue
                 if kind == "save":  # no worker slot: a save computes no localization
