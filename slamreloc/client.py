@@ -116,6 +116,16 @@ def depth_msg(depth: np.ndarray, camera: Camera | None = None) -> pb.Depth:
     return msg
 
 
+def _pose_msg(pose: Rigid3, what: str) -> pb.Transform:
+    """The wire's Transform of a pose the caller gives; InputError naming `what` for one that
+    is no rigid motion (a reflection, a scaled or sheared rotation block, a translation beyond
+    MAX_COORDINATE): the server's and every pose file's rule (`Rigid3.from_matrix`), checked
+    before the send instead of a quaternion made up from such a matrix."""
+    if not isinstance(pose, Rigid3):
+        raise InputError(f"{what} is {type(pose).__name__}, not a Rigid3")
+    return transform_msg(Rigid3.from_matrix(pose.matrix(), source=what))
+
+
 def _camera(camera: Camera | str | None) -> pb.Camera | None:
     if camera is None:
         return None
@@ -207,7 +217,8 @@ class Client:
         if depth is not None:
             req.depth.CopyFrom(depth_msg(depth, depth_camera))
         if world_from_cam_prior is not None:
-            req.world_from_cam_prior.CopyFrom(transform_msg(world_from_cam_prior))
+            req.world_from_cam_prior.CopyFrom(_pose_msg(world_from_cam_prior,
+                                                        "`world_from_cam_prior`"))
         return LocalizeResult(self._call(self.stub.Localize, req))
 
     def health(self) -> pb.HealthResponse:
@@ -358,7 +369,8 @@ class ClientSession:
             else:
                 frame.depth.CopyFrom(depth_msg(depth))
         if odometry_world_from_cam is not None:
-            frame.odometry_world_from_cam.CopyFrom(transform_msg(odometry_world_from_cam))
+            frame.odometry_world_from_cam.CopyFrom(_pose_msg(odometry_world_from_cam,
+                                                            "`odometry_world_from_cam`"))
         return self._answer(pb.SessionRequest(frame=frame)).frame
 
     def save(self, name: str) -> pb.MapSaved:

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import atomic_file
+from slamreloc.io.fileio import atomic_file, outputs_together
 from slamreloc.io.numbers import number_problem, written_as_number
 
 RIGID_TOL = 1e-3  # max |R^T R - I| and |det R - 1| accepted for a pose read from a file
@@ -51,8 +51,12 @@ class Rigid3:
         return Rigid3(project_to_so3(rot), m[:3, 3].copy())
 
     @staticmethod
-    def from_qt(quat_xyzw: np.ndarray, translation: np.ndarray) -> Rigid3:
-        return Rigid3(quat_to_matrix(quat_xyzw), np.asarray(translation, dtype=np.float64))
+    def from_qt(quat_xyzw: np.ndarray, translation: np.ndarray, source: str = "pose") -> Rigid3:
+        """From a unit quaternion (x, y, z, w; norm 1 within QUATERNION_NORM_TOL, the rule of
+        every pose read: `unit_quaternion`, InputError naming `source` otherwise) and a
+        translation (metres)."""
+        return Rigid3(quat_to_matrix(unit_quaternion(quat_xyzw, source)),
+                      np.asarray(translation, dtype=np.float64))
 
     def matrix(self) -> np.ndarray:
         """4x4 homogeneous matrix."""
@@ -409,14 +413,15 @@ def write_tum_trajectory(path, stamps, world_from_cam: list[Rigid3], comments=()
                          names: list[str] | None = None) -> None:
     """A TUM file (`stamp tx ty tz qx qy qz qw`, camera-to-world, metres; `# comment` lines
     first) written atomically, and with `names` the `names_sidecar` (`stamp name` per line) that
-    ties each stamp to its frame."""
+    ties each stamp to its frame: both new, or (a failure, a full disk) both as they were."""
     rows = [f"{float(t):.6f}" for t in stamps]
-    with atomic_file(Path(path)) as tmp:
-        tmp.write_text("".join(f"# {c}\n" for c in comments)
-                       + "".join(tum_line(t, p) + "\n" for t, p in zip(rows, world_from_cam)))
-    if names is not None:
-        with atomic_file(names_sidecar(path)) as tmp:
-            tmp.write_text("".join(f"{t} {n}\n" for t, n in zip(rows, names)))
+    with outputs_together():  # both new, or both as they were
+        with atomic_file(Path(path)) as tmp:
+            tmp.write_text("".join(f"# {c}\n" for c in comments)
+                           + "".join(tum_line(t, p) + "\n" for t, p in zip(rows, world_from_cam)))
+        if names is not None:
+            with atomic_file(names_sidecar(path)) as tmp:
+                tmp.write_text("".join(f"{t} {n}\n" for t, n in zip(rows, names)))
 
 
 def distinct_stamps(stamps) -> list[float]:

@@ -39,14 +39,20 @@ import numpy as np
 
 from slamreloc.camera_models import MODELS, PARAMS, colmap_head
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import check_outputs, make_temp_dir, naming_output, write_json
+from slamreloc.io.fileio import (check_outputs, make_temp_dir, naming_output, temp_dir_path,
+                                 write_json)
 from slamreloc.map.lock import map_write_lock
 from slamreloc.io.video import is_video, video_frames
 from slamreloc.runtime.progress import console, make_progress
 from slamreloc.types import Camera, frame_name_problem
 
 SFM_JSON = "sfm.json"
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+# the photos of a folder, by name: every format `read_image` reads (PNG, JPEG, BMP, TIFF, WebP,
+# PNM); a photo of another format is refused by name, never left out unsaid
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm",
+                  ".pbm", ".pnm")
+UNREAD_IMAGE_SUFFIXES = (".gif", ".heic", ".heif", ".avif", ".jp2", ".jxl", ".dng", ".cr2",
+                         ".nef", ".arw", ".raw")
 MATCHING = ("auto", "sequential", "exhaustive")
 MAPPERS = ("auto", "global", "incremental")
 EXHAUSTIVE_UP_TO = 60  # images; beyond, "auto" matches sequentially
@@ -323,7 +329,7 @@ def _selector(config: SfmConfig, kind: str, camera: Camera | None) -> KeyframeSe
     """The keyframe selector `config` asks for on input of this kind, or None (keep all)."""
     if config.select == "all" or config.select == "auto" and kind != "video":
         return None
-    text = config.camera.strip()
+    text = config.camera
     if text and len(text.split()) > 1:
         camera = Camera.parse(text, "`camera`")
     if camera is None:
@@ -357,6 +363,9 @@ def _is_image_file(path: Path, root: Path) -> bool:
     """A photo of the folder `root` by its name; InputError where that name is no regular
     file (a folder, a pipe, a device, a broken link: it would vanish from the input unsaid)
     or could not name a frame (`frame_name_problem`: a line break in it)."""
+    if path.suffix.lower() in UNREAD_IMAGE_SUFFIXES:
+        raise InputError(f"{path}: a photo of a format sfm does not read (PNG, JPEG, BMP, "
+                         "TIFF, WebP and PNM are read): convert it, or move it out")
     if path.suffix.lower() not in IMAGE_SUFFIXES:
         return False
     if not path.is_file():
@@ -525,9 +534,9 @@ def initial_camera(config: SfmConfig, given: Camera | None,
     `sizes`: the images' sizes ((width, height) -> an image of that size): a `camera` string
     is scaled to them (`Camera.for_image`: refused for another aspect ratio, or for images of
     several sizes, which one camera cannot describe)."""
-    text = config.camera.strip()
+    text = config.camera  # as `Camera.parse` takes it everywhere: exact, not stripped
     if text and len(text.split()) == 1:
-        model = text.upper()
+        model = text
         if model not in MODELS:
             raise InputError(f"`camera`: unknown camera model {text[:40]!r} (known: "
                              f"{', '.join(MODELS)})")
@@ -603,7 +612,7 @@ def _run_into(source: Path, out: Path, config: SfmConfig, progress: bool) -> dic
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(f"{out}: exists and is not empty; choose a new folder")
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = make_temp_dir(out.parent / f"{out.name}.tmp-{os.getpid()}", str(out))
+    tmp = make_temp_dir(temp_dir_path(out), str(out))
     try:
         summary = _run(source, tmp, config, progress)
         if out.exists():

@@ -173,25 +173,42 @@ def test_ply_and_plot_replace_only_files_they_wrote(world, tmp_path):
     assert "--plot" in line and ".png" in line
 
 
-def test_a_colmap_model_folder_is_replaced(world, tmp_path):
-    """The one folder export replaces: a COLMAP model and nothing else."""
-    from slamreloc.map.export import is_colmap_model
+def test_only_a_colmap_model_export_wrote_and_nobody_changed_is_replaced(world, tmp_path):
+    """The one folder export replaces: its own model, as it wrote it (the mark's digests). A
+    model another tool wrote (a COLMAP dataset's), one edited since, or one with anything
+    beside it is refused, and left byte for byte."""
+    from slamreloc.map.export import EXPORT_MARK, is_colmap_model
 
-    model = tmp_path / "model"
-    model.mkdir()
-    for name in ("cameras.txt", "images.txt", "points3D.txt"):
-        (model / name).write_text("#\n")
-    assert is_colmap_model(model)
-    (model / "points3D.bin").write_bytes(b"")
-    assert is_colmap_model(model)
-    (model / "x").mkdir()
-    assert not is_colmap_model(model)
-    code, err = run_cli(["export", str(world / "map"), "--colmap", str(tmp_path / "new")])
-    assert code == 0, err
-    code, err = run_cli(["export", str(world / "map"), "--colmap", str(tmp_path / "new")])
-    assert code == 0, err
-    assert sorted(p.name for p in (tmp_path / "new").iterdir()) == [
-        "cameras.txt", "images.txt", "points3D.txt"]
+    new = tmp_path / "new"
+    argv = ["export", str(world / "map"), "--colmap", str(new)]
+    for _ in range(2):
+        code, err = run_cli(argv)
+        assert code == 0, err
+        assert is_colmap_model(new)
+    assert sorted(p.name for p in new.iterdir()) == [
+        "cameras.txt", "images.txt", "points3D.txt", EXPORT_MARK]
+    foreign = tmp_path / "foreign"  # the same model files, not marked: a COLMAP dataset's
+    foreign.mkdir()
+    for p in new.iterdir():
+        if p.name != EXPORT_MARK:
+            (foreign / p.name).write_bytes(p.read_bytes())
+    edited = tmp_path / "edited"
+    edited.mkdir()
+    for p in new.iterdir():
+        (edited / p.name).write_bytes(p.read_bytes())
+    with open(edited / "images.txt", "a") as f:
+        f.write("# my note\n")
+    extra = tmp_path / "extra"
+    extra.mkdir()
+    for p in new.iterdir():
+        (extra / p.name).write_bytes(p.read_bytes())
+    (extra / "images").mkdir()
+    for folder in (foreign, edited, extra):
+        assert not is_colmap_model(folder)
+        before = {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()}
+        code, err = run_cli(["export", str(world / "map"), "--colmap", str(folder)])
+        assert code == 2 and "refusing to replace it" in err, err
+        assert {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()} == before
 
 
 def test_check_outputs_names_the_option_and_the_problem(tmp_path):

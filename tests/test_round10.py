@@ -444,7 +444,7 @@ def test_export_colmap_into_an_empty_folder(tiny_map, tmp_path):
     code, err = run_cli(["export", str(tiny_map), "--colmap", str(tmp_path / "col")])
     assert code == 0, err
     assert sorted(p.name for p in (tmp_path / "col").iterdir()) == [
-        "cameras.txt", "images.txt", "points3D.txt"]
+        "cameras.txt", "images.txt", "points3D.txt", "slamreloc_export.json"]
 
 
 # ---- F4: a full disk names the output ----------------------------------------------------------

@@ -4,6 +4,7 @@ of its options come from the registries (`slamreloc.cli.choices`)."""
 from __future__ import annotations
 
 import re
+import sys
 from dataclasses import replace
 from functools import cache
 from pathlib import Path
@@ -23,6 +24,7 @@ from slamreloc.cli.choices import (
 )
 from slamreloc.cli.serve import serve
 from slamreloc.errors import InputError
+from slamreloc.io.fileio import naming_output
 
 POSES_HELP = ("take the frames' poses from this file instead of the dataset's: a COLMAP model "
               "folder, 'name tx ty tz qx qy qz qw' lines, a TUM file or another dataset "
@@ -209,14 +211,19 @@ def localize(
         query_camera = Camera.parse(camera, "--camera")
     else:
         query_camera = intrinsics
+    if sys.stdout is None:  # started with its standard output closed (`>&-`)
+        raise InputError("standard output is closed: the poses would be lost (send them to "
+                         "a file or a pipe)")
     errors = 0
     for line, status in jobs.localize(map_dir, images, query_camera, method.value,
                                        guided_choice(method, guided)):
         if status == "error":
             errors += 1
             typer.echo(with_flags(line), err=True)
-        else:
+            continue
+        with naming_output("standard output"):  # a full disk, a closed pipe: said so
             typer.echo(line)
+            sys.stdout.flush()
     if errors:
         raise typer.Exit(2)
 

@@ -18,7 +18,7 @@ from pathlib import Path
 from rich.table import Table
 
 from slamreloc.datasets import Dataset, load_dataset, read_image
-from slamreloc.datasets.poses import NAMES_FILE, TUM_FILE
+from slamreloc.datasets.poses import NAMES_FILE, TUM_FILE, check_names_sidecar_free
 from slamreloc.errors import InputError, OutOfMemory
 from slamreloc.geometry import (
     Rigid3,
@@ -28,7 +28,7 @@ from slamreloc.geometry import (
     write_tum_trajectory,
 )
 from slamreloc.io.fileio import check_outputs, outputs_together, reads_as, write_json
-from slamreloc.io.jsonio import read_json, report_kind
+from slamreloc.io.jsonio import read_json, written_report_kind
 from slamreloc.localize.evaluate import (
     EvaluationConfig,
     evaluate_map,
@@ -64,6 +64,8 @@ def evaluate(map_dir: Path, dataset_dir: Path, report: Path, split: str = "test"
                    **{f"--reference {p}": p for p in references}, **recorded_inputs(map_dir)},
                   files={"--report": REPORT_FILE, "--trajectory": TUM_FILE,
                          "--trajectory's names file": NAMES_FILE, "--plot": PLOT_FILE})
+    if trajectory is not None:
+        check_names_sidecar_free(trajectory, "--trajectory")
     scene_map = SceneMap.load(map_dir)
     labels = reference_labels(list(references))
     dataset = load_dataset(dataset_dir, poses)
@@ -104,13 +106,13 @@ def recorded_inputs(map_dir: Path) -> dict[str, Path | None]:
 
 
 def read_report(path: Path) -> dict:
-    """A report a command may replace: a report of slamreloc's (`report_kind`: evaluate,
-    slam, pseudo-label; not any JSON object, as a dataset's scene.json) that is not a map's
-    own file."""
+    """A report a command may replace: a report of slamreloc's (`written_report_kind`:
+    evaluate, slam, pseudo-label, with every field that command writes; not any JSON object,
+    as a dataset's scene.json or a user's notes) that is not a map's own file."""
     if is_map(path.parent):
         raise InputError(f"{path}: a file of the map {path.parent}")
     data = read_json(path, "report")
-    if report_kind(data) == "other":
+    if written_report_kind(data) == "other":
         raise InputError(f"{path}: a JSON file that is no slamreloc report")
     return data
 
@@ -276,6 +278,8 @@ def slam(dataset: Path, map_dir: Path | None, report: Path, split: str = "test",
                   folders={"--out": (is_map, "a slamreloc map")},
                   files={"--report": REPORT_FILE, "--trajectory": TUM_FILE,
                          "--trajectory's names file": NAMES_FILE})
+    if trajectory is not None:
+        check_names_sidecar_free(trajectory, "--trajectory")
     config = SlamRunConfig(split=split, odometry=odometry, kidnap_every=kidnap_every,
                            kidnap_skip=kidnap_skip, progress=progress,
                            kidnap_from=kidnap_every if kidnap_from < 0 else kidnap_from,

@@ -110,6 +110,29 @@ def read_own_trajectory(path: Path) -> None:
     read_tum_trajectory(path)
 
 
+def check_names_sidecar_free(trajectory: Path, option: str) -> None:
+    """InputError unless the names sidecar of the trajectory output `trajectory` (`X.names.txt`,
+    shared by every `X.*`) belongs to no other trajectory: a TUM file `X.*` beside it other
+    than `trajectory` (an `X.txt` when writing `X.csv`, or an input's `X.txt` when writing
+    `X.foo`) would have its stamps read against the new names."""
+    trajectory = Path(trajectory)
+    sidecar = names_sidecar(trajectory)
+    folder = trajectory.parent if str(trajectory.parent) else Path(".")
+    if not folder.is_dir():
+        return
+    for entry in folder.iterdir():
+        if (entry.name in (trajectory.name, sidecar.name) or names_sidecar(entry) != sidecar
+                or not entry.is_file()):  # a link to a trajectory elsewhere reads this sidecar
+            continue
+        try:
+            read_tum_trajectory(entry)
+        except InputError:
+            continue
+        raise InputError(f"{trajectory}: {option} would write its frame names to {sidecar}, "
+                         f"which also names the stamps of the trajectory {entry}; give the "
+                         "output another name (every X.* trajectory shares X.names.txt)")
+
+
 # `check_outputs`' `files` entries: a TUM trajectory output (`--trajectory`, `export --tum`)
 # and the frame-names sidecar written beside it (`names_sidecar`) may replace only their kind
 NAMES_FILE = reads_as(read_names_sidecar, "a frame-names file ('stamp name' lines)")

@@ -8,6 +8,7 @@ import json
 import os
 import stat
 import tempfile
+import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -284,7 +285,8 @@ def check_outputs(outputs: dict[str, str | Path | None],
     empty folder; a tuple: any folder), nor (`files`: option -> `is_own(file)` or
     `(is_own, "a frame-names file")`) an existing file that is not that option's kind. The
     temporary path `atomic_file` writes beside a file output must not be anything but a
-    regular file either. An output that is itself a symbolic link is refused (the rename would
+    regular file either, nor be there at all beside a folder output (`temp_dir_path`). An
+    output that is itself a symbolic link is refused (the rename would
     replace the link: `/dev/stdout` is one); links among its parent folders are followed."""
     ins = {what: Path(p).resolve() for what, p in inputs.items() if p is not None}
     own = folders if isinstance(folders, dict) else dict.fromkeys(folders, ...)
@@ -351,42 +353,78 @@ def check_outputs(outputs: dict[str, str | Path | None],
                 raise InputError(f"{out}: {option} exists and is not "
                                  f"{own_kind or 'this output'}; refusing to replace it (move "
                                  "it or write elsewhere)")
-        if not want_dir:
-            tmp = temp_file_path(Path(out))
-            if os.path.lexists(tmp):
-                raise InputError(temp_in_the_way(tmp, f"{out}: {option}"))
+        tmp = temp_dir_path(out) if want_dir else temp_file_path(Path(out))
+        if os.path.lexists(tmp):  # refused now, not after the work
+            raise InputError(temp_in_the_way(tmp, f"{out}: {option}"))
         _check_writable(Path(out), option)
+
+
+_together = threading.local()  # .pending: the commits of an `outputs_together` block
 
 
 @contextmanager
 def outputs_together() -> Iterator[None]:
-    """Write a command's several outputs as one: a Ctrl-C or SIGTERM that arrives while they
-    are written is held until the block ends, then raised (KeyboardInterrupt), so an
-    interrupted command leaves its outputs all new or all as they were, never a new report
-    beside an old plot. Keep the block to the writing itself (compute before it); off the
-    main thread it only runs the block."""
+    """Write a command's several outputs as one: each writer inside the block (`atomic_file`,
+    any `commit_output`) writes its temporary, and the renames that put them in place run only
+    when the whole block has succeeded. A failure inside (a full disk at the second file)
+    removes every temporary and leaves all outputs as they were; a Ctrl-C or SIGTERM that
+    arrives meanwhile is held until the renames are done, then raised (KeyboardInterrupt). So
+    a command's outputs are all new or all as they were, never a new report beside an old
+    plot. Keep the block to the writing itself (compute before it). Nested blocks commit with
+    the outermost; off the main thread signals are not held."""
     import signal
-    import threading
 
-    if threading.current_thread() is not threading.main_thread():
+    if getattr(_together, "pending", None) is not None:
         yield
         return
     held: list[int] = []
-    previous = {s: signal.signal(s, lambda signum, frame: held.append(signum))
-                for s in (signal.SIGINT, signal.SIGTERM)}
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        previous = {s: signal.signal(s, lambda signum, frame: held.append(signum))
+                    for s in (signal.SIGINT, signal.SIGTERM)}
+    pending: list[tuple[Callable[[], None], Callable[[], None]]] = []
+    _together.pending = pending
     try:
         yield
+        _together.pending = None
+        for commit, _ in pending:
+            commit()
     finally:
+        _together.pending = None
+        for _, discard in pending:
+            discard()
         for s, handler in previous.items():
             signal.signal(s, handler)
     if held:
         raise KeyboardInterrupt
 
 
+def commit_output(commit: Callable[[], None], discard: Callable[[], None]) -> None:
+    """Put a written output in place: `commit()` (a rename) now, or, inside `outputs_together`,
+    when the whole block has succeeded; `discard()` (removing what `commit` did not take) runs
+    after it either way."""
+    pending = getattr(_together, "pending", None)
+    if pending is not None:
+        pending.append((commit, discard))
+        return
+    try:
+        commit()
+    finally:
+        discard()
+
+
 def temp_file_path(path: Path) -> Path:
     """The temporary file `atomic_file` writes `path` into: hidden beside it, named with this
     process id, with `path`'s suffix (a writer that picks its format by suffix keeps it)."""
     return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+
+
+def temp_dir_path(out: str | Path, role: str = "tmp") -> Path:
+    """The folder a writer of the folder `out` works in: `.NAME.tmp-PID` (the new contents
+    before they are renamed in), or with `role` "old" `.NAME.old-PID` (the old contents moved
+    aside); hidden beside `out`, named with this process id."""
+    out = Path(out)
+    return out.parent / f".{out.name}.{role}-{os.getpid()}"
 
 
 def temp_in_the_way(tmp: Path, what: str) -> str:
@@ -425,7 +463,8 @@ def make_temp_dir(tmp: Path, what: str) -> Path:
 def atomic_file(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside `path` (same suffix), made here as a new empty file
     (never an existing one, nor through a link: `temp_in_the_way`); rename it over `path` on
-    success, remove it on failure."""
+    success (inside `outputs_together`, when the whole block succeeds), remove it on
+    failure."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temp_file_path(path)
@@ -433,12 +472,17 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
         os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644))
     except FileExistsError:
         raise InputError(temp_in_the_way(tmp, str(path))) from None
+    def replace() -> None:
+        with naming_output(path):
+            os.replace(tmp, path)
+
     try:
         with naming_output(path):
             yield tmp
-            os.replace(tmp, path)
-    finally:
+    except BaseException:
         tmp.unlink(missing_ok=True)
+        raise
+    commit_output(replace, lambda: tmp.unlink(missing_ok=True))
 
 
 def write_json(path: str | Path, data: dict) -> None:

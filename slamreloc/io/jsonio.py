@@ -206,7 +206,8 @@ class Json:
 
 def report_kind(data: dict) -> str:
     """The slamreloc command a REPORT.json came from, by the keys each writes: "evaluate",
-    "pseudo-label", "slam", or "other" (no report of slamreloc's)."""
+    "pseudo-label", "slam", or "other" (no report of slamreloc's). Any one of a kind's keys
+    decides (the viewer shows what such a file holds); `written_report_kind` asks for all."""
     if "per_query" in data or "n_queries" in data:
         return "evaluate"
     if "n_pseudo_labels" in data or "n_new_points" in data:
@@ -214,3 +215,19 @@ def report_kind(data: dict) -> str:
     if any(k in data for k in ("ate_rmse_m", "n_kidnaps", "events", "graph_edges")):
         return "slam"
     return "other"
+
+
+# the fields every report of a kind holds (what each command always writes)
+REPORT_KEYS = {
+    "evaluate": ("method", "n_queries", "n_localized", "recall", "per_query"),
+    "pseudo-label": ("n_frames", "n_frames_registered", "n_pseudo_labels", "n_new_points"),
+    "slam": ("n_frames", "odometry", "ate_rmse_m", "events"),
+}
+
+
+def written_report_kind(data: dict) -> str:
+    """`report_kind`, where the file holds every field that command always writes
+    (`REPORT_KEYS`), else "other": what an output may replace (a user's notes holding an
+    `n_queries` are no report of slamreloc's)."""
+    kind = report_kind(data)
+    return kind if kind != "other" and all(k in data for k in REPORT_KEYS[kind]) else "other"

@@ -11,6 +11,7 @@ that is not the map's is refused (`check_dataset_of_map`).
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from dataclasses import dataclass
@@ -19,10 +20,11 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import (atomic_file, make_temp_dir, marked_file, naming_output,
-                                 outputs_together)
+from slamreloc.io.fileio import (atomic_file, commit_output, make_temp_dir, marked_file,
+                                 naming_output, outputs_together, sha256_of, temp_dir_path)
 from slamreloc.geometry import Rigid3, matrix_to_quat, write_tum_trajectory
 from slamreloc.io.images import pixel_colours, read_image
+from slamreloc.io.jsonio import read_json
 from slamreloc.runtime.progress import track
 from slamreloc.types import aspect_problem
 from slamreloc.map.scene_map import SceneMap, rows_by_frame
@@ -167,7 +169,7 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
         names.append(os.path.relpath(path, root) if path is not None and root is not None
                      else name)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = make_temp_dir(out.with_name(f".{out.name}.tmp-{os.getpid()}"), str(out))
+    tmp = make_temp_dir(temp_dir_path(out), str(out))
     try:
         # COLMAP's pixel centres are at +0.5 (slamreloc: OpenCV, at integers)
         (tmp / "cameras.txt").write_text(
@@ -201,26 +203,68 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
                                       zip(image_id[rows].tolist(), point2d_index[rows].tolist()))
                 f.write(f"{p + 1} {x!r} {y!r} {z!r} {r} {g} {b} {points.error_px[p]:.6f} "
                         f"{track_text}\n")
-        if out.exists():  # an empty folder, or a model (`check_outputs`)
-            if any(out.iterdir()) and not is_colmap_model(out):  # changed since: not ours
-                raise InputError(f"{out}: is no longer a COLMAP model; refusing to replace it")
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    finally:
+        _write_export_mark(tmp, scene_map)
+    except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+    def swap() -> None:  # the old model aside, the new one in, the old one removed
+        old = None
+        with naming_output(out):
+            if out.exists():  # an empty folder, or export's own model (`check_outputs`)
+                if any(out.iterdir()) and not is_colmap_model(out):  # changed since
+                    raise InputError(f"{out}: is no longer the COLMAP model export wrote; "
+                                     "refusing to replace it")
+                old = make_temp_dir(temp_dir_path(out, "old"), str(out))
+                os.replace(out, old)
+            os.replace(tmp, out)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+    commit_output(swap, lambda: shutil.rmtree(tmp, ignore_errors=True))
 
 
 COLMAP_MODEL_FILES = frozenset(f"{name}.{ext}" for name in ("cameras", "images", "points3D")
                                for ext in ("txt", "bin"))
+EXPORT_MARK = "slamreloc_export.json"  # beside the model files: who wrote them, their digests
+
+
+def _write_export_mark(folder: Path, scene_map: SceneMap) -> None:
+    """The mark that makes `folder` export's own model: the map it came from and the SHA-256 of
+    each model file as written (COLMAP and pycolmap read only the model files)."""
+    digests = {}
+    for name in sorted(COLMAP_MODEL_FILES):
+        if (folder / name).is_file():
+            with open(folder / name, "rb") as f:
+                digests[name] = sha256_of(f)
+    (folder / EXPORT_MARK).write_text(json.dumps(
+        {"written_by": "slamreloc export", "map": str(Path(scene_map.root).resolve()),
+         "sha256": digests}, indent=2))
 
 
 def is_colmap_model(folder: Path) -> bool:
-    """Whether `folder` holds a COLMAP model and nothing else (cameras, images and points3D
-    files, text or binary): the only folder `write_colmap` replaces. A model folder with
-    anything beside it (notes, an image folder) is the user's, never replaced."""
-    entries = list(Path(folder).iterdir())
-    return bool(entries) and all(e.name in COLMAP_MODEL_FILES and e.is_file()
-                                 and not e.is_symlink() for e in entries)
+    """Whether `folder` is a COLMAP model `export` wrote, unchanged: its mark
+    (`EXPORT_MARK`) and exactly the model files the mark lists, regular files with the
+    SHA-256 recorded there. The only folder `write_colmap` replaces: a model another tool
+    wrote (a COLMAP dataset's `sparse/0`), one edited since, or one with anything beside it
+    (notes, an image folder) is the user's, never replaced."""
+    folder = Path(folder)
+    try:  # bounded, never blocking on a pipe, depth-checked: any file may sit at the mark's name
+        digests = read_json(folder / EXPORT_MARK, "export mark")["sha256"]
+        entries = {e.name: e for e in folder.iterdir()}
+        if not isinstance(digests, dict) or set(entries) != {*digests, EXPORT_MARK} \
+                or not set(digests) <= COLMAP_MODEL_FILES:
+            return False
+        for name, digest in digests.items():
+            entry = entries[name]
+            if entry.is_symlink() or not entry.is_file():
+                return False
+            with open(entry, "rb") as f:
+                if sha256_of(f) != digest:
+                    return False
+    except (InputError, OSError, ValueError, KeyError, TypeError, AttributeError):
+        return False
+    return True
 
 
 def write_ply(path: Path, points: ExportPoints) -> None:
@@ -279,7 +323,7 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
     if colmap is None and ply is None and tum is None:
         raise InputError("export: nothing to write (give `colmap` DIR, `ply` FILE or `tum` FILE)")
     check_is_map(map_dir)
-    from slamreloc.datasets.poses import NAMES_FILE, TUM_FILE
+    from slamreloc.datasets.poses import NAMES_FILE, TUM_FILE, check_names_sidecar_free
     from slamreloc.geometry import names_sidecar
     from slamreloc.map.meta import MapMeta
 
@@ -290,6 +334,8 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
                   folders={"`colmap`": (is_colmap_model, "a COLMAP model")},
                   files={"`tum`": TUM_FILE, "`tum`'s names file": NAMES_FILE,
                          "`ply`": PLY_FILE})
+    if tum is not None:
+        check_names_sidecar_free(Path(tum), "`tum`")
     scene_map = SceneMap.load(map_dir, regressor=False)
     if colmap is not None:
         _check_colmap_names(scene_map)

@@ -33,6 +33,7 @@ view, reads such a root as none; `surface.voxel_m` is recorded, never read.
 from __future__ import annotations
 
 import math
+import re
 from copy import deepcopy
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -45,6 +46,7 @@ from slamreloc.camera_models import distortion_problem
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import read_bytes
 from slamreloc.io.jsonio import parse_json
+from slamreloc.io.values import check_values
 from slamreloc.map.format import (DATABASE, FORMAT_VERSION, LEGACY_WEIGHTS, MAP_FILES, MAP_FORMAT,
                                   META, WEIGHTS)
 from slamreloc.registry import DATASET_KINDS, FORMER_PRESETS, PRECISIONS, PRESETS
@@ -528,9 +530,28 @@ def _check_schema(meta: dict, version: int, path) -> None:
                         f"one of {', '.join(PRECISIONS)}", lambda v: v in PRECISIONS)
         for key, (want, ok) in TRAIN_RULES.items():  # what a retraining would use
             _check_optional(train, key, "train.", path, want, ok)
-    _check_optional(meta, "timings_s", "", path, "an object of seconds",
-                    lambda v: isinstance(v, dict) and all(_is_number(t) and t >= 0
-                                                          for t in v.values()))
+    keypoints = labels.get("n_keypoints")
+    if _is_int(keypoints):  # labels and depth labels are keypoints of the labelled frames
+        # (an update's pseudo-labels come from other frames: its labels are not counted there)
+        for key in ("n_depth_labels",) if meta.get("pseudo_label") else (
+                "n_labelled", "n_depth_labels"):
+            _check_optional(labels, key, "labels.", path, f"a count of at most 'labels."
+                            f"n_keypoints' ({keypoints})",
+                            lambda v, top=keypoints: _is_int(v) and 0 <= v <= top)
+    if isinstance(train, dict) and _is_int(train.get("epochs")):
+        for key in ("resumed_at_epoch", "averaged_epochs"):
+            _check_optional(train, key, "train.", path,
+                            f"a whole number of epochs in 0..{train['epochs']} ('train.epochs')",
+                            _in(0, train["epochs"], whole=True))
+    if isinstance(dataset, dict):
+        _check_optional(dataset, "metric", "dataset.", path, "true or false", _is_bool)
+        _check_optional(dataset, "split", "dataset.", path, "a split (a name, or a "
+                        "comma-separated list of names)", _is_split)
+    _check_optional(meta, "slamreloc_version", "", path, "a version number (as 0.9.1)",
+                    lambda v: isinstance(v, str) and VERSION.fullmatch(v) is not None)
+    _check_optional(meta, "timings_s", "", path, "an object of seconds", _is_object)
+    # every field by its name's kind, as in reports: counts, seconds, metres, shares
+    check_values(meta, path, names=())
     cam = need(meta, "camera", dict, "")
     for key in ("width", "height"):
         if not 0 < need(cam, key, int, "camera.") <= 1 << 16:
@@ -572,6 +593,18 @@ def _check_schema(meta: dict, version: int, path) -> None:
             if (not isinstance(digest, str) or len(digest) != 64
                     or any(c not in "0123456789abcdef" for c in digest)):
                 raise InputError(f"{path}: 'files.{name}' must be a SHA-256 hex digest")
+
+
+VERSION = re.compile(r"[0-9]+(\.[0-9]+)*([.+-]?[A-Za-z0-9]+)*")  # 0.9.1, 1.0rc1, 0.9.1+local
+
+
+def _is_split(v) -> bool:
+    """A split as `Dataset.frames` takes it: names (no empty one, no control character, none
+    twice), comma-separated."""
+    if not isinstance(v, str) or not 0 < len(v) <= 10_000:
+        return False
+    parts = [part.strip() for part in v.split(",")]
+    return all(part and part.isprintable() for part in parts) and len(set(parts)) == len(parts)
 
 
 def _in(low: float, high: float, whole: bool = False) -> Callable[[Any], bool]:

@@ -151,6 +151,10 @@ class SceneMap:
         surface = Surface.from_arrays(arrays, str(path))
         if len(surface.points) == 0:  # would be served as a surface that never refines
             raise InputError(f"{path}: the surface holds no points")
+        recorded = self.info.surface.n_points if self.info.surface is not None else None
+        if recorded is not None and recorded != len(surface.points):
+            raise InputError(f"{path}: holds {len(surface.points)} points, but {META} says "
+                             f"'surface.n_points' {recorded}")
         return surface
 
     @cached_property

@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import naming_output
-from slamreloc.map.format import (DATABASE, FORMAT_VERSION, META, WEIGHTS, is_map, is_map_file,
-                                  sha256_file)
+from slamreloc.io.fileio import naming_output, temp_dir_path
+from slamreloc.map.format import (DATABASE, FORMAT_VERSION, MAP_FILES, META, WEIGHTS, is_map,
+                                  is_map_file, sha256_file)
 from slamreloc.map.lock import fsync_dir, map_write_lock
 from slamreloc.map.meta import MapMeta
 from slamreloc.map.weights import weight_arrays
@@ -34,7 +34,16 @@ def check_map_target(out: Path) -> None:
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not is_map(out))):
         raise InputError(f"{out}: exists and is not a slamreloc map; refusing to overwrite it")
     if out.is_dir():
-        foreign = sorted(e.name for e in os.scandir(out) if not is_map_file(e))
+        entries = sorted((e for e in os.scandir(out) if not is_map_file(e)),
+                         key=lambda e: e.name)
+        links = [e.name for e in entries if e.is_symlink() and e.name in MAP_FILES]
+        foreign = [e.name for e in entries if e.name not in links]
+        if links and is_map(out):  # the map's own names, as links: a writer replaces files
+            raise InputError(f"{out}: its {', '.join(map(repr, links[:3]))}"
+                             f"{' ...' if len(links) > 3 else ''} "
+                             f"{'is a symbolic link' if len(links) == 1 else 'are symbolic links'}"
+                             ", not a map writer's files; refusing to replace it (give the "
+                             "map's own folder, or copy the files in)")
         if foreign and is_map(out):
             raise InputError(f"{out}: also holds {', '.join(map(repr, foreign[:3]))}"
                              f"{' ...' if len(foreign) > 3 else ''}, which is not a map's; "
@@ -129,7 +138,7 @@ def _swap_in(tmp: Path, out: Path) -> None:
     if not out.exists():
         os.replace(tmp, out)
     elif not _exchange(tmp, out):
-        old = out.parent / f".{out.name}.old-{os.getpid()}"
+        old = temp_dir_path(out, "old")
         _clear_own_path(old, out)
         os.replace(out, old)
         _crash_point("between-renames")
@@ -151,7 +160,7 @@ def save_map(out: str | Path, meta: MapMeta, model: SceneCoordinateRegressor, db
     out = Path(out)
     with map_write_lock(out), naming_output(out):
         check_map_target(out)
-        tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+        tmp = temp_dir_path(out)
         _clear_own_path(tmp, out)
         tmp.mkdir(parents=True)
         _MADE.add(tmp)

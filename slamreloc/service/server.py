@@ -8,7 +8,7 @@ Localize calls wait for a worker (more are refused OVERLOADED at once), none wai
 own deadline or `queue_wait_s`, and one whose call ended meanwhile is dropped before it
 computes; a session holds a thread for its lifetime (at most `max_sessions` open, and as many
 opening, each within `open_timeout_s` of its SessionOpen, and cancelled after
-`session_idle_s` without a message); one ReloadMap per map waits for its load (another is
+`session_idle_s` without a message, or with an answer it leaves unread); one ReloadMap per map waits for its load (another is
 refused OVERLOADED at once).
 
 Safety: the server binds 127.0.0.1 unless told otherwise, and a non-local address needs a token
@@ -474,34 +474,31 @@ class RelocalizerService:
                     if session.learning:
                         state["session"] = session
                         self._unreserve_learning(state, opened=session)
-                    yield pb.SessionUpdate(opened=session.opened()).SerializeToString()
-                    continue
-                if kind == "save":  # no worker slot: a save computes no localization
-                    saved = self._save(session, msg.save, context)
-                    yield pb.SessionUpdate(saved=saved).SerializeToString()
-                    continue
-                if kind != "frame":
+                    update = pb.SessionUpdate(opened=session.opened())
+                elif kind == "save":  # no worker slot: a save computes no localization
+                    update = pb.SessionUpdate(saved=self._save(session, msg.save, context))
+                elif kind != "frame":
                     raise ServiceError(pb.BAD_REQUEST, "a frame expected, got "
                                        f"{_session_message(kind)}")
-                with self._worker(context, counted=False):
-                    result = session.frame(msg.frame)
-                yield pb.SessionUpdate(frame=result).SerializeToString()
+                else:
+                    with self._worker(context, counted=False):
+                        update = pb.SessionUpdate(frame=session.frame(msg.frame))
             except ServiceError as err:
                 if session is None:  # nothing to carry on with
                     self._refuse(context, err)
-                yield pb.SessionUpdate(error=pb.SessionError(
-                    kind=err.kind, message=err.message,
-                    frame=session.n_frames)).SerializeToString()
+                update = pb.SessionUpdate(error=pb.SessionError(
+                    kind=err.kind, message=err.message, frame=session.n_frames))
             except Exception as err:  # noqa: BLE001
                 refusal = unexpected(err)
                 if session is None:
                     self._refuse(context, refusal)
-                yield pb.SessionUpdate(error=pb.SessionError(
-                    kind=refusal.kind, message=refusal.message,
-                    frame=session.n_frames)).SerializeToString()
-            finally:
+                update = pb.SessionUpdate(error=pb.SessionError(
+                    kind=refusal.kind, message=refusal.message, frame=session.n_frames))
+            finally:  # armed before the answer is sent: a client that never reads its answers
+                # (the send blocks) is cancelled as one that sends nothing
                 self.deadlines.arm(key, self.config.session_idle_s if session is not None
                                    else self.config.open_timeout_s, context)
+            yield update.SerializeToString()
         self.deadlines.disarm(key)
         if session is not None and context.is_active():
             try:

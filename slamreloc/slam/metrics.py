@@ -15,11 +15,13 @@ def umeyama_se3(source: np.ndarray, target: np.ndarray) -> Rigid3:
 
 
 def ate_rmse(estimate: list[Rigid3], reference: list[Rigid3], align: bool = False) -> float:
-    """RMSE of camera-centre distances (metres); `align`: SE(3)-align the estimate first."""
+    """RMSE of camera-centre distances (metres); `align`: SE(3)-align the estimate first,
+    which takes 3 or more poses (fewer: NaN, never an unaligned distance reported as
+    aligned)."""
     est = np.array([p.translation for p in estimate])
     ref = np.array([p.translation for p in reference])
-    if len(est) == 0:
+    if len(est) == 0 or align and len(est) < 3:
         return float("nan")
-    if align and len(est) >= 3:
+    if align:
         est = umeyama_se3(est, ref).transform(est)
     return float(np.sqrt(np.mean(np.sum((est - ref) ** 2, axis=1))))

@@ -13,8 +13,10 @@ FALSE_ANCHOR = (0.25, 10.0)  # metres, degrees: an anchor further than this from
 
 
 def _ate(poses, truth, align=False):
+    """ATE RMSE (metres) over the frames with both poses; None where there is none (aligned:
+    fewer than 3, which fix no alignment)."""
     pairs = [(p, t) for p, t in zip(poses, truth) if p is not None and t is not None]
-    if not pairs:
+    if len(pairs) < (3 if align else 1):
         return None
     return ate_rmse([p for p, _ in pairs], [t for _, t in pairs], align)
 

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import make_temp_dir, read_bytes
+from slamreloc.io.fileio import make_temp_dir, read_bytes, temp_dir_path
 from slamreloc.synthetic.render import RenderScene, render_frame
 from slamreloc.synthetic.room import build_room
 from slamreloc.synthetic.trajectories import SEQUENCES, make_trajectories
@@ -121,7 +121,7 @@ def render_scene(out_dir: Path, config: SceneConfig = SceneConfig(),
     if _existing(out_dir, config):
         return out_dir
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = make_temp_dir(out_dir.parent / f"{out_dir.name}.tmp-{os.getpid()}", str(out_dir))
+    tmp = make_temp_dir(temp_dir_path(out_dir), str(out_dir))
     try:
         _write_frames(tmp, config, progress)
         try:
