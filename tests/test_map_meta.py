@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 from slamreloc import __version__
 from slamreloc.errors import InputError
 from slamreloc.io.jsonio import parse_json
+from slamreloc.io.values import check_values
 from slamreloc.map.format import DATABASE, FORMAT_VERSION, MAP_FORMAT, WEIGHTS
 from slamreloc.registry import DATASET_KINDS, PRESETS
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
@@ -142,7 +143,7 @@ def metadata(draw) -> dict:
                               "kind": st.sampled_from(DATASET_KINDS) | st.none(),
                               "split": st.text(max_size=5), "metric": st.booleans(),
                               "poses": st.sampled_from(["dataset", "slam", "/p/poses.txt"])},
-                             strict=("kind", "poses")) | finite_json,
+                             strict=("kind", "poses", "metric")) | finite_json,
         "surface": some_keys({"n_points": st.integers(0, 10 ** 6) | st.none(),
                               "voxel_m": st.floats(0.001, 1.0) | st.integers(1, 2)},
                              strict=("n_points", "voxel_m")),
@@ -159,6 +160,10 @@ def metadata(draw) -> dict:
     for key, strategy in optional.items():
         if draw(st.booleans()):
             doc[key] = draw(strategy)
+    try:  # every value by its name's kind (`slamreloc.io.values`): a generated `x_m` of -1
+        check_values(doc, PATH)  # or `n_a` of 2.5 is no metadata a writer makes
+    except InputError:
+        assume(False)
     return json.loads(json.dumps(draw(shuffled(doc))))
 
 

@@ -77,6 +77,7 @@ def test_a_session_that_never_reads_its_answers_is_cancelled(tiny_map):
      "not orthonormal"),  # a shear
     (lambda: Rigid3(np.eye(3), np.array([2e9, 0, 0])), "translation beyond"),
     (lambda: Rigid3.from_qt([0, 0, 0, 2], np.zeros(3)), "quaternion norm 2, not 1"),
+    (lambda: Rigid3(np.eye(3), np.array([np.nan, 0, 0])), "non-finite"),
 ])
 def test_the_client_refuses_a_pose_that_is_no_rigid_motion(tiny_map, pose, message):
     from slamreloc.client import Client
@@ -226,9 +227,11 @@ def test_report_fields_of_every_kind_follow_their_rule(tmp_path, doc, message):
     ("labels", {"n_keypoints": 100, "n_depth_labels": 101}, "'labels.n_depth_labels' must be a "
                                                           "count of at most"),
     ("labels", {"n_keypoints": 10}, "'labels.n_labelled' must be a count of at most"),
-    ("dataset", {"split": "train,train"}, "'dataset.split' must be a split"),
     ("train", {"noise_anneal": "no"}, "train.noise_anneal is true or false"),
     ("labels", {"mean_track_length": -1}, "labels.mean_track_length is a measure"),
+    ("labels", {"n_tracks": 65}, "'labels.n_tracks' must be a count of at most"),
+    ("labels", {"n_keypoints": 128, "labelled_fraction": 0.9}, "'labels.labelled_fraction' "
+                                                              "must be 'labels.n_labelled' / "),
 ])
 def test_map_records_hold_what_their_counts_allow(tiny_map, tmp_path, section, values,
                                                   message):
@@ -264,3 +267,15 @@ def test_localize_says_when_its_output_cannot_be_written(tiny_map, scene_dir, st
     lines = run.stderr.strip().splitlines()
     assert run.returncode == 2 and len(lines) == 1, run.stderr
     assert "standard output" in lines[0], lines[0]
+
+
+def test_a_reports_text_is_shown_as_text(tmp_path):
+    """Round 12 CLI minor: a report's strings go into the viewer's markdown panels as text,
+    never as HTML or table syntax."""
+    from slamreloc.viewer.gui import md_text, report_table
+
+    table = report_table({"n_queries": 1, "method": "<img src=x onerror=alert(1)>|x",
+                          "map": {"root": "a*b*[c](d)`e`"}})
+    assert "<img" not in table and "&lt;img src=x onerror=alert(1)&gt;\\|x" in table
+    assert "| map.root | a\\*b\\*\\[c\\](d)\\`e\\` |" in table
+    assert md_text("two\nlines") == "two lines"

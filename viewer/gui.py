@@ -3,6 +3,7 @@ view, the selected camera's image, the reports' numbers and the legend."""
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from dataclasses import dataclass, field
@@ -49,7 +50,19 @@ def format_value(v) -> str:
         return f"{v:.4g}"
     if v is None:
         return "–"
-    return str(v)
+    return md_text(str(v))
+
+
+MD_SPECIAL = re.compile(r"([\\`*\[\]|~])")
+
+
+def md_text(text: str) -> str:
+    """`text` (a name or value a file gave) shown as itself in markdown: HTML's `&`, `<`, `>`
+    as entities (never a tag the panel would render), markdown's own characters escaped (a `|`
+    never splits a table cell), line breaks as spaces."""
+    text = " ".join(text.splitlines())
+    text = text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+    return MD_SPECIAL.sub(r"\\\1", text)
 
 
 def report_table(data: dict) -> str:
@@ -64,7 +77,7 @@ def report_table(data: dict) -> str:
             rows.append((key, f"{len(value)} entries"))
         else:
             rows.append((key, format_value(value)))
-    body = "\n".join(f"| {k} | {v} |" for k, v in rows)
+    body = "\n".join(f"| {md_text(k)} | {v} |" for k, v in rows)
     return f"| value | |\n|---|---|\n{body}\n"
 
 
@@ -101,11 +114,11 @@ class Playback:
             self.marker.wxyz, self.marker.position = wxyz(pose), pose.translation
             self.marker.visible = self.marker_layer is None or self.marker_layer.visible
         err = src.errors_m[index]
-        lines = [f"**{src.names[index] or f'frame {index}'}** ({index + 1}/{len(src)})"]
+        lines = [f"**{md_text(src.names[index] or f'frame {index}')}** ({index + 1}/{len(src)})"]
         if err is not None and np.isfinite(err):
             lines.append(f"position error: {100 * err:.1f} cm")
         if src.note and src.note[index]:
-            lines.append(src.note[index])
+            lines.append(src.note[index])  # markdown of this viewer's own
         if self.text is not None:
             self.text.content = "  \n".join(lines)
         if self.image is not None:
@@ -291,7 +304,7 @@ class Selection:
 
     def show(self, name: str, image_path: Path | None, extra: str = "",
              thumbnail: np.ndarray | None = None) -> None:
-        self.text.content = f"**{name}**" + (f"  \n{extra}" if extra else "")
+        self.text.content = f"**{md_text(name)}**" + (f"  \n{extra}" if extra else "")
         img = panel_image(image_path)
         if img is None:
             img = thumbnail

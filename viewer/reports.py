@@ -28,7 +28,7 @@ def read_json(path: str | Path) -> dict:
     # naming its kind, read without blocking (`open_regular`), before the JSON reader's own
     open_regular(path, "report").close()
     data = read_json_file(path, "JSON")
-    check_values(data, path)
+    check_values(data, path, names=("poses",), name_problem=frame_name_problem)
     return data
 
 

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 
 from slamreloc.errors import InputError
-from slamreloc.types import frame_name_problem
 
 MAX_INT = 2 ** 63 - 1  # counts and indices: int64 (numpy reads them as such)
 
@@ -25,15 +25,15 @@ COUNT = re.compile(r"(n|num)_\w+|parameters|\w+_bytes|kidnap_(every|skip)|frames
 MEASURE = re.compile(r"\w+_(m|cm|deg|px|s|ms|fps|length|share)|\w+_ms_per_\w+|median_frames_\w+")
 FRACTION = re.compile(r"recall|\w+_fraction|\w*precision_\w+")  # shares: [0, 1]
 FLAG = re.compile(r"guided_refinement|truth_aligned_\w+|noise_anneal|learned_live|accepted")
-NAMES = ("poses",)
 
 
-def check_values(value, source, names: tuple[str, ...] = NAMES) -> None:
+def check_values(value, source, names: tuple[str, ...] = (),
+                 name_problem: Callable[[str], str | None] | None = None) -> None:
     """InputError naming `source` and the field of the first value that breaks the report
     rules: a number that is not a finite float or an integer within +-MAX_INT, a count
     (`COUNT`) that is not a whole number >= 0, a measure (`MEASURE`) that is not a number >= 0,
-    or a key of a top-level object in `names` (a report's `poses`) that cannot name a frame
-    (`frame_name_problem`). Iterative: any nesting."""
+    or a key of a top-level object in `names` (a report's `poses`) for which `name_problem`
+    (`types.frame_name_problem`) names a problem. Iterative: any nesting."""
     stack = [(value, "", "top")]
     while stack:
         v, where, rule = stack.pop()
@@ -41,7 +41,7 @@ def check_values(value, source, names: tuple[str, ...] = NAMES) -> None:
             for k, c in v.items():
                 field = f"{where}.{k}" if where else str(k)
                 if rule == "names":
-                    problem = frame_name_problem(k)
+                    problem = name_problem(k) if name_problem else None
                     if problem:
                         raise InputError(f"{source}: {where}: the frame name {k[:80]!r} "
                                          f"{problem}")

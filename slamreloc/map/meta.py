@@ -33,7 +33,6 @@ view, reads such a root as none; `surface.voxel_m` is recorded, never read.
 from __future__ import annotations
 
 import math
-import re
 from copy import deepcopy
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -538,6 +537,16 @@ def _check_schema(meta: dict, version: int, path) -> None:
             _check_optional(labels, key, "labels.", path, f"a count of at most 'labels."
                             f"n_keypoints' ({keypoints})",
                             lambda v, top=keypoints: _is_int(v) and 0 <= v <= top)
+        if not meta.get("pseudo_label") and _is_int(labels.get("n_labelled")) and keypoints:
+            share = labels["n_labelled"] / keypoints  # as labelling records it
+            _check_optional(labels, "labelled_fraction", "labels.", path,
+                            f"'labels.n_labelled' / 'labels.n_keypoints' ({share:.6g})",
+                            lambda v: _is_number(v) and abs(v - share) <= 1e-6)
+    if _is_int(labels.get("n_labelled")) and not meta.get("pseudo_label"):
+        # a track is labelled rows of one world point: never more tracks than labelled rows
+        _check_optional(labels, "n_tracks", "labels.", path, "a count of at most "
+                        f"'labels.n_labelled' ({labels['n_labelled']})",
+                        lambda v: _is_int(v) and 0 <= v <= labels["n_labelled"])
     if isinstance(train, dict) and _is_int(train.get("epochs")):
         for key in ("resumed_at_epoch", "averaged_epochs"):
             _check_optional(train, key, "train.", path,
@@ -545,10 +554,6 @@ def _check_schema(meta: dict, version: int, path) -> None:
                             _in(0, train["epochs"], whole=True))
     if isinstance(dataset, dict):
         _check_optional(dataset, "metric", "dataset.", path, "true or false", _is_bool)
-        _check_optional(dataset, "split", "dataset.", path, "a split (a name, or a "
-                        "comma-separated list of names)", _is_split)
-    _check_optional(meta, "slamreloc_version", "", path, "a version number (as 0.9.1)",
-                    lambda v: isinstance(v, str) and VERSION.fullmatch(v) is not None)
     _check_optional(meta, "timings_s", "", path, "an object of seconds", _is_object)
     # every field by its name's kind, as in reports: counts, seconds, metres, shares
     check_values(meta, path, names=())
@@ -593,18 +598,6 @@ def _check_schema(meta: dict, version: int, path) -> None:
             if (not isinstance(digest, str) or len(digest) != 64
                     or any(c not in "0123456789abcdef" for c in digest)):
                 raise InputError(f"{path}: 'files.{name}' must be a SHA-256 hex digest")
-
-
-VERSION = re.compile(r"[0-9]+(\.[0-9]+)*([.+-]?[A-Za-z0-9]+)*")  # 0.9.1, 1.0rc1, 0.9.1+local
-
-
-def _is_split(v) -> bool:
-    """A split as `Dataset.frames` takes it: names (no empty one, no control character, none
-    twice), comma-separated."""
-    if not isinstance(v, str) or not 0 < len(v) <= 10_000:
-        return False
-    parts = [part.strip() for part in v.split(",")]
-    return all(part and part.isprintable() for part in parts) and len(set(parts)) == len(parts)
 
 
 def _in(low: float, high: float, whole: bool = False) -> Callable[[Any], bool]:
