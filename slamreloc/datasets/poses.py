@@ -117,10 +117,9 @@ def check_names_sidecar_free(trajectory: Path, option: str) -> None:
     `X.foo`) would have its stamps read against the new names."""
     trajectory = Path(trajectory)
     sidecar = names_sidecar(trajectory)
-    folder = trajectory.parent if str(trajectory.parent) else Path(".")
-    if not folder.is_dir():
+    if not trajectory.parent.is_dir():
         return
-    for entry in folder.iterdir():
+    for entry in trajectory.parent.iterdir():
         if (entry.name in (trajectory.name, sidecar.name) or names_sidecar(entry) != sidecar
                 or not entry.is_file()):  # a link to a trajectory elsewhere reads this sidecar
             continue

@@ -529,24 +529,23 @@ def _check_schema(meta: dict, version: int, path) -> None:
                         f"one of {', '.join(PRECISIONS)}", lambda v: v in PRECISIONS)
         for key, (want, ok) in TRAIN_RULES.items():  # what a retraining would use
             _check_optional(train, key, "train.", path, want, ok)
-    keypoints = labels.get("n_keypoints")
-    if _is_int(keypoints):  # labels and depth labels are keypoints of the labelled frames
-        # (an update's pseudo-labels come from other frames: its labels are not counted there)
-        for key in ("n_depth_labels",) if meta.get("pseudo_label") else (
-                "n_labelled", "n_depth_labels"):
+    # the labelling's counts agree (an update's pseudo-labels come from other frames: past
+    # one, only depth labels are still counts of the labelled frames' keypoints)
+    updated = bool(meta.get("pseudo_label"))
+    keypoints, labelled = labels.get("n_keypoints"), labels.get("n_labelled")
+    if _is_int(keypoints):
+        for key in ("n_depth_labels",) if updated else ("n_labelled", "n_depth_labels"):
             _check_optional(labels, key, "labels.", path, f"a count of at most 'labels."
-                            f"n_keypoints' ({keypoints})",
-                            lambda v, top=keypoints: _is_int(v) and 0 <= v <= top)
-        if not meta.get("pseudo_label") and _is_int(labels.get("n_labelled")) and keypoints:
-            share = labels["n_labelled"] / keypoints  # as labelling records it
+                            f"n_keypoints' ({keypoints})", _in(0, keypoints, whole=True))
+        if not updated and _is_int(labelled) and keypoints:
+            share = labelled / keypoints  # as labelling records it
             _check_optional(labels, "labelled_fraction", "labels.", path,
                             f"'labels.n_labelled' / 'labels.n_keypoints' ({share:.6g})",
                             lambda v: _is_number(v) and abs(v - share) <= 1e-6)
-    if _is_int(labels.get("n_labelled")) and not meta.get("pseudo_label"):
+    if not updated and _is_int(labelled):
         # a track is labelled rows of one world point: never more tracks than labelled rows
         _check_optional(labels, "n_tracks", "labels.", path, "a count of at most "
-                        f"'labels.n_labelled' ({labels['n_labelled']})",
-                        lambda v: _is_int(v) and 0 <= v <= labels["n_labelled"])
+                        f"'labels.n_labelled' ({labelled})", _in(0, labelled, whole=True))
     if isinstance(train, dict) and _is_int(train.get("epochs")):
         for key in ("resumed_at_epoch", "averaged_epochs"):
             _check_optional(train, key, "train.", path,
