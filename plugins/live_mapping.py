@@ -18,9 +18,11 @@ the same votes and gates as with a prior map; a relocalization against a keyfram
 from __future__ import annotations
 
 import time
+from contextlib import nullcontext
 from pathlib import Path
 
 from slamreloc.geometry import Rigid3
+from slamreloc.io.fileio import outputs_now
 from slamreloc.map.meta import DatasetMeta
 from slamreloc.slam.backend import TrackState
 from slamreloc.slam.events import Event, EventKind, FrameData
@@ -53,13 +55,16 @@ class LiveMappingPlugin:
             self.live_map.learner.check()
             if (self.out is not None and self.save_every_s > 0
                     and time.monotonic() - self._last_save >= self.save_every_s):
-                self.save()
+                self.save(at_once=True)
         elif event.kind == EventKind.NEW_KEYFRAME:
             self.live_map.add_keyframe(frame, event.info["key"])
 
-    def save(self) -> Path | None:
-        """Write the map now (None before the first round has published a regressor)."""
+    def save(self, at_once: bool = False) -> Path | None:
+        """Write the map (None before the first round has published a regressor): inside
+        `outputs_together` with the command's other outputs, unless `at_once` (a periodic
+        save, or what an interrupted session keeps: in place now)."""
         self._last_save = time.monotonic()
-        written = self.live_map.save(self.out, self.dataset)
+        with outputs_now() if at_once else nullcontext():
+            written = self.live_map.save(self.out, self.dataset)
         self.n_saves += written is not None
         return written

@@ -192,13 +192,13 @@ def pseudo_label(old: SceneMap, dataset: Dataset, split: str | None = None,
 
 def update_map(old: SceneMap, dataset: Dataset, out: Path, split: str | None = None,
                config: PseudoLabelConfig = PseudoLabelConfig(), truth: Dataset | None = None,
-               progress: bool = True) -> tuple[SceneMap, dict]:
+               progress: bool = True, report: Path | None = None) -> tuple[SceneMap, dict]:
     """Pseudo-label `dataset`'s split against the map `old`, write NEW_MAP at `out` (`old`'s
     folder is kept). Returns (the new map, the report). NEW_MAP's write lock is held from the
     start: a second writer of it fails at once, not after the work. `split`, `truth`:
-    `pseudo_label`."""
+    `pseudo_label`; `report`: write the report there, together with the map."""
     out = Path(out)
     with map_write_lock(out):
         check_map_target(out)
         labels = pseudo_label(old, dataset, split, config, truth, progress)
-        return write_updated_map(labels, out, config, progress)
+        return write_updated_map(labels, out, config, progress, report)

@@ -13,6 +13,7 @@ import numpy as np
 from slamreloc.pseudo_label.config import PseudoLabelConfig
 from slamreloc.pseudo_label.finetune import finetune_regressor
 
+from slamreloc.io.fileio import outputs_together, write_json
 from slamreloc.map.format import LABELLED, PROVENANCE, SURFACE
 from slamreloc.map.meta import MapMeta, SurfaceMeta, UpdateMeta
 from slamreloc.map.write import save_map
@@ -55,9 +56,11 @@ def _save(out: Path, meta: MapMeta, model, db: MapDatabase, provenance: dict,
 
 def write_updated_map(labels: PseudoLabels, out: Path,
                       config: PseudoLabelConfig = PseudoLabelConfig(),
-                      progress: bool = True) -> tuple[SceneMap, dict]:
+                      progress: bool = True, report: Path | None = None
+                      ) -> tuple[SceneMap, dict]:
     """Update the regressor (fine-tune or retrain) and write NEW_MAP; returns it and the
-    report (with the update's stats and timing)."""
+    report (with the update's stats and timing). `report`: write the report there too,
+    together with the map (`outputs_together`: both new, or both as they were)."""
     out = Path(out)
     old, db, rep = labels.old, labels.db, dict(labels.report)
     rep["timings_s"] = dict(rep["timings_s"])
@@ -103,6 +106,9 @@ def write_updated_map(labels: PseudoLabels, out: Path,
         train={**(info.train or {}), "update": train_stats}, pseudo_label=update,
         surface=info.surface if labels.surface is None else replace(
             info.surface or SurfaceMeta(), n_points=len(labels.surface.points)))
-    _save(out, meta, model, db, {"source": labels.source, "quality": labels.weights},
-          labels.surface)
+    with outputs_together():
+        _save(out, meta, model, db, {"source": labels.source, "quality": labels.weights},
+              labels.surface)
+        if report is not None:
+            write_json(report, rep)
     return SceneMap.load(out), rep

@@ -6,6 +6,7 @@ written together when interrupted."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -156,23 +157,34 @@ def test_the_principal_point_lies_within_one_image_of_the_image(width, height, u
     assert inside
 
 
-def test_outputs_interrupted_while_written_are_all_new(tmp_path):
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("when", ["while written", "while renamed"])
+def test_outputs_interrupted_are_all_new_or_all_as_they_were(tmp_path, signum, when):
     """Finding 2: an evaluation interrupted between its writes left a new report beside an old
-    plot. A Ctrl-C or SIGTERM during `outputs_together` waits for the last write, then ends
-    the command: all outputs are new."""
-    a, b = tmp_path / "a", tmp_path / "b"
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        previous = signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(
-            KeyboardInterrupt))
-        try:
-            with pytest.raises(KeyboardInterrupt):
-                with outputs_together():
-                    a.write_text(str(signum))
+    plot. Interrupted inside `outputs_together` (Ctrl-C or SIGTERM), a command's outputs are
+    all as they were while they are still being written, and all new once they are being put
+    in place (the signal waits for the last rename, then ends the command)."""
+    from slamreloc.io.fileio import commit_output, write_json
+
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    write_json(a, {"old": 1})
+    write_json(b, {"old": 1})
+    previous = signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(
+        KeyboardInterrupt))
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with outputs_together():
+                write_json(a, {"new": 1})
+                if when == "while written":
                     os.kill(os.getpid(), signum)  # arrives between the two writes
-                    b.write_text(str(signum))
-        finally:
-            signal.signal(signal.SIGTERM, previous)
-        assert a.read_text() == b.read_text() == str(signum)
+                else:  # arrives during the first rename
+                    commit_output(lambda: os.kill(os.getpid(), signum), lambda: None)
+                write_json(b, {"new": 1})
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    expected = {"old": 1} if when == "while written" else {"new": 1}
+    assert json.loads(a.read_text()) == json.loads(b.read_text()) == expected
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json"]
 
 
 # --- the rest of the fifth round: options that were silently ignored, schedules that do

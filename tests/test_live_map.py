@@ -55,6 +55,35 @@ def test_live_session_recovers_kidnaps_in_its_own_map(live_session):
     assert live["n_writes"] >= 1
 
 
+def test_a_full_disk_at_the_report_keeps_the_map_it_had(live_session, kidnap_scene,
+                                                         tmp_path, monkeypatch):
+    """The session's final map, trajectory and report are put in place together: a full
+    disk at the report leaves the map (and the rest) a session before wrote, and no
+    temporary (attack round 12, H3: the map was swapped in before the report failed)."""
+    import errno
+    import shutil
+
+    from slamreloc.cli import jobs
+    from tests.fuzzing import run_cli
+    from tests.test_round12 import _tree
+
+    _, map_dir, work = live_session
+    shutil.copytree(map_dir, tmp_path / "map")
+    for name in ("r.json", "t.txt", "t.names.txt"):
+        shutil.copy(work / name, tmp_path / name)
+    before = _tree(tmp_path)
+
+    def no_space(path, data):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(jobs, "write_json", no_space)
+    code, err = run_cli(["slam", str(kidnap_scene), *LIVE, "--out", str(tmp_path / "map"),
+                         "--save-every", "0", "--report", str(tmp_path / "r.json"),
+                         "--trajectory", str(tmp_path / "t.txt")], hang_s=600)
+    assert code == 2 and "No space left" in err and "r.json" in err, err
+    assert _tree(tmp_path) == before
+
+
 def test_learned_map_is_a_map_every_command_takes(live_session, kidnap_scene):
     """evaluate and export read the saved map; its frame is the session's, so evaluate scores
     against the dataset's poses after a similarity fitted on its keyframes (without it every

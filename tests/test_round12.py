@@ -4,6 +4,7 @@ map folder of links (K3)."""
 
 from __future__ import annotations
 
+import errno
 import queue
 import threading
 import time
@@ -17,6 +18,7 @@ from slamreloc.geometry import Rigid3
 from slamreloc.proto import relocalizer_pb2 as pb
 
 from slamreloc.service.server import SERVICE_NAME, ServeConfig, start_server
+from tests.fuzzing import run_cli
 from tests.test_fuzz_inputs import _tiny_map
 
 
@@ -232,6 +234,13 @@ def test_report_fields_of_every_kind_follow_their_rule(tmp_path, doc, message):
     ("labels", {"n_tracks": 65}, "'labels.n_tracks' must be a count of at most"),
     ("labels", {"n_keypoints": 128, "labelled_fraction": 0.9}, "'labels.labelled_fraction' "
                                                               "must be 'labels.n_labelled' / "),
+    ("labels", {"n_keypoints": 128, "n_tracks": 10, "mean_track_length": 0.5},
+     "'labels.mean_track_length' must be a number of observations in 1..12.8"),
+    ("labels", {"n_keypoints": 128, "n_tracks": 10, "mean_track_length": 13},
+     "'labels.mean_track_length' must be a number of observations in 1..12.8"),
+    ("labels", {"n_tracks": 0, "mean_track_length": 2}, "'labels.mean_track_length' must be 0"),
+    ("labels", {"n_depth_labels": 5, "n_track_depth_disagreements": 6},
+     "'labels.n_track_depth_disagreements' must be a count of at most 'labels.n_depth_labels'"),
 ])
 def test_map_records_hold_what_their_counts_allow(tiny_map, tmp_path, section, values,
                                                   message):
@@ -279,3 +288,31 @@ def test_a_reports_text_is_shown_as_text(tmp_path):
     assert "<img" not in table and "&lt;img src=x onerror=alert(1)&gt;\\|x" in table
     assert "| map.root | a\\*b\\*\\[c\\](d)\\`e\\` |" in table
     assert md_text("two\nlines") == "two lines"
+
+
+# ---- H3: a command's map and report are both new, or both as they were ---------------------
+def _tree(folder: Path) -> dict[str, bytes | None]:
+    """Every path under `folder` (hidden ones too): a file's bytes, a folder's None."""
+    return {str(p.relative_to(folder)): p.read_bytes() if p.is_file() else None
+            for p in sorted(folder.rglob("*"))}
+
+
+def _no_space(path, data):
+    raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+
+def test_pseudo_label_on_a_full_disk_at_the_report_keeps_the_map_it_had(
+        small_map, scene_dir, tmp_path, monkeypatch):
+    """H3: `pseudo-label` swapped its new map in, then failed writing the report: a new map
+    beside an old report. The map and the report are now put in place together."""
+    from slamreloc.pseudo_label import write
+
+    argv = ["pseudo-label", str(small_map.root), str(scene_dir), "--out", str(tmp_path / "new"),
+            "--report", str(tmp_path / "r.json"), "--rounds", "1", "--epochs", "1"]
+    code, err = run_cli(argv)
+    assert code == 0, err
+    before = _tree(tmp_path)
+    monkeypatch.setattr(write, "write_json", _no_space)
+    code, err = run_cli([*argv[:-1], "2"])
+    assert code == 2 and "No space left" in err and "r.json" in err, err
+    assert _tree(tmp_path) == before  # the old map and report, and no temporary left

@@ -288,10 +288,11 @@ def slam(dataset: Path, map_dir: Path | None, report: Path, split: str = "test",
     if live is not None:
         config = replace(config, live=live)
     # the learned map's write lock for the whole session (as `map --out` holds it): another
-    # command writing that map fails at once, not after this session replaced its work
-    with map_write_lock(out) if out is not None else nullcontext():
+    # command writing that map fails at once, not after this session replaced its work. The
+    # final map, the trajectory and the report are put in place together (the periodic saves
+    # during the session land at once: `LiveMappingPlugin.save`)
+    with map_write_lock(out) if out is not None else nullcontext(), outputs_together():
         result, backend, frames = run_slam(dataset, map_dir, config, plugins, out)
-    with outputs_together():  # interrupted: both new, or both as they were
         if trajectory is not None:
             world_from_cam = final_trajectory(backend)
             keep = [i for i, p in enumerate(world_from_cam) if p is not None]
@@ -324,8 +325,7 @@ def pseudo_label(map_dir: Path, dataset_dir: Path, out: Path, report: Path,
     old = SceneMap.load(map_dir)
     dataset = load_dataset(dataset_dir)
     new_map, result = update_map(old, dataset, out, split, config or PseudoLabelConfig(),
-                                 scoring_truth(dataset, truth, poses), progress)
-    write_json(report, result)
+                                 scoring_truth(dataset, truth, poses), progress, report)
     prec = result.get("pseudo_label_precision_10cm")
     console.print(
         f"[green]map written[/green] to {new_map.root}: {result['n_frames_registered']}/"

@@ -365,34 +365,63 @@ _together = threading.local()  # .pending: the commits of an `outputs_together` 
 @contextmanager
 def outputs_together() -> Iterator[None]:
     """Write a command's several outputs as one: each writer inside the block (`atomic_file`,
-    any `commit_output`) writes its temporary, and the renames that put them in place run only
-    when the whole block has succeeded. A failure inside (a full disk at the second file)
-    removes every temporary and leaves all outputs as they were; a Ctrl-C or SIGTERM that
-    arrives meanwhile is held until the renames are done, then raised (KeyboardInterrupt). So
-    a command's outputs are all new or all as they were, never a new report beside an old
-    plot. Keep the block to the writing itself (compute before it). Nested blocks commit with
-    the outermost; off the main thread signals are not held."""
-    import signal
-
+    `save_map`, any `commit_output`) writes its temporary, and the renames that put them in
+    place run only when the whole block has succeeded. A failure or a Ctrl-C inside (a full
+    disk at the second file) removes every temporary and leaves all outputs as they were; a
+    Ctrl-C or SIGTERM that arrives during the renames is held until they are done, then
+    raised (KeyboardInterrupt). So a command's outputs are all new or all as they were, never
+    a new report beside an old plot. The block may hold the work that makes the outputs (it is
+    interrupted as usual); a write inside it that must land at once (a periodic checkpoint)
+    goes in `outputs_now`. Nested blocks commit with the outermost; off the main thread
+    signals are not held."""
     if getattr(_together, "pending", None) is not None:
         yield
         return
-    held: list[int] = []
-    previous = {}
-    if threading.current_thread() is threading.main_thread():
-        previous = {s: signal.signal(s, lambda signum, frame: held.append(signum))
-                    for s in (signal.SIGINT, signal.SIGTERM)}
     pending: list[tuple[Callable[[], None], Callable[[], None]]] = []
     _together.pending = pending
+    done = False
     try:
         yield
-        _together.pending = None
-        for commit, _ in pending:
-            commit()
+        done = True
     finally:
         _together.pending = None
-        for _, discard in pending:
-            discard()
+        with _signals_held():
+            try:
+                for commit, _ in pending if done else ():
+                    commit()
+            finally:
+                for _, discard in pending:
+                    discard()
+
+
+@contextmanager
+def outputs_now() -> Iterator[None]:
+    """Inside an `outputs_together` block, the writers in this one put their outputs in place
+    at once, not with the block (a checkpoint that must survive a crash, or what an
+    interrupted command saves on its way out)."""
+    pending = getattr(_together, "pending", None)
+    _together.pending = None
+    try:
+        yield
+    finally:
+        _together.pending = pending
+
+
+@contextmanager
+def _signals_held() -> Iterator[None]:
+    """A Ctrl-C or SIGTERM arriving inside the block waits for its end, then is raised
+    (KeyboardInterrupt) unless the block raised; off the main thread nothing is held."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous = {s: signal.signal(s, lambda signum, frame: held.append(signum))
+                for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
     if held:

@@ -546,6 +546,19 @@ def _check_schema(meta: dict, version: int, path) -> None:
         # a track is labelled rows of one world point: never more tracks than labelled rows
         _check_optional(labels, "n_tracks", "labels.", path, "a count of at most "
                         f"'labels.n_labelled' ({labelled})", _in(0, labelled, whole=True))
+    depth_labels, tracks = labels.get("n_depth_labels"), labels.get("n_tracks")
+    if _is_int(depth_labels):  # a disagreement is a depth label its track contradicts
+        _check_optional(labels, "n_track_depth_disagreements", "labels.", path,
+                        f"a count of at most 'labels.n_depth_labels' ({depth_labels})",
+                        _in(0, depth_labels, whole=True))
+    if _is_int(tracks):  # observations per track: none without tracks, at most all keypoints
+        most = keypoints / max(tracks, 1) if _is_int(keypoints) else None
+        _check_optional(labels, "mean_track_length", "labels.", path,
+                        "0 ('labels.n_tracks' is 0)" if tracks == 0 else
+                        "a number of observations, 1 or more" if most is None else
+                        f"a number of observations in 1..{most:.6g} ('labels.n_keypoints' / "
+                        "'labels.n_tracks')",
+                        _in(0, 0) if tracks == 0 else _in(1, math.inf if most is None else most))
     if isinstance(train, dict) and _is_int(train.get("epochs")):
         for key in ("resumed_at_epoch", "averaged_epochs"):
             _check_optional(train, key, "train.", path,

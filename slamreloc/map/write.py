@@ -12,12 +12,13 @@ import errno
 import json
 import os
 import sys
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import naming_output, temp_dir_path
+from slamreloc.io.fileio import commit_output, naming_output, temp_dir_path
 from slamreloc.map.format import (DATABASE, FORMAT_VERSION, MAP_FILES, META, WEIGHTS, is_map,
                                   is_map_file, sha256_file)
 from slamreloc.map.lock import fsync_dir, map_write_lock
@@ -150,52 +151,67 @@ def _swap_in(tmp: Path, out: Path) -> None:
 
 def save_map(out: str | Path, meta: MapMeta, model: SceneCoordinateRegressor, db: MapDatabase,
              extra: dict[str, dict[str, np.ndarray]] | None = None) -> Path:
-    """Write a map atomically: into a temporary sibling folder, then swap it in for `out`.
-    `meta` is written stamped (`MapMeta.stamped`) with today's format, this version, the
-    files' checksums and `db`'s frame names. `extra`: more array files (name -> arrays, no
-    pickle) written into the map with it.
+    """Write a map atomically: into a temporary sibling folder, then swap it in for `out`
+    (inside `outputs_together`, with the block's other outputs; the write lock is held until
+    then). `meta` is written stamped (`MapMeta.stamped`) with today's format, this version,
+    the files' checksums and `db`'s frame names. `extra`: more array files (name -> arrays,
+    no pickle) written into the map with it.
 
     Refuses to replace an existing non-empty folder that is not a slamreloc map, and fails at
     once if another process is writing `out`."""
     out = Path(out)
-    with map_write_lock(out), naming_output(out):
-        check_map_target(out)
-        tmp = temp_dir_path(out)
-        _clear_own_path(tmp, out)
-        tmp.mkdir(parents=True)
-        _MADE.add(tmp)
-        try:
-            files = {
-                WEIGHTS: _write_npz(tmp / WEIGHTS, weight_arrays(model)),
-                DATABASE: _write_npz(tmp / DATABASE, {
-                    "descriptors": db.descriptors.astype(np.float16),
-                    "points": db.points.astype(np.float32),
-                    "keypoints": db.keypoints.astype(np.float32),
-                    "frame_index": db.frame_index.astype(np.int32),
-                    "world_from_cam": np.asarray(db.world_from_cam, np.float64)}),
-            }
-            for name, arrays in (extra or {}).items():
-                files[name] = _write_npz(tmp / name, arrays)
-            _crash_point("files-written")
-            doc = meta.stamped(files, db.frame_names).to_json()
-            # what readers will check, checked before the swap: a document they would refuse
-            # never replaces a map that loads
-            try:
-                MapMeta.from_json(json.loads(json.dumps(doc)), out / META)
-            except InputError as err:
-                raise InputError(f"{out}: not written (what was there is kept): its metadata "
-                                 f"would not load: {err}") from None
-            with open(tmp / META, "w") as f:
-                f.write(json.dumps(doc, indent=1))
-                f.flush()
-                os.fsync(f.fileno())
-            fsync_dir(tmp)
+    with ExitStack() as held:  # the write lock, and what to remove, until the swap is done
+        held.enter_context(map_write_lock(out))
+        with naming_output(out):
+            check_map_target(out)
+            tmp = temp_dir_path(out)
+            _clear_own_path(tmp, out)
+            tmp.mkdir(parents=True)
+            _MADE.add(tmp)
+        held.callback(_remove_old_copy, tmp, out)  # the old map after the swap, or the unused new
+        with naming_output(out):
+            _write_map_files(tmp, out, meta, model, db, extra)
+        release = held.pop_all()  # from here, the commit's to close
+
+    def swap() -> None:
+        with naming_output(out):
             _crash_point("before-swap")
             _swap_in(tmp, out)
             _crash_point("after-swap")
-        finally:  # the old map after the swap (its files), or the new one that was not used
-            _remove_old_copy(tmp, out)
+
+    commit_output(swap, release.close)
     return out
+
+
+def _write_map_files(tmp: Path, out: Path, meta: MapMeta, model: SceneCoordinateRegressor,
+                     db: MapDatabase, extra: dict[str, dict[str, np.ndarray]] | None) -> None:
+    """Write the map's files into its temporary folder `tmp` (synced), the metadata last,
+    after checking it as readers of `out` will."""
+    files = {
+        WEIGHTS: _write_npz(tmp / WEIGHTS, weight_arrays(model)),
+        DATABASE: _write_npz(tmp / DATABASE, {
+            "descriptors": db.descriptors.astype(np.float16),
+            "points": db.points.astype(np.float32),
+            "keypoints": db.keypoints.astype(np.float32),
+            "frame_index": db.frame_index.astype(np.int32),
+            "world_from_cam": np.asarray(db.world_from_cam, np.float64)}),
+    }
+    for name, arrays in (extra or {}).items():
+        files[name] = _write_npz(tmp / name, arrays)
+    _crash_point("files-written")
+    doc = meta.stamped(files, db.frame_names).to_json()
+    # what readers will check, checked before the swap: a document they would refuse never
+    # replaces a map that loads
+    try:
+        MapMeta.from_json(json.loads(json.dumps(doc)), out / META)
+    except InputError as err:
+        raise InputError(f"{out}: not written (what was there is kept): its metadata would "
+                         f"not load: {err}") from None
+    with open(tmp / META, "w") as f:
+        f.write(json.dumps(doc, indent=1))
+        f.flush()
+        os.fsync(f.fileno())
+    fsync_dir(tmp)
 
 
 def migrate_map(path: str | Path) -> Path:

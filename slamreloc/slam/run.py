@@ -172,7 +172,7 @@ def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = Sl
             if mapper is None or mapper.out is None:
                 raise
             mapper.live_map.learner.stop()  # the last published model is what is saved
-            written = mapper.save()
+            written = mapper.save(at_once=True)
             raise Interrupted(
                 f"{mapper.out}: the session was interrupted after {len(backend.frames)} frames; "
                 + ("the map as it stood is saved there" if written else
