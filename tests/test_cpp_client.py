@@ -122,13 +122,13 @@ def test_lines_equal_slamreloc_localize_and_the_python_client(client_binary, ser
 
 def test_tum_folder_camera_and_token_from_the_environment(client_binary, server, small_map,
                                                           sequence, tmp_path):
-    """rgb.txt decides which images and in which order; --camera goes to the server (a lens
+    """rgb.txt decides which images (in time order); --camera goes to the server (a lens
     other than the map's gives other poses, equal to the Python client's with that string)."""
     (tmp_path / "rgb").mkdir()
     names = [f"{1.5 + i:.6f}.png" for i in range(3)]
     for name, src in zip(names, sorted(sequence.glob("frame-*.color.png"))):
         shutil.copy(src, tmp_path / "rgb" / name)
-    listed = [names[2], names[0]]  # names[1] is in rgb/ but not listed
+    listed = [names[0], names[2]]  # names[1] is in rgb/ but not listed
     (tmp_path / "rgb.txt").write_text("# color images\n# timestamp filename\n\n" + "".join(
         f"{Path(n).stem} rgb/{n}\n" for n in listed))
     cam = small_map.camera
@@ -321,6 +321,7 @@ def test_files_tokens_and_cameras_follow_the_python_rules(client_binary, server,
     ("1.0 ../x.png\n", "points outside the dataset folder"),
     ("0x1 rgb/a.png\n", "is not a number"),
     ("1.0 rgb/a.png\n1.0 rgb/b.png\n", "repeats line 1 with another file"),
+    ("2.0 rgb/a.png\n1.0 rgb/b.png\n", "2: timestamp 1.0 is earlier than line 1's"),
     ("1.0 rgb/a.png\n2.0 other/a.png\n", "listed more than once"),
     ("1e13 rgb/a.png\n", "timestamps are seconds")])
 def test_rgb_txt_follows_the_tum_readers_rules(client_binary, server, tmp_path, rows, words):

@@ -432,6 +432,8 @@ std::vector<fs::path> sequence_images(const fs::path& dir) {
     std::istringstream in(text);
     std::map<double, std::pair<int, std::string>> seen;  // stamp -> (first line, its file)
     std::set<std::string> stems;
+    double last_t = 0;  // the latest stamp so far, on line last_n (0: none yet)
+    int last_n = 0;
     std::string line;
     for (int n = 1; std::getline(in, line); ++n) {
       const std::string where = list.string() + ":" + std::to_string(n);
@@ -453,6 +455,11 @@ std::vector<fs::path> sequence_images(const fs::path& dir) {
                       std::to_string(first->second.first) + " with another file");
         continue;  // the same row twice: read once
       }
+      if (last_n > 0 && t < last_t)
+        throw Error(where + ": timestamp " + stamp + " is earlier than line " +
+                    std::to_string(last_n) + "'s; the frames must be listed in time order");
+      last_t = t;
+      last_n = n;
       if (!stems.insert(rel.stem().string()).second)
         throw Error(list.string() + ": image '" + rel.stem().string() +
                     "' is listed more than once");

@@ -29,9 +29,12 @@ def is_tum(root: Path) -> bool:
 def _read_list(path: Path, n_fields: int) -> list[list[str]]:
     """The `timestamp file` rows of rgb.txt / depth.txt. A timestamp on two lines naming the
     same file is one row read twice (read once); naming different files it is an InputError
-    naming both lines: which image is that instant's is not for the reader to guess."""
+    naming both lines: which image is that instant's is not for the reader to guess. The
+    rows are in time order (a stamp earlier than the line before is an InputError: tracking
+    would run the sequence backwards in places)."""
     rows = []
     seen: dict[float, tuple[int, str]] = {}  # stamp -> (its first line, its file)
+    last: tuple[float, int] | None = None  # the latest stamp so far, and its line
     for i, line in enumerate(read_text(path, "list").splitlines(), 1):
         if not line.strip() or line.lstrip().startswith("#"):
             continue
@@ -48,6 +51,10 @@ def _read_list(path: Path, n_fields: int) -> list[list[str]]:
                 raise InputError(f"{path}:{i}: timestamp {parts[0]} repeats line {first} with "
                                  f"another file ({parts[1][:80]!r}, not {listed[:80]!r})")
             continue
+        if last is not None and stamp < last[0]:
+            raise InputError(f"{path}:{i}: timestamp {parts[0]} is earlier than line {last[1]}'s;"
+                             " the frames must be listed in time order")
+        last = (stamp, i)
         rows.append(parts)
     return rows
 
