@@ -99,6 +99,13 @@ def image_msg(image) -> pb.Image:
                                     data=arr.tobytes()))
 
 
+def _depth_image(depth: np.ndarray) -> np.ndarray:
+    """`depth`, checked to be one value per pixel: (H, W)."""
+    if depth.ndim != 2:
+        raise InputError(f"depth is (H, W), one value per pixel; got shape {depth.shape}")
+    return depth
+
+
 def depth_msg(depth: np.ndarray, camera: Camera | None = None) -> pb.Depth:
     """float32 metres (H, W), 0 where unknown; `camera`: the camera that took the depth when it
     is not registered to the image (`Frame.depth_camera`; sent as its pinhole camera, any
@@ -106,9 +113,7 @@ def depth_msg(depth: np.ndarray, camera: Camera | None = None) -> pb.Depth:
     if np.asarray(depth).dtype.kind != "f":  # raw sensor units sent as metres: 1732 m
         raise InputError(f"depth is {np.asarray(depth).dtype}: metres are floats (float32 "
                          "metres, or raw uint16 with depth_encoding=\"uint16\" in a session)")
-    d = np.ascontiguousarray(depth, "<f4")
-    if d.ndim != 2:
-        raise ValueError(f"depth is (H, W), got shape {d.shape}")
+    d = _depth_image(np.ascontiguousarray(depth, "<f4"))
     msg = pb.Depth(encoding=pb.Depth.FLOAT32_METRES, width=d.shape[1], height=d.shape[0],
                    data=d.tobytes())
     if camera is not None:
@@ -358,7 +363,7 @@ class ClientSession:
             frame.camera.CopyFrom(_camera(camera))
         if depth is not None:
             if depth_encoding == "uint16":
-                raw = np.asarray(depth)
+                raw = _depth_image(np.asarray(depth))
                 if raw.dtype.kind not in "ui" or (raw.size and (raw.min() < 0
                                                                 or raw.max() > 65535)):
                     raise InputError(f"depth is {raw.dtype}: depth_encoding=\"uint16\" "

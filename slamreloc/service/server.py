@@ -8,8 +8,8 @@ Localize calls wait for a worker (more are refused OVERLOADED at once), none wai
 own deadline or `queue_wait_s`, and one whose call ended meanwhile is dropped before it
 computes; a session holds a thread for its lifetime (at most `max_sessions` open, and as many
 opening, each within `open_timeout_s` of its SessionOpen, and cancelled after
-`session_idle_s` without a message, or with an answer it leaves unread); one ReloadMap per map waits for its load (another is
-refused OVERLOADED at once).
+`session_idle_s` without a message, or with an answer it leaves unread); one ReloadMap per map
+waits for its load (another is refused OVERLOADED at once).
 
 Safety: the server binds 127.0.0.1 unless told otherwise, and a non-local address needs a token
 (`authorization: Bearer TOKEN` metadata, compared in constant time) or TLS with a token. Messages
@@ -406,7 +406,8 @@ class RelocalizerService:
                 instead = "open one with a map, or retry" if self.registry.names else "retry"
                 raise ServiceError(pb.OVERLOADED, f"{busy} learning sessions open, the most "
                                    "this server takes (each may hold about 2 GB while it "
-                                   f"learns); {instead} later")
+                                   "learns; one that has ended gives its place back when its "
+                                   f"training round stops, within seconds); {instead} later")
             self.learning_opening += 1
             state["reserved"] = True
 
@@ -499,18 +500,20 @@ class RelocalizerService:
                 self.deadlines.arm(key, self.config.session_idle_s if session is not None
                                    else self.config.open_timeout_s, context)
             yield update.SerializeToString()
-        self.deadlines.disarm(key)
+        self.deadlines.disarm(key)  # closing: no deadline while the trajectory is made
         if session is not None and context.is_active():
             try:
                 with self._worker(context, counted=False):
-                    closed = session.close()
+                    update = pb.SessionUpdate(closed=session.close())
             except ServiceError as err:  # no worker came (or the client left): said so
-                if context.is_active():
-                    yield pb.SessionUpdate(error=pb.SessionError(
-                        kind=err.kind, message=f"close: {err.message}",
-                        frame=session.n_frames)).SerializeToString()
-                return
-            yield pb.SessionUpdate(closed=closed).SerializeToString()
+                if not context.is_active():
+                    return
+                update = pb.SessionUpdate(error=pb.SessionError(
+                    kind=err.kind, message=f"close: {err.message}", frame=session.n_frames))
+            # the last answer too: a client that never reads it is cancelled after
+            # `session_idle_s`, its slot given back
+            self.deadlines.arm(key, self.config.session_idle_s, context)
+            yield update.SerializeToString()
 
     def _save(self, session: Session, request: pb.SessionSave,
               context: grpc.ServicerContext | None = None) -> pb.MapSaved:

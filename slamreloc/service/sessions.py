@@ -86,6 +86,7 @@ class Session:
         self.live_map: LiveMap | None = None
         self.camera = None if served is None else served.scene_map.camera  # frames' default
         self.last_stamp: float | None = None  # the last accepted frame's (0: none given)
+        self.stamps_all_zero = True  # every accepted frame's timestamp 0 so far
         if served is None:  # learning: the map grows from the frames (as `slam --out`)
             self.live_map = LiveMap(live or LiveMapConfig())
             self.mapper = load_plugin("live_mapping", live_map=self.live_map, out=None)
@@ -155,6 +156,7 @@ class Session:
         if self.camera is None:
             self.camera = camera  # the default of the frames that follow
         self.last_stamp = msg.timestamp
+        self.stamps_all_zero = self.stamps_all_zero and msg.timestamp == 0
         out = pb.FrameResult(index=step.index, state=STATES[step.state],
                              backend_ms=1000 * (time.perf_counter() - t0))
         if step.world_from_cam is not None:
@@ -164,12 +166,19 @@ class Session:
         return out
 
     def _check_order(self, stamp: float) -> None:
-        """A session's timestamps increase from frame to frame (0 throughout: none given): a
-        frame at or before the last one's instant is refused, as a trajectory file's repeated
-        instant is (one instant, two images: which is that instant's is not for the server to
-        guess)."""
+        """A session's timestamps increase from frame to frame, or are 0 throughout (none
+        given; a session whose first two frames are at 0 gives none): a frame at or before the
+        last one's instant is refused, as a trajectory file's repeated instant is (one instant,
+        two images: which is that instant's is not for the server to guess)."""
         last = self.last_stamp
-        if last is not None and stamp <= last and not stamp == last == 0:
+        if last is None:
+            return
+        unstamped = self.stamps_all_zero  # every frame so far at 0
+        if unstamped and self.n_frames >= 2 and stamp != 0:
+            raise ServiceError(pb.BAD_REQUEST, f"frame.timestamp: {stamp:.17g} s after "
+                               f"{self.n_frames} frames without one (0); a session gives "
+                               "every frame's timestamp, or none")
+        if stamp <= last and not (stamp == 0 and unstamped):
             raise ServiceError(pb.BAD_REQUEST, f"frame.timestamp: {stamp:.17g} s is not after "
                                f"the previous frame's {last:.17g} s (timestamps must increase)")
 
