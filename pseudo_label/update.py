@@ -69,10 +69,11 @@ def _truth_poses(dataset: Dataset, frames: list[Frame], truth: Dataset | None
 
 
 def _refuse_own_frames(old: SceneMap, dataset: Dataset, split: str, frames: list) -> None:
-    """InputError when every frame of the split is one the map was built from (its recorded
-    dataset and split, not a later update's): they would be registered against their own
-    labels and come back as "pseudo-labels" at 0 cm, with nothing learned. A sequence an
-    update already added may be pseudo-labelled again (each observation is kept)."""
+    """InputError when any frame of the split is one the map was built from (its recorded
+    dataset and split, not a later update's): it would be registered against its own labels
+    and come back as a "pseudo-label" at 0 cm, twice in the new map, with nothing learned.
+    A sequence an update already added may be pseudo-labelled again (each observation is
+    kept)."""
     record = old.info.dataset
     built = old.info.dataset_root
     if built is None or record is None or not isinstance(record.split, str):
@@ -83,10 +84,13 @@ def _refuse_own_frames(old: SceneMap, dataset: Dataset, split: str, frames: list
         own = {f.name for f in dataset.frames(record.split)}
     except InputError:  # a split the dataset no longer has: nothing to compare with
         return
-    if frames and all(f.name in own for f in frames):
-        raise InputError(f"{dataset.root}: split '{split}' holds only frames the map was built "
+    built_from = [f.name for f in frames if f.name in own]
+    if built_from:  # registered against their own labels: a self-scored, doubled frame
+        which = ("only frames" if len(built_from) == len(frames) else
+                 f"{len(built_from)} frames (such as {built_from[0]!r})")
+        raise InputError(f"{dataset.root}: split '{split}' holds {which} the map was built "
                          f"from (its split '{record.split}'): pseudo-labelling learns frames a "
-                         "map lacks (choose another split)")
+                         "map lacks (choose a split without them)")
 
 
 def pseudo_label(old: SceneMap, dataset: Dataset, split: str | None = None,

@@ -8,6 +8,7 @@ Units are metres; quaternions are Hamilton, scalar-last (x, y, z, w) as in TUM f
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -484,9 +485,18 @@ def read_named_trajectory(path) -> TumTrajectory:
             names.append(None)
     sidecar = names_sidecar(path)
     numeric = bool(rows) and all(n is None for n in names)
-    if numeric and sidecar.is_file():
-        table = read_names_sidecar(sidecar)
-        names = [table.get(f"{s:.6f}") for s in stamps]
+    if numeric and os.path.lexists(sidecar):  # given: it names every pose, and only those
+        table = read_names_sidecar(sidecar)  # (a FIFO, a folder: refused, naming it)
+        keys = [f"{s:.6f}" for s in stamps]
+        missing = next((k for k in keys if k not in table), None)
+        if missing is not None:
+            raise InputError(f"{sidecar}: names no frame for the stamp {missing} of {path} (a "
+                             "trajectory's names file has one line per pose)")
+        extra = len(set(table) - set(keys))
+        if extra:
+            raise InputError(f"{sidecar}: names {extra} stamp(s) that {path} has no pose for "
+                             "(a trajectory's names file has one line per pose)")
+        names = [table[k] for k in keys]
     return TumTrajectory(np.array(stamps, dtype=np.float64), names, [p for _, p in rows],
                          numeric)
 

@@ -49,8 +49,8 @@ from slamreloc.types import Camera, frame_name_problem
 SFM_JSON = "sfm.json"
 # the photos of a folder, by name: every format `read_image` reads (PNG, JPEG, BMP, TIFF, WebP,
 # PNM); a photo of another format is refused by name, never left out unsaid
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm",
-                  ".pbm", ".pnm")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".jpe", ".jfif", ".bmp", ".dib", ".tif", ".tiff",
+                  ".webp", ".ppm", ".pgm", ".pbm", ".pnm")
 UNREAD_IMAGE_SUFFIXES = (".gif", ".heic", ".heif", ".avif", ".jp2", ".jxl", ".dng", ".cr2",
                          ".nef", ".arw", ".raw")
 MATCHING = ("auto", "sequential", "exhaustive")

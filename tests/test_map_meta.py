@@ -45,6 +45,9 @@ def shuffled(draw, doc: dict) -> dict:
     return {k: doc[k] for k in draw(st.permutations(list(doc)))}
 
 
+ROOTS = st.none() | st.sampled_from(["/data/scene", "/tmp/d", "/"])  # recorded: absolute
+
+
 @st.composite
 def some_keys(draw, typed: dict, strict: tuple[str, ...] = ()) -> dict:
     """A JSON object with some of the keys `typed` names (key -> strategy of the right type),
@@ -139,20 +142,21 @@ def metadata(draw) -> dict:
         | finite_json.filter(lambda v: not isinstance(v, dict) or not {"precision", *TRAIN_RULES}
                              & set(v)),  # typed fields: checked (test_schema_types...)
         "timings_s": st.dictionaries(st.text("abc_", max_size=5), st.floats(0, 100), max_size=3),
-        "dataset": some_keys({"root": st.text(max_size=8),
+        "dataset": some_keys({"root": ROOTS,
                               "kind": st.sampled_from(DATASET_KINDS) | st.none(),
                               "split": st.text(max_size=5), "metric": st.booleans(),
                               "poses": st.sampled_from(["dataset", "slam", "/p/poses.txt"])},
-                             strict=("kind", "poses", "metric")) | finite_json,
+                             strict=("root", "split", "kind", "poses", "metric")) | st.none(),
         "surface": some_keys({"n_points": st.integers(0, 10 ** 6) | st.none(),
                               "voxel_m": st.floats(0.001, 1.0) | st.integers(1, 2)},
                              strict=("n_points", "voxel_m")),
         "pseudo_label": some_keys({"source_map": st.text(max_size=8),
                                    "n_frames_registered": st.integers(0, 1000),
-                                   "dataset": st.dictionaries(st.sampled_from(["root", "split"]),
-                                                              st.none() | st.text(max_size=4)),
+                                   "dataset": st.fixed_dictionaries(
+                                       {}, optional={"root": ROOTS,
+                                                     "split": st.none() | st.text(max_size=4)}),
                                    "history": st.lists(st.text(max_size=5), max_size=3)},
-                                  strict=("n_frames_registered",)),
+                                  strict=("n_frames_registered", "dataset")),
         "frame_names": st.lists(st.text(max_size=8).filter(lambda n: frame_name_problem(n)
                                                            is None), max_size=4),
         "tag": finite_json,
@@ -334,15 +338,33 @@ def test_stamped_lays_out_the_metadata_as_save_map_writes_it():
 
 
 def test_values_the_schema_does_not_type_are_kept_verbatim():
-    doc = {**_valid_doc(), "dataset": {"root": 7, "metric": None, "poses": "/p.txt"},
-           "pseudo_label": "odd", "slamreloc_version": ["x"]}
+    doc = {**_valid_doc(), "dataset": {"note": 7, "metric": None, "poses": "/p.txt"},
+           "slamreloc_version": ["x"]}
     meta = MapMeta.from_json(doc, PATH)
-    assert meta.dataset == DatasetMeta(poses="/p.txt", extra={"root": 7, "metric": None})
-    # read as before the schema: a recorded null is not metric, a root that is no path none
+    assert meta.dataset == DatasetMeta(poses="/p.txt", extra={"note": 7, "metric": None})
+    # read as before the schema: a recorded null is not metric, no root recorded
     assert meta.dataset_root is None and meta.metric is False and meta.poses_source == "/p.txt"
     assert meta.pseudo_label is None and meta.n_frames_updated == 0
     assert meta.slamreloc_version is None and meta.extra["slamreloc_version"] == ["x"]
-    assert meta.to_json() == doc and list(meta.to_json()["dataset"]) == ["root", "metric", "poses"]
+    assert meta.to_json() == doc and list(meta.to_json()["dataset"]) == ["note", "metric", "poses"]
+
+
+@pytest.mark.parametrize("edit, message", [
+    ({"dataset": {"root": 7}}, "'dataset.root' must be a string (the dataset's path), got 7"),
+    ({"dataset": {"root": "scene"}}, "'dataset.root' must be an absolute path"),
+    ({"dataset": 5}, "'dataset' must be an object, got 5"),
+    ({"dataset": {"split": 5}}, "'dataset.split' must be a string"),
+    ({"pseudo_label": "odd"}, "'pseudo_label' must be an object (the update's record)"),
+    ({"pseudo_label": {"dataset": {"root": "rel"}}}, "'pseudo_label.dataset.root' must be an "
+                                                     "absolute path"),
+])
+def test_a_recorded_dataset_follows_one_rule_for_every_command(edit, message):
+    """Attack round 13, J4 and J5: a root or split of another type, or a pseudo_label record
+    that is no object, was taken by `localize` and refused by the commands that use the
+    dataset; the schema refuses it for all."""
+    with pytest.raises(InputError) as err:
+        MapMeta.from_json({**_valid_doc(), **edit}, PATH)
+    assert message in str(err.value), err.value
 
 
 def test_a_camera_is_recorded_as_the_camera_writes_itself():

@@ -122,3 +122,109 @@ class _NoStream:
 
     def _answer(self, request):
         raise AssertionError("sent")
+
+
+# ---- CLI ---------------------------------------------------------------------------------------
+def test_an_output_is_never_another_outputs_lock_or_temporary(small_map, scene_dir, tmp_path):
+    """J2: `--report D/.a.lock` beside `--out D/a` was renamed over the map writer's live lock
+    file (and deleted with it); a writer's own working paths are no output's."""
+    from tests.test_cli_round5 import one_line_exit_2
+
+    import os
+
+    for name, role in ((".a.lock", "lock file"), (f".a.tmp-{os.getpid()}", "temporary folder")):
+        one_line_exit_2(["pseudo-label", str(small_map.root), str(scene_dir), "--out",
+                         str(tmp_path / "a"), "--report", str(tmp_path / name)],
+                        f"--report is --out's {role}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("doc, message", [
+    ({"truth_aligned_on_keyframes": [True, 2]}, "truth_aligned_on_keyframes[1] is true or "
+                                                "false; got 2"),
+    ({"truth_aligned_on_keyframes": {"x": "yes"}}, "truth_aligned_on_keyframes.x is true or false"),
+    ({"map": {"size_bytes": {"a": -1.5}}}, "map.size_bytes.a is a count"),
+    ({"n_queries": [3, -1]}, "n_queries[1] is a count"),
+])
+def test_a_named_kind_holds_in_lists_and_objects(doc, message):
+    """J6: a flag's list items and a count's object values took no rule (view served them)."""
+    from slamreloc.io.values import check_values
+
+    with pytest.raises(InputError) as err:
+        check_values(doc, "r.json")
+    assert message in str(err.value), err.value
+    check_values({"timings_s": {"features": 0.5, "n_calls": 3}, "recall": {"1cm": 0.5}},
+                 "r.json")  # an object's own names first, then its parent's kind
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda lines: [lines[0], "0.150000" + lines[1][8:], *lines[2:]],
+     "names no frame for the stamp"),
+    (lambda lines: lines[:-1], "names no frame for the stamp"),
+    (lambda lines: [], "names no frame for the stamp"),
+    (lambda lines: [*lines, "9.000000 seq-09/frame-000009"], "names 1 stamp(s) that"),
+])
+def test_a_trajectorys_names_file_names_every_pose_and_only_those(tmp_path, edit, message):
+    """J7: a names file that did not match its trajectory was passed over row by row, and the
+    error then said the poses had no names; it is now named with what it lacks."""
+    from slamreloc.geometry import (Rigid3, names_sidecar, read_named_trajectory,
+                                    write_tum_trajectory)
+
+    path = tmp_path / "t.txt"
+    write_tum_trajectory(path, [0.0, 0.1, 0.2], [Rigid3.identity()] * 3,
+                         names=["seq-01/frame-000000", "seq-01/frame-000001",
+                                "seq-01/frame-000002"])
+    assert read_named_trajectory(path).names[1] == "seq-01/frame-000001"
+    sidecar = names_sidecar(path)
+    lines = [line for line in sidecar.read_text().splitlines() if not line.startswith("#")]
+    sidecar.write_text("".join(f"{line}\n" for line in edit(lines)))
+    with pytest.raises(InputError, match="t.names.txt: " + message.replace("(", r"\(")
+                       .replace(")", r"\)")):
+        read_named_trajectory(path)
+
+
+def test_sfm_takes_every_photo_suffix_localize_reads(tmp_path):
+    """J8: `.jfif`, `.jpe` and `.dib` photos were left out of sfm unsaid while `localize`
+    reads them."""
+    import cv2
+
+    from slamreloc.io.images import read_image
+    from slamreloc.sfm import IMAGE_SUFFIXES
+
+    image = (np.arange(48 * 64 * 3) % 251).astype(np.uint8).reshape(48, 64, 3)
+    for suffix, encoded_as in ((".jfif", ".jpg"), (".jpe", ".jpg"), (".dib", ".bmp")):
+        path = tmp_path / f"p{suffix}"
+        path.write_bytes(cv2.imencode(encoded_as, image)[1].tobytes())
+        assert read_image(path).shape[:2] == (48, 64)
+        assert suffix in IMAGE_SUFFIXES
+
+
+def test_pseudo_label_refuses_a_split_holding_any_of_the_maps_frames(small_map, scene_dir,
+                                                                     tmp_path):
+    """J9: `--split seq-01,seq-04` re-registered the map's own frames against their labels
+    (self-scored 100 %, every name twice in the new map); only a split of nothing else was
+    refused."""
+    from tests.test_cli_round5 import one_line_exit_2
+
+    one_line_exit_2(["pseudo-label", str(small_map.root), str(scene_dir), "--split",
+                     "seq-01,seq-04", "--out", str(tmp_path / "new"), "--report",
+                     str(tmp_path / "r.json"), "--rounds", "1", "--epochs", "1"],
+                    "split 'seq-01,seq-04' holds", "frames (such as 'seq-01/")
+    assert not (tmp_path / "new").exists()
+
+
+def test_localize_into_a_pipe_closed_by_its_reader_says_so(small_map, scene_dir):
+    """J10: the poses written into a pipe whose reader had left were lost with exit status 1
+    and nothing said (click's quiet EPIPE exit)."""
+    import subprocess
+    import sys
+
+    image = scene_dir / "seq-02" / "frame-000000.color.png"
+    proc = subprocess.Popen([sys.executable, "-m", "slamreloc.cli", "localize",
+                             str(small_map.root), "--method", "matching", str(image)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc.stdout.close()  # the reader leaves before the first pose
+    err = proc.stderr.read()
+    assert proc.wait(timeout=300) == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "standard output" in lines[0] and "closed" in lines[0], err

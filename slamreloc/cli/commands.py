@@ -4,6 +4,7 @@ of its options come from the registries (`slamreloc.cli.choices`)."""
 from __future__ import annotations
 
 import re
+import os
 import sys
 from dataclasses import replace
 from functools import cache
@@ -221,9 +222,14 @@ def localize(
             errors += 1
             typer.echo(with_flags(line), err=True)
             continue
-        with naming_output("standard output"):  # a full disk, a closed pipe: said so
-            typer.echo(line)
-            sys.stdout.flush()
+        try:
+            with naming_output("standard output"):  # a full disk, a closed pipe: said so
+                typer.echo(line)
+                sys.stdout.flush()
+        except BrokenPipeError:  # (click would end quietly with status 1)
+            sys.stdout = open(os.devnull, "w")  # nothing more goes to the closed pipe
+            raise InputError("standard output: the pipe's reader has closed it; the poses "
+                             "that follow would be lost") from None
     if errors:
         raise typer.Exit(2)
 

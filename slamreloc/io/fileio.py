@@ -290,11 +290,23 @@ def check_outputs(outputs: dict[str, str | Path | None],
     replace the link: `/dev/stdout` is one); links among its parent folders are followed."""
     ins = {what: Path(p).resolve() for what, p in inputs.items() if p is not None}
     own = folders if isinstance(folders, dict) else dict.fromkeys(folders, ...)
+    working = {}  # the paths each output's writer works in beside it (lock, temporaries)
+    for option, out in outputs.items():
+        if out is not None:
+            out = Path(out)
+            for role, path in ((("lock file", write_lock_path(out)),
+                                ("temporary folder", temp_dir_path(out)),
+                                ("old copy", temp_dir_path(out, "old"))) if option in own else
+                               (("temporary file", temp_file_path(out)),)):
+                working[path.resolve()] = f"{option}'s {role}"
     seen: dict[Path, str] = {}
     for option, out in outputs.items():
         if out is None:
             continue
         target = Path(out).resolve()
+        if target in working:
+            raise InputError(f"{out}: {option} is {working[target]}, which its writer makes "
+                             "and removes; write it elsewhere")
         for other, option_other in seen.items():
             if target == other:
                 raise InputError(f"{out}: {option} and {option_other} name the same path")

@@ -25,6 +25,7 @@ COUNT = re.compile(r"(n|num)_\w+|parameters|\w+_bytes|kidnap_(every|skip)|frames
 MEASURE = re.compile(r"\w+_(m|cm|deg|px|s|ms|fps|length|share)|\w+_ms_per_\w+|median_frames_\w+")
 FRACTION = re.compile(r"recall|\w+_fraction|\w*precision_\w+")  # shares: [0, 1]
 FLAG = re.compile(r"guided_refinement|truth_aligned_\w+|noise_anneal|learned_live|accepted")
+KINDS = ("count", "measure", "angle", "fraction", "flag")  # the rules a name gives
 
 
 def check_values(value, source, names: tuple[str, ...] = (),
@@ -50,8 +51,8 @@ def check_values(value, source, names: tuple[str, ...] = (),
                     stack.append((c, field, _rule(k, rule, names)))
             continue
         if isinstance(v, list):
-            # a list under a count or measure holds counts or measures
-            inner = rule if rule in ("count", "measure", "angle", "fraction") else None
+            # a list under a named kind holds values of that kind
+            inner = rule if rule in KINDS else None
             stack.extend((c, f"{where}[{i}]", inner) for i, c in enumerate(v))
             continue
         _check_scalar(v, where, rule, source)
@@ -59,9 +60,8 @@ def check_values(value, source, names: tuple[str, ...] = (),
 
 def _rule(key: str, parent: str | None, names: tuple[str, ...]) -> str | None:
     """The rule for the value under `key` (inside an object checked by `parent`'s rule;
-    "top": the report itself)."""
-    if parent in ("measure", "angle", "fraction"):  # an object of such: each value is one
-        return parent
+    "top": the report itself): its own name's kind, else its object's (an object under a
+    named kind holds values of that kind: `timings_s` per stage, `recall` per threshold)."""
     if key in names and parent == "top":  # a report's own `poses` (not `dataset.poses`)
         return "names"
     if COUNT.fullmatch(key):
@@ -72,7 +72,7 @@ def _rule(key: str, parent: str | None, names: tuple[str, ...]) -> str | None:
         return "angle" if key.endswith("_deg") else "measure"
     if FLAG.fullmatch(key):
         return "flag"
-    return None
+    return parent if parent in KINDS else None
 
 
 def _check_scalar(v, where: str, rule: str | None, source) -> None:

@@ -436,27 +436,10 @@ class MapMeta(_Record):
                     update, "pseudo_label.dataset"))}
 
     def _recorded_root(self, dataset: Json, where: str) -> str | None:
-        """The `root` of a recorded dataset record (`where`: its key path), None where none
-        is recorded; InputError naming the metadata file for a value of another type."""
+        """`recorded_root` of this metadata's file."""
         if isinstance(dataset, _Record):
             dataset = dataset.to_json()
-        if dataset is None:
-            return None
-        if not isinstance(dataset, dict):
-            raise InputError(f"{self.source or META}: '{where}' must be an object, got "
-                             f"{_short(dataset)}")
-        root = dataset.get("root")
-        if root is not None and not isinstance(root, str):
-            raise InputError(f"{self.source or META}: '{where}.root' must be a string (the "
-                             f"dataset's path), got {_short(root)}")
-        if root is not None and ("\0" in root or len(root.encode("utf-8", "replace")) > 4096):
-            raise InputError(f"{self.source or META}: '{where}.root' is not a path this system "
-                             f"can hold (a NUL byte, or over 4096 bytes), got {_short(root)}")
-        if root is not None and not Path(root).is_absolute():  # "" too: no path at all
-            raise InputError(f"{self.source or META}: '{where}.root' must be an absolute path "
-                             f"(maps record one; a relative one would name another dataset "
-                             f"from each folder a command runs in), got {_short(root)}")
-        return root
+        return recorded_root(dataset, where, self.source or META)
 
     @property
     def metric(self) -> bool:
@@ -477,6 +460,28 @@ class MapMeta(_Record):
         """Frames the map's last update registered, appended last to the database (0: none)."""
         n = self.pseudo_label.get("n_frames_registered", 0) if self.pseudo_label else 0
         return n if isinstance(n, int) else 0
+
+
+def recorded_root(dataset: Json, where: str, path) -> str | None:
+    """The `root` of a recorded dataset record (`where`: its key path in the metadata file
+    `path`), None where none is recorded; InputError naming the file and the field for a
+    record that is not an object, or a root that is not an absolute path this system holds."""
+    if dataset is None:
+        return None
+    if not isinstance(dataset, dict):
+        raise InputError(f"{path}: '{where}' must be an object, got {_short(dataset)}")
+    root = dataset.get("root")
+    if root is not None and not isinstance(root, str):
+        raise InputError(f"{path}: '{where}.root' must be a string (the dataset's path), got "
+                         f"{_short(root)}")
+    if root is not None and ("\0" in root or len(root.encode("utf-8", "replace")) > 4096):
+        raise InputError(f"{path}: '{where}.root' is not a path this system can hold (a NUL "
+                         f"byte, or over 4096 bytes), got {_short(root)}")
+    if root is not None and not Path(root).is_absolute():  # "" too: no path at all
+        raise InputError(f"{path}: '{where}.root' must be an absolute path (maps record one; "
+                         "a relative one would name another dataset from each folder a "
+                         f"command runs in), got {_short(root)}")
+    return root
 
 
 def _check_schema(meta: dict, version: int, path) -> None:
@@ -513,7 +518,14 @@ def _check_schema(meta: dict, version: int, path) -> None:
         _check_optional(surface, "voxel_m", "surface.", path, "a voxel size in (0, 10] metres",
                         lambda v: _is_number(v) and 0 < v <= 10)
     dataset = meta.get("dataset")
+    _check_optional(meta, "pseudo_label", "", path, "an object (the update's record)",
+                    _is_object)
+    recorded_root(dataset, "dataset", path)  # every command's rule, not only a dataset's user
+    if isinstance(meta.get("pseudo_label"), dict):
+        recorded_root(meta["pseudo_label"].get("dataset"), "pseudo_label.dataset", path)
     if isinstance(dataset, dict):
+        _check_optional(dataset, "split", "dataset.", path, "a string (the split's sequences)",
+                        lambda v: isinstance(v, str))
         _check_optional(dataset, "kind", "dataset.", path,
                         f"one of {', '.join(DATASET_KINDS)}", lambda v: v in DATASET_KINDS)
         _check_optional(dataset, "poses", "dataset.", path, '"dataset", "slam" or the '
@@ -531,7 +543,7 @@ def _check_schema(meta: dict, version: int, path) -> None:
             _check_optional(train, key, "train.", path, want, ok)
     # the labelling's counts agree (an update's pseudo-labels come from other frames: past
     # one, only depth labels are still counts of the labelled frames' keypoints)
-    updated = bool(meta.get("pseudo_label"))
+    updated = bool(meta.get("pseudo_label"))  # an object (checked above), not empty
     keypoints, labelled = labels.get("n_keypoints"), labels.get("n_labelled")
     if _is_int(keypoints):
         for key in ("n_depth_labels",) if updated else ("n_labelled", "n_depth_labels"):
@@ -547,10 +559,16 @@ def _check_schema(meta: dict, version: int, path) -> None:
         _check_optional(labels, "n_tracks", "labels.", path, "a count of at most "
                         f"'labels.n_labelled' ({labelled})", _in(0, labelled, whole=True))
     depth_labels, tracks = labels.get("n_depth_labels"), labels.get("n_tracks")
-    if _is_int(depth_labels):  # a disagreement is a depth label its track contradicts
+    if _is_int(depth_labels) or tracks == 0:  # a depth label its track contradicts
+        most, of = (0, "'labels.n_tracks'") if tracks == 0 else (depth_labels,
+                                                                "'labels.n_depth_labels'")
         _check_optional(labels, "n_track_depth_disagreements", "labels.", path,
-                        f"a count of at most 'labels.n_depth_labels' ({depth_labels})",
-                        _in(0, depth_labels, whole=True))
+                        f"a count of at most {of} ({most})", _in(0, most, whole=True))
+    frames = labels.get("n_frames")
+    if _is_int(frames):  # a pair is two of the labelled frames
+        most = frames * (frames - 1) // 2
+        _check_optional(labels, "n_pairs", "labels.", path, f"a count of at most {most} "
+                        f"(pairs of 'labels.n_frames' {frames})", _in(0, most, whole=True))
     if _is_int(tracks):  # observations per track: none without tracks, at most all keypoints
         most = keypoints / max(tracks, 1) if _is_int(keypoints) else None
         _check_optional(labels, "mean_track_length", "labels.", path,
