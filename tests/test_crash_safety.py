@@ -46,8 +46,9 @@ def _python(code: str, *args: str, env: dict | None = None) -> subprocess.Popen:
 # (crash point, rename-exchange used?, map at its path right after the crash, debris left?)
 CRASH_POINTS = [("files-written", True, "old", True), ("before-swap", True, "old", True),
                 ("between-renames", False, None, True),
-                ("after-swap", True, "new", True),  # the old map, swapped out, awaits removal
-                ("after-swap", False, "new", False)]
+                # the old map, swapped out or moved aside, awaits removal (kept until the
+                # command's outputs are all in place: `outputs_together` may put it back)
+                ("after-swap", True, "new", True), ("after-swap", False, "new", True)]
 
 
 def test_kill_at_every_step_of_the_swap(tmp_path):

@@ -228,3 +228,57 @@ def test_localize_into_a_pipe_closed_by_its_reader_says_so(small_map, scene_dir)
     assert proc.wait(timeout=300) == 2, err
     lines = err.strip().splitlines()
     assert len(lines) == 1 and "standard output" in lines[0] and "closed" in lines[0], err
+
+
+# ---- J1: outputs put in place together go back together -----------------------------------
+def test_outputs_already_in_place_go_back_when_a_later_one_cannot(tmp_path):
+    """J1: when the last output of a command could not be renamed into place (made immutable,
+    or a folder put there meanwhile), the ones before it stayed new. They now go back as
+    they were: an old file under its old bytes, a new one removed."""
+    import json
+
+    from slamreloc.io.fileio import outputs_together, write_json
+
+    a, b, c = tmp_path / "a.json", tmp_path / "b.json", tmp_path / "c.json"
+    write_json(a, {"old": 1})
+    with pytest.raises(OSError):
+        with outputs_together():
+            write_json(a, {"new": 1})
+            write_json(b, {"new": 1})  # absent before
+            write_json(c, {"new": 1})
+            c.mkdir()  # in the way when c is renamed into place
+            (c / "x").write_text("a user's\n")
+    assert json.loads(a.read_text()) == {"old": 1} and not b.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "c.json"]  # no leftover
+
+
+@pytest.mark.parametrize("exchange", [True, False])
+def test_a_map_already_swapped_in_goes_back_when_its_report_cannot(small_map, scene_dir,
+                                                                   tmp_path, monkeypatch,
+                                                                   exchange):
+    """J1, for a map: pseudo-label's new map goes back when its report cannot be put in place
+    (with the atomic exchange, and with the two renames where the file system lacks it)."""
+    from slamreloc.pseudo_label import write
+    from tests.fuzzing import run_cli
+    from tests.test_round12 import _tree
+
+    argv = ["pseudo-label", str(small_map.root), str(scene_dir), "--out", str(tmp_path / "new"),
+            "--report", str(tmp_path / "r.json"), "--rounds", "1", "--epochs", "1"]
+    code, err = run_cli(argv)
+    assert code == 0, err
+    before = _tree(tmp_path / "new")
+    written = write.write_json
+
+    def report_in_the_way(path, data):
+        written(path, data)
+        path.unlink()
+        path.mkdir()  # a folder in the report's place when it is renamed in
+        (path / "x").write_text("a user's\n")
+
+    monkeypatch.setattr(write, "write_json", report_in_the_way)
+    if not exchange:
+        monkeypatch.setenv("SLAMRELOC_NO_RENAME_EXCHANGE", "1")
+    code, err = run_cli([*argv[:-1], "2"])
+    assert code == 2 and "r.json" in err, err
+    assert _tree(tmp_path / "new") == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["new", "r.json"]  # no leftover

@@ -3,6 +3,7 @@ lost or left half-written."""
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -64,11 +65,13 @@ def read_bytes(path: str | Path, what: str, limit: int | str) -> bytes:
     path = Path(path)
     most = getattr(limits(), limit) if isinstance(limit, str) else limit
 
+    noun = what if what.endswith("file") else f"{what} file"  # "frame names file" once
+
     def too_large(size: str) -> InputError:
         if isinstance(limit, str):
-            return InputError(f"{path}: {what} file of " + over_limit(limit, size))
-        return InputError(f"{path}: {what} file of {size}, over the {bytes_text(most)} a "
-                          f"{what} file may hold")
+            return InputError(f"{path}: {noun} of " + over_limit(limit, size))
+        return InputError(f"{path}: {noun} of {size}, over the {bytes_text(most)} a {noun} "
+                          "may hold")
 
     with open_regular(path, what) as f:
         try:
@@ -297,7 +300,8 @@ def check_outputs(outputs: dict[str, str | Path | None],
             for role, path in ((("lock file", write_lock_path(out)),
                                 ("temporary folder", temp_dir_path(out)),
                                 ("old copy", temp_dir_path(out, "old"))) if option in own else
-                               (("temporary file", temp_file_path(out)),)):
+                               (("temporary file", temp_file_path(out)),
+                                ("old copy", temp_file_path(out, "old")))):
                 working[path.resolve()] = f"{option}'s {role}"
     seen: dict[Path, str] = {}
     for option, out in outputs.items():
@@ -389,7 +393,7 @@ def outputs_together() -> Iterator[None]:
     if getattr(_together, "pending", None) is not None:
         yield
         return
-    pending: list[tuple[Callable[[], None], Callable[[], None]]] = []
+    pending: list[tuple[Callable[[], Undo], Callable[[], None]]] = []
     _together.pending = pending
     done = False
     try:
@@ -398,9 +402,15 @@ def outputs_together() -> Iterator[None]:
     finally:
         _together.pending = None
         with _signals_held():
+            undos: list[Undo] = []
             try:
                 for commit, _ in pending if done else ():
-                    commit()
+                    undos.append(commit())
+            except BaseException:  # a rename refused (a file made immutable meanwhile): the
+                for undo in reversed(undos):  # outputs already in place go back as they were
+                    if undo is not None:
+                        undo()
+                raise
             finally:
                 for _, discard in pending:
                     discard()
@@ -440,10 +450,14 @@ def _signals_held() -> Iterator[None]:
         raise KeyboardInterrupt
 
 
-def commit_output(commit: Callable[[], None], discard: Callable[[], None]) -> None:
+Undo = Callable[[], None] | None  # what puts an output back as it was before its commit
+
+
+def commit_output(commit: Callable[[], Undo], discard: Callable[[], None]) -> None:
     """Put a written output in place: `commit()` (a rename) now, or, inside `outputs_together`,
-    when the whole block has succeeded; `discard()` (removing what `commit` did not take) runs
-    after it either way."""
+    when the whole block has succeeded; `discard()` (removing what `commit` did not take, and
+    the old copy it kept) runs after it either way. `commit` returns how to undo it (None:
+    nothing to undo), used where a later output of the block cannot be put in place."""
     pending = getattr(_together, "pending", None)
     if pending is not None:
         pending.append((commit, discard))
@@ -454,10 +468,11 @@ def commit_output(commit: Callable[[], None], discard: Callable[[], None]) -> No
         discard()
 
 
-def temp_file_path(path: Path) -> Path:
+def temp_file_path(path: Path, role: str = "tmp") -> Path:
     """The temporary file `atomic_file` writes `path` into: hidden beside it, named with this
-    process id, with `path`'s suffix (a writer that picks its format by suffix keeps it)."""
-    return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    process id, with `path`'s suffix (a writer that picks its format by suffix keeps it); with
+    `role` "old", the second name it keeps the replaced file under until its block is done."""
+    return path.with_name(f".{path.stem}.{role}-{os.getpid()}{path.suffix}")
 
 
 def temp_dir_path(out: str | Path, role: str = "tmp") -> Path:
@@ -513,9 +528,23 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
         os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644))
     except FileExistsError:
         raise InputError(temp_in_the_way(tmp, str(path))) from None
-    def replace() -> None:
+    backup = temp_file_path(path, "old")
+    kept: list[Path] = []  # the backup, once this writer made it
+
+    def replace() -> Undo:  # the old file kept (a second name) until the block is done
         with naming_output(path):
+            existed = os.path.lexists(path)
+            if existed and _second_name(path, backup):
+                kept.append(backup)
             os.replace(tmp, path)
+        if kept:
+            return lambda: os.replace(backup, path)
+        return None if existed else lambda: path.unlink(missing_ok=True)
+
+    def discard() -> None:
+        tmp.unlink(missing_ok=True)
+        for made in kept:  # never a file of that name this writer did not make
+            made.unlink(missing_ok=True)
 
     try:
         with naming_output(path):
@@ -523,7 +552,24 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    commit_output(replace, lambda: tmp.unlink(missing_ok=True))
+    commit_output(replace, discard)
+
+
+def _second_name(path: Path, backup: Path) -> bool:
+    """Give the file at `path` the second name `backup` (a hard link: its bytes stay whatever
+    replaces `path`); False where there is no file or the file system makes no links."""
+    if not os.path.isfile(path) or os.path.islink(path):
+        return False
+    try:
+        os.link(path, backup, follow_symlinks=False)
+    except FileExistsError:  # a killed writer's with this process id: not ours to keep
+        return False
+    except OSError as err:
+        if err.errno in (errno.EPERM, errno.EXDEV, errno.EMLINK, errno.ENOTSUP,
+                         errno.EOPNOTSUPP):
+            return False
+        raise
+    return True
 
 
 def write_json(path: str | Path, data: dict) -> None:

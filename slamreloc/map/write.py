@@ -12,6 +12,7 @@ import errno
 import json
 import os
 import sys
+from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
@@ -132,21 +133,37 @@ def _exchange(a: Path, b: Path) -> bool:
     raise OSError(err, os.strerror(err), str(b))
 
 
-def _swap_in(tmp: Path, out: Path) -> None:
-    """Make the complete map `tmp` appear at `out`; `out`'s old contents end at `tmp` (or an
-    .old sibling) to be removed. At every instant `out` is a complete map, except in the
-    two-rename fallback, whose gap `_recover` repairs."""
+def _swap_in(tmp: Path, out: Path) -> Callable[[], None]:
+    """Make the complete map `tmp` appear at `out`; `out`'s old contents end at `tmp` (or the
+    .old sibling, `temp_dir_path(out, "old")`) to be removed once the write is done. At every
+    instant `out` is a complete map, except in the two-rename fallback, whose gap `_recover`
+    repairs. Returns how to put the old map back (`commit_output`'s undo)."""
+    old = temp_dir_path(out, "old")
+
+    def new_out() -> None:  # there was no map: the new one goes back to its temporary
+        os.replace(out, tmp)
+
+    def exchange_back() -> None:
+        _exchange(tmp, out)
+
+    def old_back() -> None:
+        os.replace(out, tmp)
+        os.replace(old, out)
+
     if not out.exists():
         os.replace(tmp, out)
-    elif not _exchange(tmp, out):
-        old = temp_dir_path(out, "old")
+        undo = new_out
+    elif _exchange(tmp, out):
+        undo = exchange_back
+    else:
         _clear_own_path(old, out)
         os.replace(out, old)
+        _MADE.add(old)  # removed when the write is done (`save_map`)
         _crash_point("between-renames")
         os.replace(tmp, out)
-        fsync_dir(out.parent)
-        _remove_old_copy(old, out)
+        undo = old_back
     fsync_dir(out.parent)
+    return undo
 
 
 def save_map(out: str | Path, meta: MapMeta, model: SceneCoordinateRegressor, db: MapDatabase,
@@ -169,15 +186,18 @@ def save_map(out: str | Path, meta: MapMeta, model: SceneCoordinateRegressor, db
             tmp.mkdir(parents=True)
             _MADE.add(tmp)
         held.callback(_remove_old_copy, tmp, out)  # the old map after the swap, or the unused new
+        old = temp_dir_path(out, "old")  # the old map in the two-rename fallback
+        held.callback(lambda: old in _MADE and _remove_old_copy(old, out))
         with naming_output(out):
             _write_map_files(tmp, out, meta, model, db, extra)
         release = held.pop_all()  # from here, the commit's to close
 
-    def swap() -> None:
+    def swap() -> Callable[[], None]:
         with naming_output(out):
             _crash_point("before-swap")
-            _swap_in(tmp, out)
+            undo = _swap_in(tmp, out)
             _crash_point("after-swap")
+        return undo
 
     commit_output(swap, release.close)
     return out
