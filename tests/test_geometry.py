@@ -93,8 +93,13 @@ def test_named_trajectory_takes_names_from_the_first_column_or_the_sidecar(tmp_p
     np.testing.assert_array_equal(tum.stamps, [1.5, 2.5, 4.0])
     assert tum.names == [None, None, None]
     np.testing.assert_allclose(tum.poses[2].translation, [0.2, 0, 1.0], atol=1e-6)
+    names_sidecar(numeric).write_text("1.500000 seq-02/frame-000001\n2.500000 b\n"
+                                      "4.000000 frame 9\n")
+    assert read_named_trajectory(numeric).names == ["seq-02/frame-000001", "b", "frame 9"]
     names_sidecar(numeric).write_text("1.500000 seq-02/frame-000001\n4.000000 frame 9\n")
-    assert read_named_trajectory(numeric).names == ["seq-02/frame-000001", None, "frame 9"]
+    with pytest.raises(InputError, match=r"poses.names.txt: names no frame for the stamp "
+                                         r"2.500000"):  # one name per pose, or it says so
+        read_named_trajectory(numeric)
 
     named = tmp_path / "named.txt"  # older files: names first, stamps are the row index
     named.write_text(tum_line("a/1.png", _pose(0)) + "\n" + tum_line("7.0", _pose(1)) + "\n")

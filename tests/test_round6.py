@@ -320,9 +320,8 @@ def test_a_recorded_root_no_path_can_be_is_refused_naming_the_field(small_map, t
     """Finding 6 (CLI): `[Errno 36] File name too long` / `embedded null byte`, naming
     neither the file nor the key."""
     doc = json.loads((small_map.root / META).read_text())
-    meta = MapMeta.from_json({**doc, "dataset": {"root": root}}, tmp_path / META)
     with pytest.raises(InputError, match=r"'dataset.root' is not a path this system can hold"):
-        meta.recorded_inputs()
+        MapMeta.from_json({**doc, "dataset": {"root": root}}, tmp_path / META)
 
 
 def test_a_maps_camera_keeps_every_camera_rule_naming_the_file(small_map, tmp_path):
