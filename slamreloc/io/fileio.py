@@ -390,7 +390,7 @@ def outputs_together() -> Iterator[None]:
     interrupted as usual); a write inside it that must land at once (a periodic checkpoint)
     goes in `outputs_now`. Nested blocks commit with the outermost; off the main thread
     signals are not held."""
-    if getattr(_together, "pending", None) is not None:
+    if _pending() is not None:
         yield
         return
     pending: list[tuple[Callable[[], Undo], Callable[[], None]]] = []
@@ -421,7 +421,7 @@ def outputs_now() -> Iterator[None]:
     """Inside an `outputs_together` block, the writers in this one put their outputs in place
     at once, not with the block (a checkpoint that must survive a crash, or what an
     interrupted command saves on its way out)."""
-    pending = getattr(_together, "pending", None)
+    pending = _pending()
     _together.pending = None
     try:
         yield
@@ -453,12 +453,17 @@ def _signals_held() -> Iterator[None]:
 Undo = Callable[[], None] | None  # what puts an output back as it was before its commit
 
 
+def _pending() -> list | None:
+    """The commits of the `outputs_together` block this thread is in (None: none)."""
+    return getattr(_together, "pending", None)
+
+
 def commit_output(commit: Callable[[], Undo], discard: Callable[[], None]) -> None:
     """Put a written output in place: `commit()` (a rename) now, or, inside `outputs_together`,
     when the whole block has succeeded; `discard()` (removing what `commit` did not take, and
     the old copy it kept) runs after it either way. `commit` returns how to undo it (None:
     nothing to undo), used where a later output of the block cannot be put in place."""
-    pending = getattr(_together, "pending", None)
+    pending = _pending()
     if pending is not None:
         pending.append((commit, discard))
         return
@@ -530,11 +535,12 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
         raise InputError(temp_in_the_way(tmp, str(path))) from None
     backup = temp_file_path(path, "old")
     kept: list[Path] = []  # the backup, once this writer made it
+    undoable = _pending() is not None  # only a block's outputs may need putting back
 
     def replace() -> Undo:  # the old file kept (a second name) until the block is done
         with naming_output(path):
             existed = os.path.lexists(path)
-            if existed and _second_name(path, backup):
+            if undoable and existed and _second_name(path, backup):
                 kept.append(backup)
             os.replace(tmp, path)
         if kept:
