@@ -41,7 +41,14 @@ def sigterm_as_ctrl_c() -> Iterator[None]:
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        if _PROGRAM["program"]:  # the command is over, only its last line and exit are left:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)  # a signal now would end it with no
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)  # line, or a traceback (`run`)
+        else:
+            signal.signal(signal.SIGTERM, previous)
+
+
+_PROGRAM = {"program": False}  # True in the `slamreloc` program (`run`), not in a test's `main`
 
 
 def _command_line_problem(args: list[str]) -> str | None:
@@ -255,13 +262,15 @@ def main() -> None:
 
 
 def run() -> None:
-    """The `slamreloc` program: `main`, then SIGTERM and SIGINT ignored while the process
-    exits. Once the command has ended its outputs are complete; a signal landing in the
-    interpreter's shutdown (seconds, with torch loaded) would otherwise end it by the signal
-    or as interrupted, an exit status that says the outputs may not be whole. In a process
-    that goes on after `main` (tests), call `main`."""
+    """The `slamreloc` program: `main`, with SIGTERM and SIGINT ignored from the command's end
+    (`sigterm_as_ctrl_c`) while the process exits. Once the command has ended its outputs are
+    complete; a signal landing then (its last line, or the interpreter's shutdown: seconds,
+    with torch loaded) would end it by the signal with no line, or as interrupted: an exit
+    status that says the outputs may not be whole. In a process that goes on after `main`
+    (tests), call `main`."""
     import signal
 
+    _PROGRAM["program"] = True
     try:
         main()
     finally:

@@ -11,7 +11,7 @@ import stat
 import tempfile
 import threading
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import BinaryIO
 
@@ -307,6 +307,9 @@ def check_outputs(outputs: dict[str, str | Path | None],
     for option, out in outputs.items():
         if out is None:
             continue
+        if str(out) == "-":  # a user's hope for standard output, not a file named "-"
+            raise InputError(f"-: {option} must name a file; '-' (standard output) is not "
+                             "taken here")
         target = Path(out).resolve()
         if target in working:
             raise InputError(f"{out}: {option} is {working[target]}, which its writer makes "
@@ -389,11 +392,14 @@ def outputs_together() -> Iterator[None]:
     a new report beside an old plot. The block may hold the work that makes the outputs (it is
     interrupted as usual); a write inside it that must land at once (a periodic checkpoint)
     goes in `outputs_now`. Nested blocks commit with the outermost; off the main thread
-    signals are not held."""
+    signals are not held. Files are renamed in first, folders (a map) last: a kill -9, which
+    nothing can hold, landing among the renames (milliseconds) leaves some files new beside
+    the old map, never the new map with its old report; the temporaries it leaves are
+    removed by the next writer of each output (`remove_dead_leftovers`)."""
     if _pending() is not None:
         yield
         return
-    pending: list[tuple[Callable[[], Undo], Callable[[], None]]] = []
+    pending: list[tuple[Callable[[], Undo], Callable[[], None], bool]] = []
     _together.pending = pending
     done = False
     try:
@@ -403,8 +409,8 @@ def outputs_together() -> Iterator[None]:
         _together.pending = None
         with _signals_held():
             undos: list[Undo] = []
-            try:
-                for commit, _ in pending if done else ():
+            try:  # folders (a map) last: a kill -9 between renames leaves the old map
+                for commit, _, _ in sorted(pending, key=lambda c: c[2]) if done else ():
                     undos.append(commit())
             except BaseException:  # a rename refused (a file made immutable meanwhile): the
                 for undo in reversed(undos):  # outputs already in place go back as they were
@@ -412,7 +418,7 @@ def outputs_together() -> Iterator[None]:
                         undo()
                 raise
             finally:
-                for _, discard in pending:
+                for _, discard, _ in pending:
                     discard()
 
 
@@ -458,14 +464,16 @@ def _pending() -> list | None:
     return getattr(_together, "pending", None)
 
 
-def commit_output(commit: Callable[[], Undo], discard: Callable[[], None]) -> None:
+def commit_output(commit: Callable[[], Undo], discard: Callable[[], None],
+                  folder: bool = False) -> None:
     """Put a written output in place: `commit()` (a rename) now, or, inside `outputs_together`,
-    when the whole block has succeeded; `discard()` (removing what `commit` did not take, and
-    the old copy it kept) runs after it either way. `commit` returns how to undo it (None:
-    nothing to undo), used where a later output of the block cannot be put in place."""
+    when the whole block has succeeded (a `folder` after the files); `discard()` (removing
+    what `commit` did not take, and the old copy it kept) runs after it either way. `commit`
+    returns how to undo it (None: nothing to undo), used where a later output of the block
+    cannot be put in place."""
     pending = _pending()
     if pending is not None:
-        pending.append((commit, discard))
+        pending.append((commit, discard, folder))
         return
     try:
         commit()
@@ -528,6 +536,7 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
     failure."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_dead_leftovers(path)
     tmp = temp_file_path(path)
     try:
         os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644))
@@ -559,6 +568,64 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
         tmp.unlink(missing_ok=True)
         raise
     commit_output(replace, discard)
+
+
+def _pid_max() -> int:
+    try:
+        with open("/proc/sys/kernel/pid_max") as f:
+            return int(f.read())
+    except (OSError, ValueError):
+        return 1 << 22  # Linux's largest
+
+
+def dead_writer(pid: int) -> bool:
+    """Whether `pid` can be the id of a writer that is gone: a process id this system can
+    give (a dated backup `.NAME.old-20240101` is no writer's) and no live process (a live one
+    is this process, whose own temporaries its writer removes, or a writer of another output
+    of that name elsewhere: never ours to take)."""
+    if not 0 < pid <= _pid_max():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # alive, another user's
+        return False
+    return False
+
+
+def writer_pid(name: str, prefix: str, suffix: str = "") -> int | None:
+    """The process id in a writer's temporary name `PREFIX` + digits + `SUFFIX`, compared as
+    strings (never a pattern), or None where `name` is not such a name."""
+    if not (name.startswith(prefix) and name.endswith(suffix)
+            and len(name) > len(prefix) + len(suffix)):
+        return None
+    pid = name[len(prefix):len(name) - len(suffix)]
+    return int(pid) if pid.isascii() and pid.isdigit() else None
+
+
+def remove_dead_leftovers(path: str | Path) -> list[Path]:
+    """Remove what a killed writer (kill -9, a power cut) of the file `path` left beside it:
+    regular files named exactly `.STEM.tmp-PID.SUFFIX` (its unfinished or uncommitted new
+    file) or `.STEM.old-PID.SUFFIX` (the second name it kept of the file it replaced), PID a
+    process that is gone (`dead_writer`). A link, a folder, a live writer's file or a user's
+    file of a like name (`.r.old-mine.json`) is never taken. Returns what was removed."""
+    path = Path(path)
+    try:
+        entries = list(os.scandir(path.parent))
+    except OSError:  # no folder, or one that cannot be listed: nothing to clean
+        return []
+    removed = []
+    for entry in entries:
+        for role in ("tmp", "old"):
+            pid = writer_pid(entry.name, f".{path.stem}.{role}-", path.suffix)
+            if pid is None or not entry.is_file(follow_symlinks=False) \
+                    or not dead_writer(pid):
+                continue
+            with suppress(FileNotFoundError):  # another writer cleaned it meanwhile
+                os.unlink(entry.path)
+                removed.append(Path(entry.path))
+    return removed
 
 
 def _second_name(path: Path, backup: Path) -> bool:

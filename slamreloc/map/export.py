@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import (atomic_file, commit_output, make_temp_dir, marked_file,
-                                 naming_output, outputs_together, sha256_of, temp_dir_path)
+from slamreloc.io.fileio import (Undo, atomic_file, commit_output, dead_writer, make_temp_dir,
+                                 marked_file, naming_output, outputs_together, sha256_of,
+                                 temp_dir_path, writer_pid)
 from slamreloc.geometry import Rigid3, matrix_to_quat, write_tum_trajectory
 from slamreloc.io.images import pixel_colours, read_image
 from slamreloc.io.jsonio import read_json
@@ -169,6 +170,7 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
         names.append(os.path.relpath(path, root) if path is not None and root is not None
                      else name)
     out.parent.mkdir(parents=True, exist_ok=True)
+    _remove_dead_models(out)
     tmp = make_temp_dir(temp_dir_path(out), str(out))
     try:
         # COLMAP's pixel centres are at +0.5 (slamreloc: OpenCV, at integers)
@@ -208,20 +210,54 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
         shutil.rmtree(tmp, ignore_errors=True)
         raise
 
-    def swap() -> None:  # the old model aside, the new one in, the old one removed
-        old = None
+    old = temp_dir_path(out, "old")
+    moved: list[Path] = []  # the old model, once moved aside
+
+    def swap() -> Undo:  # the old model aside, the new one in; the old one back on undo
         with naming_output(out):
             if out.exists():  # an empty folder, or export's own model (`check_outputs`)
                 if any(out.iterdir()) and not is_colmap_model(out):  # changed since
                     raise InputError(f"{out}: is no longer the COLMAP model export wrote; "
                                      "refusing to replace it")
-                old = make_temp_dir(temp_dir_path(out, "old"), str(out))
-                os.replace(out, old)
+                os.replace(out, make_temp_dir(old, str(out)))
+                moved.append(old)
             os.replace(tmp, out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
 
-    commit_output(swap, lambda: shutil.rmtree(tmp, ignore_errors=True))
+        def undo() -> None:
+            os.replace(out, tmp)  # removed with the unused temporary
+            if moved:
+                os.replace(old, out)
+                moved.clear()
+        return undo
+
+    def discard() -> None:
+        shutil.rmtree(tmp, ignore_errors=True)
+        for made in moved:  # only the folder this writer moved aside
+            shutil.rmtree(made, ignore_errors=True)
+
+    commit_output(swap, discard, folder=True)
+
+
+def _remove_dead_models(out: Path) -> None:
+    """Remove what a killed `export --colmap` left beside `out`: folders named exactly
+    `.NAME.tmp-PID` or `.NAME.old-PID`, PID a process that is gone, holding nothing but COLMAP
+    model files and export's mark (regular files); never a user's folder of a like name."""
+    try:
+        entries = list(os.scandir(out.parent))
+    except OSError:
+        return
+    allowed = COLMAP_MODEL_FILES | {EXPORT_MARK}
+    for entry in entries:
+        for role in ("tmp", "old"):
+            pid = writer_pid(entry.name, f".{out.name}.{role}-")
+            if pid is None or not entry.is_dir(follow_symlinks=False) or not dead_writer(pid):
+                continue
+            try:
+                inside = list(os.scandir(entry.path))
+            except OSError:
+                continue
+            if all(e.name in allowed and e.is_file(follow_symlinks=False) for e in inside):
+                shutil.rmtree(entry.path, ignore_errors=True)
 
 
 COLMAP_MODEL_FILES = frozenset(f"{name}.{ext}" for name in ("cameras", "images", "points3D")

@@ -20,7 +20,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import lock_record, write_lock_path
+from slamreloc.io.fileio import dead_writer, lock_record, write_lock_path, writer_pid
 from slamreloc.map.format import is_map, is_map_file
 
 _HELD: set[str] = set()  # maps whose write lock this process holds
@@ -29,7 +29,7 @@ _HELD: set[str] = set()  # maps whose write lock this process holds
 def _leftovers(out: Path) -> list[Path]:
     """What a killed writer of `out` left beside it, and nothing else: folders named exactly
     `.NAME.tmp-PID` holding only map files (a save cut short), or `.NAME.old-PID` holding a
-    map (one moved aside), PID the id of a process that is gone (`_dead_writer`). Names are
+    map (one moved aside), PID the id of a process that is gone (`dead_writer`). Names are
     compared as strings, not as a pattern (a map named `m[1]` must not take `.m1.tmp-7` for
     its own), and a user's own file or folder of a like name (`.NAME.old-mine`, a dated
     backup `.NAME.old-20240101`, a file `.NAME.tmp-notes`) is never taken for debris."""
@@ -40,39 +40,13 @@ def _leftovers(out: Path) -> list[Path]:
     found = []
     for entry in entries:
         for kind in ("tmp", "old"):
-            prefix = f".{out.name}.{kind}-"
-            pid = entry.name[len(prefix):]
-            if not (entry.name.startswith(prefix) and pid.isascii() and pid.isdigit()
-                    and entry.is_dir(follow_symlinks=False) and _dead_writer(int(pid))):
+            pid = writer_pid(entry.name, f".{out.name}.{kind}-")
+            if pid is None or not entry.is_dir(follow_symlinks=False) or not dead_writer(pid):
                 continue
             path = Path(entry.path)
             if is_map(path) if kind == "old" else only_map_files(path):
                 found.append(path)
     return sorted(found)
-
-
-def _pid_max() -> int:
-    try:
-        with open("/proc/sys/kernel/pid_max") as f:
-            return int(f.read())
-    except (OSError, ValueError):
-        return 1 << 22  # Linux's largest
-
-
-def _dead_writer(pid: int) -> bool:
-    """Whether `pid` can be the id of a writer that is gone: a process id this system can
-    give (a dated backup `.NAME.old-20240101` is no writer's) and no live process (a live one
-    is this process, whose own folders its writer removes, or a writer of another map folder
-    of that name elsewhere: never ours to take)."""
-    if not 0 < pid <= _pid_max():
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return True
-    except OSError:  # alive, another user's
-        return False
-    return False
 
 
 def only_map_files(folder: Path) -> bool:

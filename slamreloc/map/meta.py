@@ -541,6 +541,8 @@ def _check_schema(meta: dict, version: int, path) -> None:
                         f"one of {', '.join(PRECISIONS)}", lambda v: v in PRECISIONS)
         for key, (want, ok) in TRAIN_RULES.items():  # what a retraining would use
             _check_optional(train, key, "train.", path, want, ok)
+        _check_optional(train, "device", "train.", path, "a torch device type (one of "
+                        f"{', '.join(DEVICE_TYPES)}) or null", lambda v: v in DEVICE_TYPES)
     # the labelling's counts agree (an update's pseudo-labels come from other frames: past
     # one, only depth labels are still counts of the labelled frames' keypoints)
     updated = bool(meta.get("pseudo_label"))  # an object (checked above), not empty
@@ -634,6 +636,8 @@ def _in(low: float, high: float, whole: bool = False) -> Callable[[Any], bool]:
     """A check: a number (a whole one where `whole`) within [low, high]."""
     return lambda v: (_is_int(v) if whole else _is_number(v)) and low <= v <= high
 
+
+DEVICE_TYPES = ("cpu", "cuda", "mps", "xpu")  # `train.device`: where the map was trained
 
 # the recorded training settings a retraining (`pseudo-label --update retrain`) reuses: present
 # and not null, each must be a value training can run with (`train_config`'s fields)

@@ -199,7 +199,7 @@ def save_map(out: str | Path, meta: MapMeta, model: SceneCoordinateRegressor, db
             _crash_point("after-swap")
         return undo
 
-    commit_output(swap, release.close)
+    commit_output(swap, release.close, folder=True)
     return out
 
 
