@@ -32,7 +32,7 @@ from pathlib import Path
 import torch
 
 from slamreloc.datasets import load_dataset
-from slamreloc.io.fileio import write_json
+from slamreloc.io.outputs import write_json
 from slamreloc.map.build import MapConfig, build_map
 from slamreloc.cli.jobs import depth_refiner, reference_labels
 from slamreloc.datasets import load_dataset

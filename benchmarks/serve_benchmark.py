@@ -35,7 +35,7 @@ import numpy as np
 from benchmarks.run_benchmark import cpu_name
 from slamreloc.client import Client, RemoteError, confirmed_frames, frame_poses
 from slamreloc.datasets import load_dataset
-from slamreloc.io.fileio import write_json
+from slamreloc.io.outputs import write_json
 from slamreloc.io.images import decode_rgb
 from slamreloc.localize.localizer import RegressorLocalizer
 from slamreloc.map.format import SURFACE

@@ -27,7 +27,7 @@ from pathlib import Path, PurePosixPath
 from benchmarks.run_benchmark import cpu_name
 from slamreloc.datasets import load_dataset
 from slamreloc.localize.evaluate import align_to_reference, rescore, summarize
-from slamreloc.io.fileio import write_json
+from slamreloc.io.outputs import write_json
 from slamreloc.geometry import read_tum_trajectory
 from slamreloc.map.build import MapConfig, build_map
 from slamreloc.datasets import load_dataset

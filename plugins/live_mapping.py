@@ -22,7 +22,7 @@ from contextlib import nullcontext
 from pathlib import Path
 
 from slamreloc.geometry import Rigid3
-from slamreloc.io.fileio import outputs_now
+from slamreloc.io.outputs import outputs_now
 from slamreloc.map.meta import DatasetMeta
 from slamreloc.slam.backend import TrackState
 from slamreloc.slam.events import Event, EventKind, FrameData

@@ -13,7 +13,7 @@ import numpy as np
 from slamreloc.pseudo_label.config import PseudoLabelConfig
 from slamreloc.pseudo_label.finetune import finetune_regressor
 
-from slamreloc.io.fileio import outputs_together, write_json
+from slamreloc.io.outputs import outputs_together, write_json
 from slamreloc.map.format import LABELLED, PROVENANCE, SURFACE
 from slamreloc.map.meta import MapMeta, SurfaceMeta, UpdateMeta
 from slamreloc.map.write import save_map

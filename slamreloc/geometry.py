@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import atomic_file, outputs_together
+from slamreloc.io.outputs import atomic_file, outputs_together
 from slamreloc.io.numbers import number_problem, written_as_number
 
 RIGID_TOL = 1e-3  # max |R^T R - I| and |det R - 1| accepted for a pose read from a file

@@ -28,6 +28,7 @@ the widest and of neighbouring views), with the advice that fits it.
 from __future__ import annotations
 
 import os
+import stat
 import shutil
 import tempfile
 import time
@@ -39,9 +40,9 @@ import numpy as np
 
 from slamreloc.camera_models import MODELS, PARAMS, colmap_head
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import (check_outputs, make_temp_dir, naming_output, temp_dir_path,
-                                 write_json)
-from slamreloc.map.lock import map_write_lock
+from slamreloc.io.outputs import (check_outputs, file_debris_names, make_temp_dir,
+                                  naming_output, temp_dir_path, write_json, writer_pid)
+from slamreloc.map.lock import Debris, map_write_lock
 from slamreloc.io.video import is_video, video_frames
 from slamreloc.runtime.progress import console, make_progress
 from slamreloc.types import Camera, frame_name_problem
@@ -597,7 +598,7 @@ def run_sfm(source: Path, out: Path, config: SfmConfig = SfmConfig(),
     made = [p for p in out.absolute().parents if not p.exists()]  # folders this run makes
     try:
         # a second writer fails at once, not late; a full disk names the output
-        with map_write_lock(out, "this dataset"), naming_output(out):
+        with map_write_lock(out, "this dataset", SFM_DEBRIS), naming_output(out):
             return _run_into(source, out, config, progress)
     except BaseException:
         for folder in made:  # nearest first: a failed run leaves no folder it made
@@ -606,6 +607,33 @@ def run_sfm(source: Path, out: Path, config: SfmConfig = SfmConfig(),
             except OSError:  # not empty (another's), or gone
                 break
         raise
+
+
+def _only_sfm_outputs(folder: Path) -> bool:
+    """Whether `folder` holds only what an sfm run writes into its temporary folder: `images/`
+    and `sparse/` (folders of regular files, nothing linked) and `sfm.json` (or its writer's
+    temporaries): a killed run's, removed by the next (`SFM_DEBRIS`)."""
+    own = {"images", "sparse"}
+    try:
+        for entry in os.scandir(folder):
+            if entry.name in own:
+                if not entry.is_dir(follow_symlinks=False):
+                    return False
+                for base, dirs, files in os.walk(entry.path):
+                    for name in [*dirs, *files]:
+                        inside = os.lstat(os.path.join(base, name)).st_mode
+                        if not (stat.S_ISDIR(inside) or stat.S_ISREG(inside)):
+                            return False
+            elif not (entry.name == SFM_JSON and entry.is_file(follow_symlinks=False)
+                      or any(writer_pid(entry.name, prefix, suffix) is not None
+                             for prefix, suffix in file_debris_names(Path(SFM_JSON)))):
+                return False
+    except OSError:
+        return False
+    return True
+
+
+SFM_DEBRIS = Debris(new=_only_sfm_outputs, old=None)  # sfm never moves a dataset aside
 
 
 def _run_into(source: Path, out: Path, config: SfmConfig, progress: bool) -> dict:

@@ -19,7 +19,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import check_outputs
+from slamreloc.io.outputs import check_outputs
 from slamreloc.io.images import decode_rgb, read_image
 from slamreloc.io.numbers import number_problem, parse_number
 from slamreloc.map.format import META

@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from slamreloc.datasets import load_dataset
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3, read_tum_trajectory
-from slamreloc.io.fileio import outputs_together
+from slamreloc.io.outputs import outputs_together
 from slamreloc.map.lock import map_write_lock
 from slamreloc.types import Camera
 from tests.fuzzing import run_cli
@@ -164,7 +164,7 @@ def test_outputs_interrupted_are_all_new_or_all_as_they_were(tmp_path, signum, w
     plot. Interrupted inside `outputs_together` (Ctrl-C or SIGTERM), a command's outputs are
     all as they were while they are still being written, and all new once they are being put
     in place (the signal waits for the last rename, then ends the command)."""
-    from slamreloc.io.fileio import commit_output, write_json
+    from slamreloc.io.outputs import commit_output, write_json
 
     a, b = tmp_path / "a.json", tmp_path / "b.json"
     write_json(a, {"old": 1})

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from slamreloc.errors import InputError
-from slamreloc.map.write import _exchange
+from slamreloc.io.outputs import exchange_paths
 from slamreloc.map.scene_map import SceneMap
 from tests import fuzzing
 from tests.test_map_format import make_map
@@ -58,7 +58,7 @@ def test_kill_at_every_step_of_the_swap(tmp_path):
     probe = tmp_path / "probe"
     (probe / "a").mkdir(parents=True)
     (probe / "b").mkdir()
-    has_exchange = _exchange(probe / "a", probe / "b")
+    has_exchange = exchange_paths(probe / "a", probe / "b")
     procs = []
     for i, (point, exchange, _, _) in enumerate(CRASH_POINTS):
         out = make_map(tmp_path / f"case{i}" / "map", tag="old")
@@ -103,7 +103,7 @@ def test_rename_exchange_swaps_atomically_here(tmp_path):
     b.mkdir()
     (a / "x").write_text("a")
     (b / "x").write_text("b")
-    if not _exchange(a, b):
+    if not exchange_paths(a, b):
         pytest.skip("renameat2(RENAME_EXCHANGE) not supported here; the fallback is tested")
     assert (a / "x").read_text() == "b" and (b / "x").read_text() == "a"
 

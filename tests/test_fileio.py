@@ -2,7 +2,7 @@
 
 import pytest
 
-from slamreloc.io.fileio import atomic_file
+from slamreloc.io.outputs import atomic_file
 
 
 def test_failed_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path):

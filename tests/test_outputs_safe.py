@@ -18,7 +18,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import check_outputs
+from slamreloc.io.outputs import check_outputs
 from slamreloc.map.format import META
 from tests.fuzzing import fuzz_settings, run_cli
 from tests.test_fuzz_inputs import _tiny_map, make_sevenscenes

@@ -237,7 +237,7 @@ def test_outputs_already_in_place_go_back_when_a_later_one_cannot(tmp_path):
     they were: an old file under its old bytes, a new one removed."""
     import json
 
-    from slamreloc.io.fileio import outputs_together, write_json
+    from slamreloc.io.outputs import outputs_together, write_json
 
     a, b, c = tmp_path / "a.json", tmp_path / "b.json", tmp_path / "c.json"
     write_json(a, {"old": 1})

@@ -34,9 +34,13 @@ def load_scene_data(inputs: ViewerInputs) -> SceneData:
 
         reference = read_reference(inputs.poses)
     scene_map = SceneMap.load(inputs.map_dir, regressor=False)
-    dataset = open_dataset(inputs.dataset or scene_map.info.dataset_root)
-    if inputs.dataset is not None and dataset is not None:  # its images shown as the map's
+    if inputs.dataset is not None:  # the user's: read as every command reads one, its images
+        from slamreloc.datasets import load_dataset  # shown as the map's
+
+        dataset = load_dataset(inputs.dataset)
         check_dataset_of_map(scene_map, Path(inputs.dataset), dataset)
+    else:  # the one the map records: optional (moved, or never there)
+        dataset = open_dataset(scene_map.info.dataset_root)
     if reference is not None:  # the ground truth shown: --poses instead of the dataset's
         if dataset is None:
             raise InputError(f"{inputs.poses}: `poses` needs the dataset its frames belong to "

@@ -25,7 +25,7 @@ from slamreloc.cli.choices import (
 )
 from slamreloc.cli.serve import serve
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import naming_output
+from slamreloc.io.outputs import naming_output
 
 POSES_HELP = ("take the frames' poses from this file instead of the dataset's: a COLMAP model "
               "folder, 'name tx ty tz qx qy qz qw' lines, a TUM file or another dataset "

@@ -14,7 +14,7 @@ from rich.table import Table
 
 from slamreloc.errors import Interrupted
 from slamreloc.datasets import load_dataset
-from slamreloc.io.fileio import check_outputs, write_json
+from slamreloc.io.outputs import check_outputs, write_json
 from slamreloc.geometry import NAMES_SUFFIX
 from slamreloc.map.build import MapConfig, build_map
 from slamreloc.cli import jobs

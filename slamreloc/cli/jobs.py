@@ -27,7 +27,7 @@ from slamreloc.geometry import (
     tum_line,
     write_tum_trajectory,
 )
-from slamreloc.io.fileio import check_outputs, outputs_together, reads_as, write_json
+from slamreloc.io.outputs import check_outputs, outputs_together, reads_as, write_json
 from slamreloc.io.jsonio import read_json, written_report_kind
 from slamreloc.localize.evaluate import (
     EvaluationConfig,

@@ -44,7 +44,8 @@ from slamreloc.geometry import (
     read_tum_trajectory,
     refuse_json_text,
 )
-from slamreloc.io.fileio import open_regular, reads_as, read_text
+from slamreloc.io.fileio import open_regular, read_text
+from slamreloc.io.outputs import reads_as
 from slamreloc.io.numbers import written_as_number
 from slamreloc.types import Frame
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slamreloc.io.fileio import atomic_file, marked_file
+from slamreloc.io.outputs import atomic_file, marked_file
 from slamreloc.types import Frame
 
 # the PNG text chunk that marks a plot `evaluate` wrote (and may replace)

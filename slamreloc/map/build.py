@@ -13,7 +13,7 @@ from slamreloc.datasets import Dataset
 from slamreloc.errors import InputError
 from slamreloc.features.extract import extract_frames
 from slamreloc.features import make_extractor
-from slamreloc.io.fileio import check_outputs
+from slamreloc.io.outputs import check_outputs
 from slamreloc.map.augment import AugmentConfig, augmented_rows
 from slamreloc.map.labels import LabelConfig, LabelSet, build_labels
 from slamreloc.map.format import SURFACE, is_map

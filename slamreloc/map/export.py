@@ -14,20 +14,23 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import (Undo, atomic_file, commit_output, dead_writer, make_temp_dir,
-                                 marked_file, naming_output, outputs_together, sha256_of,
-                                 temp_dir_path, writer_pid)
+from slamreloc.io.fileio import sha256_of
+from slamreloc.io.outputs import (Undo, atomic_file, commit_output, exchange_paths,
+                                  make_temp_dir, marked_file, naming_output, outputs_together,
+                                  temp_dir_path, temp_in_the_way)
 from slamreloc.geometry import Rigid3, matrix_to_quat, write_tum_trajectory
 from slamreloc.io.images import pixel_colours, read_image
 from slamreloc.io.jsonio import read_json
 from slamreloc.runtime.progress import track
 from slamreloc.types import aspect_problem
+from slamreloc.map.lock import Debris, map_write_lock
 from slamreloc.map.scene_map import SceneMap, rows_by_frame
 
 # the PLY header's comment that marks a file `export` wrote (and may replace)
@@ -170,8 +173,13 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
         names.append(os.path.relpath(path, root) if path is not None and root is not None
                      else name)
     out.parent.mkdir(parents=True, exist_ok=True)
-    _remove_dead_models(out)
-    tmp = make_temp_dir(temp_dir_path(out), str(out))
+    held = ExitStack()  # the model's write lock, until its swap is done
+    held.enter_context(map_write_lock(out, "this COLMAP model", COLMAP_DEBRIS))
+    try:
+        tmp = make_temp_dir(temp_dir_path(out), str(out))
+    except BaseException:
+        held.close()
+        raise
     try:
         # COLMAP's pixel centres are at +0.5 (slamreloc: OpenCV, at integers)
         (tmp / "cameras.txt").write_text(
@@ -208,61 +216,60 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
         _write_export_mark(tmp, scene_map)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        held.close()
         raise
 
     old = temp_dir_path(out, "old")
-    moved: list[Path] = []  # the old model, once moved aside
+    moved: list[Path] = []  # the old model, once moved aside (where there is no exchange)
 
-    def swap() -> Undo:  # the old model aside, the new one in; the old one back on undo
+    def swap() -> Undo:  # the new model in; the old one back on undo
         with naming_output(out):
-            if out.exists():  # an empty folder, or export's own model (`check_outputs`)
-                if any(out.iterdir()) and not is_colmap_model(out):  # changed since
-                    raise InputError(f"{out}: is no longer the COLMAP model export wrote; "
-                                     "refusing to replace it")
-                os.replace(out, make_temp_dir(old, str(out)))
-                moved.append(old)
+            if not os.path.lexists(out):
+                os.replace(tmp, out)
+                return lambda: os.replace(out, tmp)  # removed with the unused temporary
+            if any(out.iterdir()) and not is_colmap_model(out):  # changed since the check
+                raise InputError(f"{out}: is no longer the COLMAP model export wrote; "
+                                 "refusing to replace it")
+            if exchange_paths(tmp, out):  # no instant without a model; the old one at tmp
+                return lambda: exchange_paths(tmp, out)
+            if os.path.lexists(old):  # not a killed export's (cleaned under the lock)
+                raise InputError(temp_in_the_way(old, str(out)))
+            os.replace(out, old)  # a kill -9 now: the next export puts it back
+            moved.append(old)
             os.replace(tmp, out)
 
         def undo() -> None:
-            os.replace(out, tmp)  # removed with the unused temporary
-            if moved:
-                os.replace(old, out)
-                moved.clear()
+            os.replace(out, tmp)
+            os.replace(old, out)
+            moved.clear()
         return undo
 
     def discard() -> None:
-        shutil.rmtree(tmp, ignore_errors=True)
-        for made in moved:  # only the folder this writer moved aside
-            shutil.rmtree(made, ignore_errors=True)
+        try:
+            shutil.rmtree(tmp, ignore_errors=True)  # the unused new model, or the old one
+            for made in moved:  # only the folder this writer moved aside
+                shutil.rmtree(made, ignore_errors=True)
+        finally:
+            held.close()
 
     commit_output(swap, discard, folder=True)
 
 
-def _remove_dead_models(out: Path) -> None:
-    """Remove what a killed `export --colmap` left beside `out`: folders named exactly
-    `.NAME.tmp-PID` or `.NAME.old-PID`, PID a process that is gone, holding nothing but COLMAP
-    model files and export's mark (regular files); never a user's folder of a like name."""
+def _only_model_files(folder: Path) -> bool:
+    """Whether `folder` holds only COLMAP model files and export's mark, regular files: what
+    `write_colmap` writes into its temporary or moves aside (`COLMAP_DEBRIS`)."""
     try:
-        entries = list(os.scandir(out.parent))
+        return all(e.name in COLMAP_MODEL_FILES | {EXPORT_MARK}
+                   and e.is_file(follow_symlinks=False) for e in os.scandir(folder))
     except OSError:
-        return
-    allowed = COLMAP_MODEL_FILES | {EXPORT_MARK}
-    for entry in entries:
-        for role in ("tmp", "old"):
-            pid = writer_pid(entry.name, f".{out.name}.{role}-")
-            if pid is None or not entry.is_dir(follow_symlinks=False) or not dead_writer(pid):
-                continue
-            try:
-                inside = list(os.scandir(entry.path))
-            except OSError:
-                continue
-            if all(e.name in allowed and e.is_file(follow_symlinks=False) for e in inside):
-                shutil.rmtree(entry.path, ignore_errors=True)
+        return False
 
 
 COLMAP_MODEL_FILES = frozenset(f"{name}.{ext}" for name in ("cameras", "images", "points3D")
                                for ext in ("txt", "bin"))
 EXPORT_MARK = "slamreloc_export.json"  # beside the model files: who wrote them, their digests
+# a killed export's temporary model, or the model it had moved aside (put back if none is there)
+COLMAP_DEBRIS = Debris(new=_only_model_files, old=_only_model_files)
 
 
 def _write_export_mark(folder: Path, scene_map: SceneMap) -> None:
@@ -353,7 +360,7 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
                tum: Path | None = None, dataset_dir: Path | None = None,
                progress: bool = True) -> dict:
     """Write the requested exports of the map at `map_dir`; returns a summary."""
-    from slamreloc.io.fileio import check_outputs
+    from slamreloc.io.outputs import check_outputs
     from slamreloc.map.format import check_is_map
 
     if colmap is None and ply is None and tum is None:

@@ -1,10 +1,13 @@
-"""The write lock of a map folder, and the clean-up of what a killed writer left beside it.
+"""The write lock of a folder output (a map, an sfm dataset, an exported COLMAP model), and
+the clean-up of what a killed writer left beside it.
 
-A writer holds an exclusive lock on `.NAME.lock` beside MAP (removed when it is done;
-`build_map` and `update_map` take it at their start); a second writer fails at once. A killed
-writer's temporary `.NAME.tmp-PID` and moved-aside `.NAME.old-PID` folders are removed at the
-next save or load of that map (a map moved aside and never replaced is put back first); only
-folders that are such debris (`_leftovers`), never a user's file of a like name.
+A writer holds an exclusive lock on `.NAME.lock` beside the folder (removed when it is done;
+`build_map` and `update_map` take it at their start); a second writer fails at once. Under
+that lock no other writer of NAME lives (in any PID namespace), so a `.NAME.tmp-PID` folder
+holding only what such a writer writes (a save cut short) and a `.NAME.old-PID` folder holding
+such an output (one moved aside) are a killed writer's: removed at the next write of that
+folder, or load of that map (an output moved aside and never replaced is put back first).
+What counts is the writer's kind (`Debris`): an sfm run never takes a map for its own.
 """
 
 from __future__ import annotations
@@ -15,37 +18,46 @@ import os
 import shutil
 import stat
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import dead_writer, lock_record, write_lock_path, writer_pid
+from slamreloc.io.outputs import lock_record, write_lock_path, writer_pid
 from slamreloc.map.format import is_map, is_map_file
 
-_HELD: set[str] = set()  # maps whose write lock this process holds
+_HELD: set[str] = set()  # folders whose write lock this process holds
 
 
-def _leftovers(out: Path) -> list[Path]:
+@dataclass(frozen=True)
+class Debris:
+    """What a killed writer of one kind of folder output leaves beside it: `new(folder)` for
+    its temporary `.NAME.tmp-PID` (only what it writes there), `old(folder)` for the output it
+    had moved aside, `.NAME.old-PID` (None: this writer never moves one aside)."""
+    new: Callable[[Path], bool]
+    old: Callable[[Path], bool] | None
+
+
+def _leftovers(out: Path, debris: Debris) -> list[Path]:
     """What a killed writer of `out` left beside it, and nothing else: folders named exactly
-    `.NAME.tmp-PID` holding only map files (a save cut short), or `.NAME.old-PID` holding a
-    map (one moved aside), PID the id of a process that is gone (`dead_writer`). Names are
-    compared as strings, not as a pattern (a map named `m[1]` must not take `.m1.tmp-7` for
-    its own), and a user's own file or folder of a like name (`.NAME.old-mine`, a dated
-    backup `.NAME.old-20240101`, a file `.NAME.tmp-notes`) is never taken for debris."""
+    `.NAME.tmp-PID` or `.NAME.old-PID` (`writer_pid`) that hold what such a writer makes
+    (`debris`). Names are compared as strings, not as a pattern (a map named `m[1]` must not
+    take `.m1.tmp-7` for its own), and a user's own file or folder of a like name
+    (`.NAME.old-mine`, `.NAME.old-0123`, a file `.NAME.tmp-7`) is never taken for debris.
+    Removed only under the folder's lock (`map_write_lock`), where no writer of it lives."""
     try:
         entries = list(os.scandir(out.parent))
     except OSError:  # no folder, or one that cannot be listed: nothing to clean
         return []
     found = []
     for entry in entries:
-        for kind in ("tmp", "old"):
-            pid = writer_pid(entry.name, f".{out.name}.{kind}-")
-            if pid is None or not entry.is_dir(follow_symlinks=False) or not dead_writer(pid):
+        for kind, is_own in (("tmp", debris.new), ("old", debris.old)):
+            if is_own is None or writer_pid(entry.name, f".{out.name}.{kind}-") is None \
+                    or not entry.is_dir(follow_symlinks=False):
                 continue
-            path = Path(entry.path)
-            if is_map(path) if kind == "old" else only_map_files(path):
-                found.append(path)
+            if is_own(Path(entry.path)):
+                found.append(Path(entry.path))
     return sorted(found)
 
 
@@ -57,13 +69,18 @@ def only_map_files(folder: Path) -> bool:
         return False
 
 
+MAP_DEBRIS = Debris(new=only_map_files, old=is_map)  # a save cut short; a map moved aside
+
+
 @contextmanager
-def map_write_lock(out: str | Path, what: str = "this map") -> Iterator[None]:
-    """Hold the exclusive write lock of map folder `out` (re-entrant within a process; `what`
-    the folder is, for the message; `sfm`'s datasets take it too).
+def map_write_lock(out: str | Path, what: str = "this map",
+                   debris: Debris | None = None) -> Iterator[None]:
+    """Hold the exclusive write lock of the folder output `out` (re-entrant within a process;
+    `what` the folder is, for the message; `debris` what its writers leave: a map's by
+    default; `sfm`'s datasets and export's COLMAP models take it with their own).
 
     A second process asking for it gets InputError at once. On entry, the leftovers of a
-    killed writer are cleaned up (and a map it had moved aside is put back)."""
+    killed writer are cleaned up (and an output it had moved aside is put back)."""
     out = Path(out)
     key = os.path.abspath(out)
     if key in _HELD:
@@ -102,7 +119,7 @@ def map_write_lock(out: str | Path, what: str = "this map") -> Iterator[None]:
             raise OSError(err.errno, err.strerror, str(lock)) from None
         _HELD.add(key)
         try:
-            _recover(out)
+            _recover(out, debris or MAP_DEBRIS)
             yield
         finally:
             _HELD.discard(key)
@@ -147,20 +164,22 @@ def _lock_record_or_empty(fd: int) -> bool:
     return pid.isdigit() and rest.count(b"\n") <= 1 and rest.isascii()
 
 
-def _recover(out: Path) -> None:
-    """Under the lock: put back a map a killed writer had moved aside; remove its leftovers."""
-    olds = [p for p in _leftovers(out) if p.name.startswith(f".{out.name}.old-")]
-    if olds and not out.exists():
+def _recover(out: Path, debris: Debris) -> None:
+    """Under the lock: put back an output a killed writer had moved aside; remove its
+    leftovers."""
+    olds = [p for p in _leftovers(out, debris) if p.name.startswith(f".{out.name}.old-")]
+    if olds and not os.path.lexists(out):
         newest = max(olds, key=lambda p: p.stat().st_mtime)
         os.replace(newest, out)
         fsync_dir(out.parent)
-    for p in _leftovers(out):
-        shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+    for p in _leftovers(out, debris):
+        shutil.rmtree(p, ignore_errors=True)
 
 
 def clean_leftovers(root: Path, wait_s: float = 10.0) -> None:
-    """For readers: if a killed writer left debris beside `root`, clean it (best effort)."""
-    if not _leftovers(root):
+    """For a map's readers: if a killed writer left debris beside `root`, clean it (best
+    effort)."""
+    if not _leftovers(root, MAP_DEBRIS):
         return
     deadline = time.monotonic() + wait_s
     while True:

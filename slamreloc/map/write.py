@@ -7,7 +7,6 @@ is rolled back at the next start), all under the map's write lock (lock.py).
 
 from __future__ import annotations
 
-import ctypes
 import errno
 import json
 import os
@@ -19,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import commit_output, naming_output, temp_dir_path
+from slamreloc.io.outputs import commit_output, exchange_paths, naming_output, temp_dir_path
 from slamreloc.map.format import (DATABASE, FORMAT_VERSION, MAP_FILES, META, WEIGHTS, is_map,
                                   is_map_file, sha256_file)
 from slamreloc.map.lock import fsync_dir, map_write_lock
@@ -112,27 +111,6 @@ def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> str:
     return sha256_file(path)
 
 
-_RENAME_EXCHANGE = 2
-_AT_FDCWD = -100
-
-
-def _exchange(a: Path, b: Path) -> bool:
-    """Atomically swap two paths (Linux renameat2 RENAME_EXCHANGE); False if unsupported."""
-    if os.environ.get("SLAMRELOC_NO_RENAME_EXCHANGE"):
-        return False
-    try:
-        fn = ctypes.CDLL(None, use_errno=True).renameat2
-    except (OSError, AttributeError):
-        return False
-    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
-    if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
-        return True
-    err = ctypes.get_errno()
-    if err in (errno.ENOSYS, errno.EINVAL, errno.EOPNOTSUPP, errno.ENOTSUP):
-        return False
-    raise OSError(err, os.strerror(err), str(b))
-
-
 def _swap_in(tmp: Path, out: Path) -> Callable[[], None]:
     """Make the complete map `tmp` appear at `out`; `out`'s old contents end at `tmp` (or the
     .old sibling, `temp_dir_path(out, "old")`) to be removed once the write is done. At every
@@ -144,7 +122,7 @@ def _swap_in(tmp: Path, out: Path) -> Callable[[], None]:
         os.replace(out, tmp)
 
     def exchange_back() -> None:
-        _exchange(tmp, out)
+        exchange_paths(tmp, out)
 
     def old_back() -> None:
         os.replace(out, tmp)
@@ -153,7 +131,7 @@ def _swap_in(tmp: Path, out: Path) -> Callable[[], None]:
     if not out.exists():
         os.replace(tmp, out)
         undo = new_out
-    elif _exchange(tmp, out):
+    elif exchange_paths(tmp, out):
         undo = exchange_back
     else:
         _clear_own_path(old, out)

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import atomic_file
+from slamreloc.io.outputs import atomic_file
 
 
 def checkpoint_path(map_dir: str | Path) -> Path:

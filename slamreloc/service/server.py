@@ -83,6 +83,7 @@ class ServeConfig:
     max_request_bytes: int = 32 << 20
     watch_s: float = 2.0  # reload maps whose folder was replaced; 0: only on ReloadMap
     load_timeout_s: float = 300.0  # a reload reading a map folder longer is refused (OVERLOADED)
+    max_reloads: int = 4  # ReloadMap calls waiting for a load at once; more: OVERLOADED
     max_queued: int = 16  # Localize calls waiting for a worker; more are refused (OVERLOADED)
     queue_wait_s: float = 60.0  # the longest a call waits for a worker (less: its deadline)
     open_timeout_s: float = 10.0  # a session stream must send its SessionOpen within this
@@ -109,6 +110,8 @@ class ServeConfig:
             raise InputError(f"`max_learning_sessions` {self.max_learning_sessions}: 1 to 4096")
         if not 1 <= self.max_learned_maps <= 4096:
             raise InputError(f"`max_learned_maps` {self.max_learned_maps}: 1 to 4096")
+        if not 1 <= self.max_reloads <= 256:
+            raise InputError(f"`max_reloads` {self.max_reloads}: 1 to 256")
         if not 0 <= self.max_queued <= 4096:
             raise InputError(f"`max_queued` {self.max_queued}: 0 to 4096")
         if not (1 << 16) <= self.max_request_bytes <= (2 << 30) - 1:
@@ -235,6 +238,9 @@ class RelocalizerService:
     def __init__(self, registry: MapRegistry, config: ServeConfig):
         self.registry, self.config = registry, config
         self.compute = threading.BoundedSemaphore(config.workers)
+        # ReloadMap calls waiting for their map's load: each holds a thread of the pool, which
+        # counts `max_reloads` of them (however many maps are served or saved meanwhile)
+        self.reloads = threading.BoundedSemaphore(config.max_reloads)
         self.deadlines = StreamDeadlines()
         self.started = time.time()
         self._count_lock = threading.Lock()
@@ -255,11 +261,12 @@ class RelocalizerService:
             self._learned = (Path(config.learned_maps).resolve(), (st.st_dev, st.st_ino))
 
     @staticmethod
-    def pool_size(config: ServeConfig, n_maps: int) -> int:
+    def pool_size(config: ServeConfig) -> int:
         """Threads for every call that may wait at once - localizations and those queued for a
-        worker, open and opening sessions, one ReloadMap per map - and four more for the rest
-        (Health, ListMaps, refusals), which therefore never wait behind them."""
-        return (config.workers + config.max_queued + 2 * config.max_sessions + n_maps + 4)
+        worker, open and opening sessions, `max_reloads` ReloadMap calls - and four more for
+        the rest (Health, ListMaps, refusals), which therefore never wait behind them."""
+        return (config.workers + config.max_queued + 2 * config.max_sessions
+                + config.max_reloads + 4)
 
     # ---- plumbing ------------------------------------------------------------------------
     def _refuse(self, context: grpc.ServicerContext, err: ServiceError):
@@ -352,7 +359,14 @@ class RelocalizerService:
         return pb.ListMapsResponse(maps=[m.info() for m in self.registry.all()])
 
     def reload_map(self, request: pb.ReloadMapRequest, context=None) -> pb.ReloadMapResponse:
-        served, changed = self.registry.reload(request.map)
+        if not self.reloads.acquire(blocking=False):
+            raise ServiceError(pb.OVERLOADED, f"{self.config.max_reloads} map reloads are "
+                               "running, the most this server runs at once (`max_reloads`); "
+                               "try again when one is done")
+        try:
+            served, changed = self.registry.reload(request.map)
+        finally:
+            self.reloads.release()
         if changed:
             _log(f"map {quoted(served.name)} reloaded: version {served.version}")
         return pb.ReloadMapResponse(map=served.info(), changed=changed)
@@ -903,8 +917,7 @@ def start_server(maps: dict[str, Path], config: ServeConfig = ServeConfig()) -> 
     options = [("grpc.max_receive_message_length", config.max_request_bytes),
                ("grpc.max_send_message_length", -1),
                ("grpc.so_reuseport", 0)]
-    n_maps = len(registry.names) + (config.max_sessions if config.learned_maps else 0)
-    pool = futures.ThreadPoolExecutor(RelocalizerService.pool_size(config, n_maps),
+    pool = futures.ThreadPoolExecutor(RelocalizerService.pool_size(config),
                                       thread_name_prefix="slamreloc-serve")
     server = grpc.server(pool, handlers=[service.handler()], options=options)
     address = listen_address(config.host, config.port)

@@ -20,7 +20,8 @@ import cv2
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import make_temp_dir, read_bytes, temp_dir_path
+from slamreloc.io.fileio import read_bytes
+from slamreloc.io.outputs import make_temp_dir, temp_dir_path
 from slamreloc.synthetic.render import RenderScene, render_frame
 from slamreloc.synthetic.room import build_room
 from slamreloc.synthetic.trajectories import SEQUENCES, make_trajectories

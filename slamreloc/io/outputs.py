@@ -1,0 +1,598 @@
+"""A command's outputs, written so that nothing the user had is lost or left half-written:
+where they may go (`check_outputs`), each atomically (`atomic_file`, `write_json`), all of a
+command's as one (`outputs_together`), and what a killed writer left beside them
+(`remove_dead_leftovers`)."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import stat
+import tempfile
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from slamreloc.errors import InputError
+from slamreloc.io.fileio import file_kind, relation, resolved, stat_or_none
+
+
+def _own_test(value) -> tuple:
+    """`check_outputs`' folder or file entry as (is_own or None or ..., the kind's name or
+    None)."""
+    return value if isinstance(value, tuple) else (value, None)
+
+
+def _check_writable(out: Path, option: str) -> None:
+    """InputError naming `option` unless a file can be created where `out` goes: a probe
+    created in the nearest existing folder of its path and removed
+    (a read-only or pseudo file system, /proc or /sys, refuses it there, not after the work)."""
+    folder = next((p for p in (out.parent, *out.parent.parents) if os.path.isdir(p)), None)
+    if folder is None:
+        return
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{out.name}.probe-", dir=folder)
+        os.close(fd)
+        os.unlink(name)
+    except OSError as err:
+        raise InputError(f"{out}: {option} cannot be written there ({folder}: "
+                         f"{err.strerror or err})") from None
+
+
+def reads_as(read: Callable[[Path], object], kind: str) -> tuple[Callable[[Path], bool], str]:
+    """`check_outputs`' `files` entry of an output that may replace only a file of its own
+    `kind`: one that `read` reads without an InputError (any other file there is the user's)."""
+    def is_own(path: Path) -> bool:
+        try:
+            read(path)
+        except InputError:
+            return False
+        return True
+
+    return is_own, kind
+
+
+def marked_file(signature: bytes, marker: bytes, kind: str
+                ) -> tuple[Callable[[Path], bool], str]:
+    """`check_outputs`' `files` entry of a binary output slamreloc marks as its own: a file
+    may be replaced only if it starts with `signature` and holds `marker` in its first 4 KB
+    (a PLY header's comment, a PNG's text chunk); any other file there is the user's."""
+    def is_own(path: Path) -> bool:
+        try:
+            with open(path, "rb") as f:
+                head = f.read(4096)
+        except OSError:
+            return False
+        return head.startswith(signature) and marker in head
+
+    return is_own, kind
+
+
+def write_lock_path(out: str | Path) -> Path:
+    """The lock file of a folder being written (`.NAME.lock` beside it): held by the writer
+    of a map or an sfm dataset (`slamreloc.map.lock.map_write_lock`) while it works."""
+    out = Path(out)
+    return out.parent / f".{out.name}.lock"
+
+
+def lock_record(fd: int) -> tuple[str, str]:
+    """(process id, what it writes) as a writer records them in its lock file ("PID\nWHAT")."""
+    text = os.pread(fd, 256, 0).decode(errors="replace")
+    pid, _, what = text.partition("\n")
+    return pid.strip() or "?", what.strip() or "this map"
+
+
+def busy_writer(out: str | Path) -> str | None:
+    """`FOLDER: another process (pid N) is writing WHAT; ...` where a live writer (another
+    process than this one) holds `out`'s write lock, else None."""
+    import fcntl
+
+    try:
+        fd = os.open(write_lock_path(out), os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError:  # none, or a link: no writer's lock (a writer refuses a link)
+        return None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            pid, what = lock_record(fd)
+            if pid == str(os.getpid()):  # this process's own
+                return None
+            return (f"{out}: another process (pid {pid}) is writing {what}; try again when it "
+                    "has finished")
+        except OSError:
+            return None
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
+def check_outputs(outputs: dict[str, str | Path | None],
+                  inputs: dict[str, str | Path | None],
+                  folders: tuple[str, ...] | dict[str, Callable[[Path], bool] | None] = (),
+                  files: dict[str, Callable[[Path], bool] | tuple] | None = None) -> None:
+    """A command never writes where it only reads, nor over something that is not its own kind
+    of output. InputError, before any work, unless each output path (keyed by how the user
+    named it, e.g. "--report") is apart from every input (keyed by what it is, e.g. "the map":
+    not the same file, not inside an input folder, not a folder holding one), apart from the
+    other outputs (not the same path, not inside another output, not holding one), under
+    folders only (no parent is a file, a pipe or a device), writable there (a probe file is
+    created and removed: /proc, /sys, a read-only folder are refused now, not after the work),
+    and absent or a regular file (a folder for the outputs named in `folders`): never a device,
+    a pipe or a socket (`/proc/self/fd/1`), which an atomic rename would replace, nor a
+    non-empty folder that is not already that output's kind
+    (`folders` as a dict: option -> `is_own(folder)`, True for a folder the output may
+    replace, or `(is_own, "a slamreloc map")` to name that kind in the message; None: only an
+    empty folder; a tuple: any folder), nor (`files`: option -> `is_own(file)` or
+    `(is_own, "a frame-names file")`) an existing file that is not that option's kind. The
+    temporary path `atomic_file` writes beside a file output must not be anything but a
+    regular file either, nor be there at all beside a folder output (`temp_dir_path`). An
+    output that is itself a symbolic link is refused (the rename would
+    replace the link: `/dev/stdout` is one); links among its parent folders are followed."""
+    ins = {what: Path(p).resolve() for what, p in inputs.items() if p is not None}
+    own = folders if isinstance(folders, dict) else dict.fromkeys(folders, ...)
+    working = {}  # the paths each output's writer works in beside it (lock, temporaries)
+    debris = []  # (folder, prefix, suffix, option): the names of any writer's temporaries
+    for option, out in outputs.items():
+        if out is not None:
+            out = Path(out)
+            for role, path in ((("lock file", write_lock_path(out)),
+                                ("temporary folder", temp_dir_path(out)),
+                                ("old copy", temp_dir_path(out, "old"))) if option in own else
+                               (("temporary file", temp_file_path(out)),
+                                ("old copy", temp_file_path(out, "old")))):
+                working[path.resolve()] = f"{option}'s {role}"
+            names = (((f".{out.name}.tmp-", ""), (f".{out.name}.old-", "")) if option in own
+                     else file_debris_names(out))
+            debris += [(resolved(out).parent, *name, option) for name in names]
+    seen: dict[Path, str] = {}
+    for option, out in outputs.items():
+        if out is None:
+            continue
+        if str(out) == "-":  # a user's hope for standard output, not a file named "-"
+            raise InputError(f"-: {option} must name a path; '-' (standard output) is not "
+                             "taken here")
+        target = Path(out).resolve()
+        if target in working:
+            raise InputError(f"{out}: {option} is {working[target]}, which its writer makes "
+                             "and removes; write it elsewhere")
+        for folder, prefix, suffix, writer in debris:
+            if writer != option and target.parent == folder \
+                    and writer_pid(target.name, prefix, suffix) is not None:
+                raise InputError(f"{out}: {option} is named as a temporary of {writer} "
+                                 f"({prefix}PID{suffix}), which its writers remove; write it "
+                                 "elsewhere")
+        for other, option_other in seen.items():
+            if target == other:
+                raise InputError(f"{out}: {option} and {option_other} name the same path")
+            if target.is_relative_to(other) or other.is_relative_to(target):
+                inner, outer = ((option, option_other) if target.is_relative_to(other)
+                                else (option_other, option))
+                raise InputError(f"{out}: {inner} would lie inside {outer}; two outputs of one "
+                                 "command never overlap")
+        seen[target] = option
+        dangling = next((p for p in Path(out).absolute().parents
+                         if os.path.islink(p) and not p.exists()), None)
+        if dangling is not None:  # a folder made there would fail only after the work
+            raise InputError(f"{out}: {option} cannot be written there: its parent {dangling} "
+                             f"is a symbolic link to {os.readlink(dangling)[:200]}, which does "
+                             "not exist")
+        parent = next((p for p in target.parents if p.exists()), None)
+        if parent is not None and not parent.is_dir():
+            kind = "a file" if parent.is_file() else "not a folder"
+            raise InputError(f"{out}: {option} cannot be written there: its parent {parent} is "
+                             f"{kind}")
+        busy = busy_writer(out)
+        if busy is not None:  # a map (or sfm dataset) being written there right now
+            raise InputError(busy)
+        for what, src in ins.items():
+            how = relation(target, src)
+            if how is None or how == "lies inside" and not src.is_dir():
+                continue
+            where = what if how == "is" else f"{what} ({src})"
+            raise InputError(f"{out}: {option} {how} {where}, which this command only reads; "
+                             "write it elsewhere")
+        want_dir = option in own
+        if os.path.islink(out):  # /dev/stdout, or a link to /proc/self/fd/1: never renamed over
+            link = os.readlink(out)
+            raise InputError(f"{out}: {option} is a symbolic link (to {link[:200]}); writing "
+                             "would replace the link, not what it points to: give a plain "
+                             "path")
+        st = stat_or_none(Path(out))
+        if st is not None:
+            is_dir, is_file = stat.S_ISDIR(st.st_mode), stat.S_ISREG(st.st_mode)
+            if want_dir and not is_dir or not want_dir and not is_file:
+                kind = file_kind(st.st_mode)
+                kind = kind if kind in ("a folder", "a file") else f"not a regular file ({kind})"
+                raise InputError(f"{out}: {option} exists and is {kind}; refusing to replace it")
+            is_own, own_kind = _own_test(own.get(option, ...))
+            if want_dir and is_own is not ... and any(target.iterdir()) and (
+                    is_own is None or not is_own(target)):
+                if is_own is None:  # an output that never replaces a folder, even its own
+                    raise InputError(f"{out}: {option} exists and is not empty; this command "
+                                     "writes a new or an empty folder only, never over one "
+                                     "(choose another, or remove it)")
+                raise InputError(f"{out}: {option} exists, is not empty and is not "
+                                 f"{own_kind or 'its own output'}; "
+                                 "refusing to replace it (give a new or an empty folder)")
+            is_own, own_kind = _own_test((files or {}).get(option, ...))
+            if not want_dir and is_own is not ... and not is_own(Path(out)):
+                raise InputError(f"{out}: {option} exists and is not "
+                                 f"{own_kind or 'this output'}; refusing to replace it (move "
+                                 "it or write elsewhere)")
+        tmp = temp_dir_path(out) if want_dir else temp_file_path(Path(out))
+        if os.path.lexists(tmp) and (want_dir or not _unheld_file(tmp)):  # refused now, not
+            raise InputError(temp_in_the_way(tmp, f"{out}: {option}"))  # after the work
+        _check_writable(Path(out), option)
+
+
+_together = threading.local()  # .pending: the commits of an `outputs_together` block
+
+
+@contextmanager
+def outputs_together() -> Iterator[None]:
+    """Write a command's several outputs as one: each writer inside the block (`atomic_file`,
+    `save_map`, any `commit_output`) writes its temporary, and the renames that put them in
+    place run only when the whole block has succeeded. A failure or a Ctrl-C inside (a full
+    disk at the second file) removes every temporary and leaves all outputs as they were; a
+    Ctrl-C or SIGTERM that arrives during the renames is held until they are done, then
+    raised (KeyboardInterrupt). So a command's outputs are all new or all as they were, never
+    a new report beside an old plot. The block may hold the work that makes the outputs (it is
+    interrupted as usual); a write inside it that must land at once (a periodic checkpoint)
+    goes in `outputs_now`. Nested blocks commit with the outermost; off the main thread
+    signals are not held. Files are renamed in first, folders (a map) last: a kill -9, which
+    nothing can hold, landing among the renames (milliseconds) leaves some files new beside
+    the old map, never the new map with its old report; the temporaries it leaves are
+    removed by the next writer of each output (`remove_dead_leftovers`)."""
+    if _pending() is not None:
+        yield
+        return
+    pending: list[tuple[Callable[[], Undo], Callable[[], None], bool]] = []
+    _together.pending = pending
+    done = False
+    try:
+        yield
+        done = True
+    finally:
+        _together.pending = None
+        with _signals_held():
+            undos: list[Undo] = []
+            try:  # folders (a map) last: a kill -9 between renames leaves the old map
+                for commit, _, _ in sorted(pending, key=lambda c: c[2]) if done else ():
+                    undos.append(commit())
+            except BaseException:  # a rename refused (a file made immutable meanwhile): the
+                for undo in reversed(undos):  # outputs already in place go back as they were
+                    if undo is not None:
+                        undo()
+                raise
+            finally:
+                for _, discard, _ in pending:
+                    discard()
+
+
+@contextmanager
+def outputs_now() -> Iterator[None]:
+    """Inside an `outputs_together` block, the writers in this one put their outputs in place
+    at once, not with the block (a checkpoint that must survive a crash, or what an
+    interrupted command saves on its way out)."""
+    pending = _pending()
+    _together.pending = None
+    try:
+        yield
+    finally:
+        _together.pending = pending
+
+
+@contextmanager
+def _signals_held() -> Iterator[None]:
+    """A Ctrl-C or SIGTERM arriving inside the block waits for its end, then is raised
+    (KeyboardInterrupt) unless the block raised; off the main thread nothing is held."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous = {s: signal.signal(s, lambda signum, frame: held.append(signum))
+                for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    if held:
+        raise KeyboardInterrupt
+
+
+Undo = Callable[[], None] | None  # what puts an output back as it was before its commit
+
+
+def _pending() -> list | None:
+    """The commits of the `outputs_together` block this thread is in (None: none)."""
+    return getattr(_together, "pending", None)
+
+
+def commit_output(commit: Callable[[], Undo], discard: Callable[[], None],
+                  folder: bool = False) -> None:
+    """Put a written output in place: `commit()` (a rename) now, or, inside `outputs_together`,
+    when the whole block has succeeded (a `folder` after the files); `discard()` (removing
+    what `commit` did not take, and the old copy it kept) runs after it either way. `commit`
+    returns how to undo it (None: nothing to undo), used where a later output of the block
+    cannot be put in place."""
+    pending = _pending()
+    if pending is not None:
+        pending.append((commit, discard, folder))
+        return
+    try:
+        commit()
+    finally:
+        discard()
+
+
+def temp_file_path(path: Path, role: str = "tmp") -> Path:
+    """The temporary file `atomic_file` writes `path` into: hidden beside it, named with this
+    process id, with `path`'s suffix (a writer that picks its format by suffix keeps it); with
+    `role` "old", the second name it keeps the replaced file under until its block is done."""
+    return path.with_name(f".{path.stem}.{role}-{os.getpid()}{path.suffix}")
+
+
+def temp_dir_path(out: str | Path, role: str = "tmp") -> Path:
+    """The folder a writer of the folder `out` works in: `.NAME.tmp-PID` (the new contents
+    before they are renamed in), or with `role` "old" `.NAME.old-PID` (the old contents moved
+    aside); hidden beside `out`, named with this process id."""
+    out = Path(out)
+    return out.parent / f".{out.name}.{role}-{os.getpid()}"
+
+
+def temp_in_the_way(tmp: Path, what: str) -> str:
+    """The refusal of a writer whose temporary path (named with its process id) is taken: by
+    a user's file, a link, or a killed writer's leftover whose process id this one has again
+    (as in a container). None of them is this process's to delete or write through."""
+    return (f"{what} cannot be written: its temporary path {tmp} is in the way, and not made "
+            "by this process (a user's, or a killed writer's with this process id); "
+            "refusing to delete or write through it (move it)")
+
+
+@contextmanager
+def naming_output(path: str | Path) -> Iterator[None]:
+    """An OSError raised while the output `path` is written that names no file (a full disk:
+    `[Errno 28] No space left on device`) is raised again naming `path`."""
+    try:
+        yield
+    except OSError as err:
+        if err.filename is None and err.errno is not None:
+            raise OSError(err.errno, err.strerror or str(err), str(path)) from None
+        raise
+
+
+def make_temp_dir(tmp: Path, what: str) -> Path:
+    """Make the writer's temporary folder `tmp` (named with this process id) beside its
+    output `what`: a new folder, never an existing path (`temp_in_the_way`), which a writer
+    removes only after making it here."""
+    try:
+        os.mkdir(tmp)
+    except FileExistsError:
+        raise InputError(temp_in_the_way(tmp, what)) from None
+    return tmp
+
+
+@contextmanager
+def atomic_file(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path beside `path` (same suffix), made here as a new empty file
+    (never an existing one, nor through a link: `temp_in_the_way`); rename it over `path` on
+    success (inside `outputs_together`, when the whole block succeeds), remove it on
+    failure. The temporary, and the second name the replaced file is kept under inside a
+    block, are held with an exclusive `flock` while this writer lives: what a killed writer
+    left (no process holds it, whatever its process id or PID namespace) is removed by the
+    next writer (`remove_dead_leftovers`), a live writer's never."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    remove_dead_leftovers(path)
+    tmp = temp_file_path(path)
+    held = [_create_held(tmp, str(path))]  # the descriptors holding this writer's files
+    backup = temp_file_path(path, "old")
+    kept: list[Path] = []  # the backup, once this writer made it
+    undoable = _pending() is not None  # only a block's outputs may need putting back
+
+    def replace() -> Undo:  # the old file kept (a second name) until the block is done
+        with naming_output(path):
+            existed = os.path.lexists(path)
+            if undoable and os.path.isfile(path) and not os.path.islink(path):
+                held.append(_keep_old(path, backup))
+                kept.append(backup)
+            os.replace(tmp, path)
+        if kept:
+            return lambda: os.replace(backup, path)
+        return None if existed else lambda: path.unlink(missing_ok=True)
+
+    def discard() -> None:
+        try:
+            tmp.unlink(missing_ok=True)  # ours: held, no other writer removed or made it
+            for made in kept:  # never a file of that name this writer did not make
+                made.unlink(missing_ok=True)
+        finally:
+            for fd in held:
+                os.close(fd)  # releases its lock
+
+    try:
+        with naming_output(path):
+            yield tmp
+    except BaseException:
+        discard()
+        raise
+    commit_output(replace, discard)
+
+
+def _create_held(path: Path, what: str) -> int:
+    """A new empty file at `path` (never an existing one, nor through a link), held with an
+    exclusive `flock` on the returned descriptor; made again where a cleaner removed the new
+    file before it was locked."""
+    import fcntl
+
+    for _ in range(8):
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW
+                         | os.O_CLOEXEC, 0o644)
+        except FileExistsError:
+            raise InputError(temp_in_the_way(path, what)) from None
+        fcntl.flock(fd, fcntl.LOCK_EX)  # a cleaner holds it for an instant at most
+        if _same_file(fd, path):
+            return fd
+        os.close(fd)  # removed meanwhile as a dead writer's: make it again
+    raise InputError(temp_in_the_way(path, what))
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    try:
+        return os.path.samestat(os.fstat(fd), os.lstat(path))
+    except FileNotFoundError:
+        return False
+
+
+def _keep_old(path: Path, backup: Path) -> int:
+    """Keep the file at `path` under the second name `backup` until the block is done, and
+    return the descriptor that holds `backup` (an exclusive `flock`): a hard link where the
+    file system makes them and nobody else locks the file, else a copy of its bytes and mode.
+    InputError where `backup` is taken (by a live writer's: another process writing this
+    output)."""
+    import fcntl
+
+    try:
+        os.link(path, backup, follow_symlinks=False)
+    except FileExistsError:
+        raise InputError(temp_in_the_way(backup, str(path))) from None
+    except OSError as err:
+        if err.errno not in (errno.EPERM, errno.EXDEV, errno.EMLINK, errno.ENOTSUP,
+                             errno.EOPNOTSUPP):
+            raise
+    else:
+        fd = os.open(backup, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return fd
+        except BlockingIOError:  # the user's file is locked by another program: a copy
+            os.close(fd)
+            os.unlink(backup)
+    fd = _create_held(backup, str(path))
+    try:
+        with open(path, "rb") as src:
+            os.fchmod(fd, os.fstat(src.fileno()).st_mode & 0o7777)
+            for chunk in iter(lambda: src.read(1 << 20), b""):
+                os.write(fd, chunk)
+    except BaseException:
+        os.close(fd)
+        backup.unlink(missing_ok=True)
+        raise
+    return fd
+
+
+def writer_pid(name: str, prefix: str, suffix: str = "") -> int | None:
+    """The process id in a writer's temporary name `PREFIX` + PID + `SUFFIX`, compared as
+    strings (never a pattern), or None where `name` is not such a name: PID as a process id
+    is written, digits with no leading zero (`.r.old-0123.json` is a user's name)."""
+    if not (name.startswith(prefix) and name.endswith(suffix)
+            and len(name) > len(prefix) + len(suffix)):
+        return None
+    pid = name[len(prefix):len(name) - len(suffix)]
+    if not (pid.isascii() and pid.isdigit()) or pid != str(int(pid)) or pid == "0":
+        return None
+    return int(pid)
+
+
+def file_debris_names(path: Path) -> tuple[tuple[str, str], ...]:
+    """(prefix, suffix) of the names `atomic_file`'s writers of the file `path` work under
+    beside it (`.STEM.tmp-PID.SUFFIX`, `.STEM.old-PID.SUFFIX`)."""
+    return tuple((f".{path.stem}.{role}-", path.suffix) for role in ("tmp", "old"))
+
+
+def _unheld_file(path: Path) -> bool:
+    """Whether `path` is a regular file (not a link) that no process holds with `flock`: a
+    killed writer's temporary, which the next writer removes (`remove_dead_leftovers`)."""
+    import fcntl
+
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError:
+        return False
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return False
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+
+
+def remove_dead_leftovers(path: str | Path) -> list[Path]:
+    """Remove what a killed writer (kill -9, a power cut) of the file `path` left beside it:
+    regular files named exactly `.STEM.tmp-PID.SUFFIX` (its unfinished or uncommitted new
+    file) or `.STEM.old-PID.SUFFIX` (the second name it kept of the file it replaced) that
+    no process holds (`atomic_file` holds its own with `flock` while it lives, so this works
+    across PID namespaces and whatever the PID). A link, a folder, a live writer's file or a
+    user's file of another name (`.r.old-mine.json`, `.r.old-0123.json`) is never taken.
+    Returns what was removed."""
+    import fcntl
+
+    path = Path(path)
+    try:
+        entries = list(os.scandir(path.parent))
+    except OSError:  # no folder, or one that cannot be listed: nothing to clean
+        return []
+    removed = []
+    for entry in entries:
+        if not any(writer_pid(entry.name, prefix, suffix) is not None
+                   for prefix, suffix in file_debris_names(path)):
+            continue
+        try:
+            fd = os.open(entry.path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+        except OSError:  # gone, a link, or not ours to open
+            continue
+        try:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                continue
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            if _same_file(fd, Path(entry.path)):  # still the file locked, not a new one
+                os.unlink(entry.path)
+                removed.append(Path(entry.path))
+        except (BlockingIOError, FileNotFoundError):  # a live writer's, or gone meanwhile
+            continue
+        finally:
+            os.close(fd)
+    return removed
+
+
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+
+
+def exchange_paths(a: Path, b: Path) -> bool:
+    """Atomically swap two paths (Linux renameat2 RENAME_EXCHANGE; a folder output swapped in
+    with no instant where it is missing); False where the system or file system lacks it (or
+    SLAMRELOC_NO_RENAME_EXCHANGE is set: the two-rename fallback, tested)."""
+    if os.environ.get("SLAMRELOC_NO_RENAME_EXCHANGE"):
+        return False
+    import ctypes
+
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL, errno.EOPNOTSUPP, errno.ENOTSUP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def write_json(path: str | Path, data: dict) -> None:
+    """Write `data` as indented JSON, atomically (strict JSON: a NaN or infinity is an error,
+    never a `NaN` token other readers refuse)."""
+    with atomic_file(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, allow_nan=False))
