@@ -633,7 +633,8 @@ def _only_sfm_outputs(folder: Path) -> bool:
     return True
 
 
-SFM_DEBRIS = Debris(new=_only_sfm_outputs, old=None)  # sfm never moves a dataset aside
+# sfm never moves a dataset aside: only its temporary is ever debris
+SFM_DEBRIS = Debris(new=_only_sfm_outputs, old=None, put_back=None)
 
 
 def _run_into(source: Path, out: Path, config: SfmConfig, progress: bool) -> dict:

@@ -171,6 +171,9 @@ def test_outputs_interrupted_are_all_new_or_all_as_they_were(tmp_path, signum, w
     write_json(b, {"old": 1})
     previous = signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(
         KeyboardInterrupt))
+    # Ctrl-C as from a terminal, however the suite was started (a background job is handed
+    # SIGINT ignored: `sigint_as_from_a_terminal`)
+    previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         with pytest.raises(KeyboardInterrupt):
             with outputs_together():
@@ -182,6 +185,7 @@ def test_outputs_interrupted_are_all_new_or_all_as_they_were(tmp_path, signum, w
                 write_json(b, {"new": 1})
     finally:
         signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGINT, previous_int)
     expected = {"old": 1} if when == "while written" else {"new": 1}
     assert json.loads(a.read_text()) == json.loads(b.read_text()) == expected
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json"]

@@ -82,7 +82,7 @@ def test_a_killed_writers_temporaries_go_with_the_next_write(tmp_path):
 
 NAME_PARTS = st.sampled_from([".", "r", "json", "tmp", "old", "-", "1", "0", "x", ".json",
                               ".r."])
-DEBRIS_NAME = re.compile(r"\.r\.(tmp|old)-[1-9][0-9]*\.json")  # the oracle, written apart
+DEBRIS_NAME = re.compile(r"\.r\.(tmp|old)-([1-9][0-9]*)\.json")  # the oracle, written apart
 
 
 @settings(max_examples=80, deadline=None)
@@ -96,7 +96,7 @@ def test_only_a_writers_exact_names_are_removed(tmp_path_factory, names):
     for name in names:
         (folder / name).write_text("x")
     removed = remove_dead_leftovers(folder / "r.json")
-    expected = [n for n in names if DEBRIS_NAME.fullmatch(n)]
+    expected = [n for n in names if (m := DEBRIS_NAME.fullmatch(n)) and int(m[2]) <= 1 << 22]
     assert sorted(p.name for p in removed) == expected
     assert sorted(p.name for p in folder.iterdir()) == [n for n in names if n not in expected]
 
@@ -131,7 +131,7 @@ def test_an_output_named_as_another_outputs_temporary_is_refused(small_map, scen
                          "--method", "matching", "--report", str(tmp_path / "r.json"),
                          "--trajectory", str(tmp_path / ".r.tmp-31001.json")])
     assert code == 2 and err.count("\n") == 1, err
-    assert "--trajectory is named as a temporary of --report" in err, err
+    assert "--trajectory is named as a writer's temporary or lock" in err, err
     assert list(tmp_path.iterdir()) == []
 
 
@@ -334,3 +334,113 @@ def test_reloads_waiting_at_once_are_bounded_and_health_answers(tmp_path, monkey
     finally:
         release.set()
         running.stop()
+
+
+# ---- attack round 15 -----------------------------------------------------------------------
+def test_a_map_moved_aside_with_a_users_file_is_never_removed(small_map, tmp_path):
+    """L1: a `.M.old-PID` holding a map and a user's file (written into the map's folder while
+    a writer replaced it, then the writer killed) was removed by a reader; it is kept, and put
+    back whole where the map is missing. One with only the map's files is debris."""
+    from slamreloc.map.scene_map import SceneMap
+
+    root = tmp_path / "m"
+    shutil.copytree(small_map.root, root)
+    dead = _dead_pid()
+    with_note = tmp_path / f".m.old-{dead}"
+    shutil.copytree(small_map.root, with_note)
+    (with_note / "notes.txt").write_text("mine\n")
+    debris = tmp_path / f".m.old-{dead}1"
+    shutil.copytree(small_map.root, debris)
+    SceneMap.load(root)  # a reader cleans a killed writer's debris
+    assert sorted(p.name for p in tmp_path.iterdir()) == [with_note.name, "m"]
+    shutil.rmtree(root)  # the map missing: the one moved aside goes back whole
+    SceneMap.load(with_note)  # (a map it is)
+    from slamreloc.map.lock import map_write_lock
+
+    with map_write_lock(root):
+        pass
+    assert (root / "notes.txt").read_text() == "mine\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m"]
+
+
+def test_only_exports_own_model_is_taken_for_a_killed_exports(small_map, tmp_path):
+    """L2 / L10: a folder of COLMAP file names (a binary model, or an empty folder) beside
+    the model was taken for a killed export's and put back or removed."""
+    from slamreloc.map.export import export_map
+
+    model = tmp_path / "model"
+    dead = _dead_pid()
+    binary = tmp_path / f".model.old-{dead}"
+    binary.mkdir()
+    for name in ("cameras.bin", "images.bin", "points3D.bin"):
+        (binary / name).write_bytes(b"a user's model")
+    empty = tmp_path / f".model.old-{dead}1"
+    empty.mkdir()
+    export_map(small_map.root, colmap=model, progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [binary.name, empty.name, "model"]
+    assert (model / "cameras.txt").is_file()
+
+
+@pytest.mark.parametrize("name", [".t.tmp-31001.txt", ".x.tmp-31001", ".m.old-31001", ".m.lock",
+                                  ".r.old-7.names.txt"])
+def test_an_output_is_never_named_as_a_writers_temporary(small_map, tmp_path, name):
+    """L3: an output named like any writer's temporary or lock was taken, and a later writer
+    (or a reader of a map of that name) removed it."""
+    from tests.fuzzing import run_cli
+
+    code, err = run_cli(["export", str(small_map.root), "--tum", str(tmp_path / name)])
+    assert code == 2 and "named as a writer's temporary or lock" in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_users_file_at_a_lock_path_is_never_taken_for_a_lock(small_map, tmp_path):
+    """L7: a user's file at `.x.lock` whose first line is a number was taken for a lock
+    record, overwritten and removed."""
+    from tests.fuzzing import run_cli
+
+    lock = tmp_path / ".x.lock"
+    lock.write_text("2024\nbudget: do not delete\n")
+    code, err = run_cli(["export", str(small_map.root), "--colmap", str(tmp_path / "x")])
+    assert code == 2 and "not a slamreloc write lock" in err, err
+    assert lock.read_text() == "2024\nbudget: do not delete\n"
+
+
+@pytest.mark.parametrize("out", [".", ".."])
+def test_a_folder_output_ends_in_a_name(small_map, tmp_path, monkeypatch, out):
+    """L8: `--colmap .` put its lock and temporary inside the output, then refused with a
+    message about them."""
+    from tests.fuzzing import run_cli
+
+    (tmp_path / "e").mkdir()
+    monkeypatch.chdir(tmp_path / "e")
+    code, err = run_cli(["export", str(small_map.root), "--colmap", out])
+    assert code == 2 and "must end in a name" in err, err
+    assert list((tmp_path / "e").iterdir()) == []
+
+
+def test_an_output_name_leaves_room_for_its_writers_names(scene_dir, tmp_path):
+    """L9: `map --out NAME` with a 236-byte name wrote the map, then failed on its training
+    checkpoint's longer name beside it."""
+    from slamreloc.io.outputs import MAX_OUTPUT_NAME
+    from tests.fuzzing import run_cli
+
+    out = tmp_path / ("m" * (MAX_OUTPUT_NAME + 1))
+    code, err = run_cli(["map", str(scene_dir), "--out", str(out)])
+    assert code == 2 and f"at most {MAX_OUTPUT_NAME}" in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_writer_removes_only_its_own_files_after_its_commit(tmp_path):
+    """L6: after renaming its temporary in, a writer removed that name again; a live writer
+    of the same PID elsewhere (another container) had made it meanwhile."""
+    report = tmp_path / "r.json"
+    theirs = tmp_path / f".r.tmp-{os.getpid()}.json"
+
+    def another_writer_makes_the_name() -> None:
+        theirs.write_text("another container's writer, alive")
+
+    with outputs_together():
+        write_json(report, {"new": 1})
+        commit_output(another_writer_makes_the_name, lambda: None)
+    assert theirs.read_text() == "another container's writer, alive"
+    assert json.loads(report.read_text()) == {"new": 1}

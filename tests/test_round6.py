@@ -447,7 +447,7 @@ def _holding(out: Path) -> subprocess.Popen:
     """Another process holding `out`'s write lock (a lock is re-entrant within one)."""
     holder = subprocess.Popen(
         [sys.executable, "-c", "import sys, time\nfrom slamreloc.map.lock import "
-         "map_write_lock\nwith map_write_lock(sys.argv[1], 'x'):\n    print('held', "
+         "map_write_lock\nwith map_write_lock(sys.argv[1], 'this dataset'):\n    print('held', "
          "flush=True)\n    time.sleep(120)", str(out)], stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "held"
     return holder
@@ -462,7 +462,7 @@ def test_no_output_is_written_where_another_process_is_writing_a_map(small_map, 
     try:
         for option in ("--tum", "--ply"):
             one_line_exit_2(["export", str(small_map.root), option, str(out)],
-                            f"another process (pid {holder.pid}) is writing x;")
+                            f"another process (pid {holder.pid}) is writing this dataset;")
     finally:
         holder.kill()
         holder.wait()

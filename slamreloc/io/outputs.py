@@ -8,6 +8,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import re
 import stat
 import tempfile
 import threading
@@ -16,7 +17,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import file_kind, relation, resolved, stat_or_none
+from slamreloc.io.fileio import file_kind, relation, stat_or_none
 
 
 def _own_test(value) -> tuple:
@@ -110,6 +111,21 @@ def busy_writer(out: str | Path) -> str | None:
         os.close(fd)
 
 
+# the names writers work under beside an output (`temp_file_path`, `temp_dir_path`,
+# `write_lock_path`): never an output's own name
+WRITERS_NAME = re.compile(r"\..+\.(?:(?:tmp|old)-([1-9][0-9]*)(?:\..*)?|lock)", re.DOTALL)
+
+
+def _writers_name(name: str) -> bool:
+    """Whether `name` is one a writer works under beside its output (`WRITERS_NAME`, its PID
+    one Linux can give)."""
+    match = WRITERS_NAME.fullmatch(name)
+    return match is not None and (match.group(1) is None or int(match.group(1)) <= PID_LIMIT)
+# the longest of those beside NAME: `.NAME.train-checkpoint.pt`, `.NAME.names.old-PID.txt`...
+WORKING_NAME_EXTRA = 32
+MAX_OUTPUT_NAME = 255 - WORKING_NAME_EXTRA
+
+
 def check_outputs(outputs: dict[str, str | Path | None],
                   inputs: dict[str, str | Path | None],
                   folders: tuple[str, ...] | dict[str, Callable[[Path], bool] | None] = (),
@@ -135,7 +151,6 @@ def check_outputs(outputs: dict[str, str | Path | None],
     ins = {what: Path(p).resolve() for what, p in inputs.items() if p is not None}
     own = folders if isinstance(folders, dict) else dict.fromkeys(folders, ...)
     working = {}  # the paths each output's writer works in beside it (lock, temporaries)
-    debris = []  # (folder, prefix, suffix, option): the names of any writer's temporaries
     for option, out in outputs.items():
         if out is not None:
             out = Path(out)
@@ -145,9 +160,6 @@ def check_outputs(outputs: dict[str, str | Path | None],
                                (("temporary file", temp_file_path(out)),
                                 ("old copy", temp_file_path(out, "old")))):
                 working[path.resolve()] = f"{option}'s {role}"
-            names = (((f".{out.name}.tmp-", ""), (f".{out.name}.old-", "")) if option in own
-                     else file_debris_names(out))
-            debris += [(resolved(out).parent, *name, option) for name in names]
     seen: dict[Path, str] = {}
     for option, out in outputs.items():
         if out is None:
@@ -159,12 +171,19 @@ def check_outputs(outputs: dict[str, str | Path | None],
         if target in working:
             raise InputError(f"{out}: {option} is {working[target]}, which its writer makes "
                              "and removes; write it elsewhere")
-        for folder, prefix, suffix, writer in debris:
-            if writer != option and target.parent == folder \
-                    and writer_pid(target.name, prefix, suffix) is not None:
-                raise InputError(f"{out}: {option} is named as a temporary of {writer} "
-                                 f"({prefix}PID{suffix}), which its writers remove; write it "
-                                 "elsewhere")
+        if Path(out).name in ("", ".", ".."):  # its lock and temporaries would go inside it
+            raise InputError(f"{out}: {option} must end in a name, not '.' or '..' (give the "
+                             "folder's path from its parent, e.g. ../NAME)")
+        if _writers_name(Path(out).name):  # a later writer beside it would remove it
+            raise InputError(f"{out}: {option} is named as a writer's temporary or lock "
+                             "(.NAME.tmp-PID, .NAME.old-PID, .NAME.lock), which writers "
+                             "remove; give another name")
+        size = len(os.fsencode(Path(out).name))
+        if size > MAX_OUTPUT_NAME:  # the writer's own names beside it must fit too
+            raise InputError(f"{out}: {option}'s name is {size} bytes; at most "
+                             f"{MAX_OUTPUT_NAME} (its writer's temporaries beside it, "
+                             f"{WORKING_NAME_EXTRA} bytes longer, must fit the file system's "
+                             "255)")
         for other, option_other in seen.items():
             if target == other:
                 raise InputError(f"{out}: {option} and {option_other} name the same path")
@@ -392,17 +411,17 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_dead_leftovers(path)
     tmp = temp_file_path(path)
-    held = [_create_held(tmp, str(path))]  # the descriptors holding this writer's files
+    held = [(tmp, _create_held(tmp, str(path)))]  # this writer's files, each with its lock
     backup = temp_file_path(path, "old")
-    kept: list[Path] = []  # the backup, once this writer made it
     undoable = _pending() is not None  # only a block's outputs may need putting back
 
     def replace() -> Undo:  # the old file kept (a second name) until the block is done
+        kept = False
         with naming_output(path):
             existed = os.path.lexists(path)
             if undoable and os.path.isfile(path) and not os.path.islink(path):
-                held.append(_keep_old(path, backup))
-                kept.append(backup)
+                held.append((backup, _keep_old(path, backup)))
+                kept = True
             os.replace(tmp, path)
         if kept:
             return lambda: os.replace(backup, path)
@@ -410,11 +429,11 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
 
     def discard() -> None:
         try:
-            tmp.unlink(missing_ok=True)  # ours: held, no other writer removed or made it
-            for made in kept:  # never a file of that name this writer did not make
-                made.unlink(missing_ok=True)
+            for name, fd in held:  # a name still this writer's file (not renamed away, nor
+                if _same_file(fd, name):  # made again by a writer of the same PID elsewhere)
+                    name.unlink()
         finally:
-            for fd in held:
+            for _, fd in held:
                 os.close(fd)  # releases its lock
 
     try:
@@ -460,22 +479,26 @@ def _keep_old(path: Path, backup: Path) -> int:
     output)."""
     import fcntl
 
-    try:
-        os.link(path, backup, follow_symlinks=False)
-    except FileExistsError:
-        raise InputError(temp_in_the_way(backup, str(path))) from None
-    except OSError as err:
-        if err.errno not in (errno.EPERM, errno.EXDEV, errno.EMLINK, errno.ENOTSUP,
-                             errno.EOPNOTSUPP):
-            raise
-    else:
+    for _ in range(8):
+        try:
+            os.link(path, backup, follow_symlinks=False)
+        except FileExistsError:
+            raise InputError(temp_in_the_way(backup, str(path))) from None
+        except OSError as err:
+            if err.errno not in (errno.EPERM, errno.EXDEV, errno.EMLINK, errno.ENOTSUP,
+                                 errno.EOPNOTSUPP):
+                raise
+            break  # no links here: a copy
         fd = os.open(backup, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            return fd
         except BlockingIOError:  # the user's file is locked by another program: a copy
             os.close(fd)
             os.unlink(backup)
+            break
+        if _same_file(fd, backup):
+            return fd
+        os.close(fd)  # removed meanwhile as a dead writer's: link it again
     fd = _create_held(backup, str(path))
     try:
         with open(path, "rb") as src:
@@ -492,14 +515,19 @@ def _keep_old(path: Path, backup: Path) -> int:
 def writer_pid(name: str, prefix: str, suffix: str = "") -> int | None:
     """The process id in a writer's temporary name `PREFIX` + PID + `SUFFIX`, compared as
     strings (never a pattern), or None where `name` is not such a name: PID as a process id
-    is written, digits with no leading zero (`.r.old-0123.json` is a user's name)."""
+    is written, digits with no leading zero, a process id Linux can give (1 to 2**22: a
+    dated backup `.m.old-20240101`, `.r.old-0123.json` are a user's names)."""
     if not (name.startswith(prefix) and name.endswith(suffix)
             and len(name) > len(prefix) + len(suffix)):
         return None
     pid = name[len(prefix):len(name) - len(suffix)]
-    if not (pid.isascii() and pid.isdigit()) or pid != str(int(pid)) or pid == "0":
+    if not (pid.isascii() and pid.isdigit()) or pid != str(int(pid)) \
+            or not 0 < int(pid) <= PID_LIMIT:
         return None
     return int(pid)
+
+
+PID_LIMIT = 1 << 22  # Linux's largest process id (PID_MAX_LIMIT), whatever this system's
 
 
 def file_debris_names(path: Path) -> tuple[tuple[str, str], ...]:

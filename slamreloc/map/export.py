@@ -255,11 +255,12 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
     commit_output(swap, discard, folder=True)
 
 
-def _only_model_files(folder: Path) -> bool:
-    """Whether `folder` holds only COLMAP model files and export's mark, regular files: what
-    `write_colmap` writes into its temporary or moves aside (`COLMAP_DEBRIS`)."""
+def _unfinished_model(folder: Path) -> bool:
+    """Whether `folder` holds only what `write_colmap` writes into its temporary (the text
+    model files and export's mark, regular files, the mark written last): a killed export's,
+    removed under the model's lock (`COLMAP_DEBRIS`). A binary model is never export's."""
     try:
-        return all(e.name in COLMAP_MODEL_FILES | {EXPORT_MARK}
+        return all(e.name in COLMAP_TEXT_FILES | {EXPORT_MARK}
                    and e.is_file(follow_symlinks=False) for e in os.scandir(folder))
     except OSError:
         return False
@@ -268,8 +269,11 @@ def _only_model_files(folder: Path) -> bool:
 COLMAP_MODEL_FILES = frozenset(f"{name}.{ext}" for name in ("cameras", "images", "points3D")
                                for ext in ("txt", "bin"))
 EXPORT_MARK = "slamreloc_export.json"  # beside the model files: who wrote them, their digests
-# a killed export's temporary model, or the model it had moved aside (put back if none is there)
-COLMAP_DEBRIS = Debris(new=_only_model_files, old=_only_model_files)
+COLMAP_TEXT_FILES = frozenset(f"{name}.txt" for name in ("cameras", "images", "points3D"))
+# a killed export's unfinished model, or the model it had moved aside: export's own, unchanged
+# (`is_colmap_model`), put back where none is there
+COLMAP_DEBRIS = Debris(new=_unfinished_model, old=lambda f: is_colmap_model(f),
+                       put_back=lambda f: is_colmap_model(f))
 
 
 def _write_export_mark(folder: Path, scene_map: SceneMap) -> None:

@@ -34,31 +34,34 @@ _HELD: set[str] = set()  # folders whose write lock this process holds
 class Debris:
     """What a killed writer of one kind of folder output leaves beside it: `new(folder)` for
     its temporary `.NAME.tmp-PID` (only what it writes there), `old(folder)` for the output it
-    had moved aside, `.NAME.old-PID` (None: this writer never moves one aside)."""
+    had moved aside, `.NAME.old-PID`, with nothing else in it (None: this writer never moves
+    one aside), and `put_back(folder)` for such a folder that may go back where NAME is
+    missing (it may hold a user's file written into the output meanwhile: put back whole,
+    never removed)."""
     new: Callable[[Path], bool]
     old: Callable[[Path], bool] | None
+    put_back: Callable[[Path], bool] | None
 
 
-def _leftovers(out: Path, debris: Debris) -> list[Path]:
-    """What a killed writer of `out` left beside it, and nothing else: folders named exactly
-    `.NAME.tmp-PID` or `.NAME.old-PID` (`writer_pid`) that hold what such a writer makes
-    (`debris`). Names are compared as strings, not as a pattern (a map named `m[1]` must not
-    take `.m1.tmp-7` for its own), and a user's own file or folder of a like name
-    (`.NAME.old-mine`, `.NAME.old-0123`, a file `.NAME.tmp-7`) is never taken for debris.
-    Removed only under the folder's lock (`map_write_lock`), where no writer of it lives."""
+def _named(out: Path, kind: str) -> list[Path]:
+    """The folders beside `out` named exactly `.NAME.KIND-PID` (`writer_pid`): compared as
+    strings, not as a pattern (a map named `m[1]` must not take `.m1.tmp-7` for its own), so a
+    user's folder of a like name (`.NAME.old-mine`, `.NAME.old-0123`) is never one."""
     try:
         entries = list(os.scandir(out.parent))
     except OSError:  # no folder, or one that cannot be listed: nothing to clean
         return []
-    found = []
-    for entry in entries:
-        for kind, is_own in (("tmp", debris.new), ("old", debris.old)):
-            if is_own is None or writer_pid(entry.name, f".{out.name}.{kind}-") is None \
-                    or not entry.is_dir(follow_symlinks=False):
-                continue
-            if is_own(Path(entry.path)):
-                found.append(Path(entry.path))
-    return sorted(found)
+    return sorted(Path(e.path) for e in entries
+                  if writer_pid(e.name, f".{out.name}.{kind}-") is not None
+                  and e.is_dir(follow_symlinks=False))
+
+
+def _leftovers(out: Path, debris: Debris) -> list[Path]:
+    """What a killed writer of `out` left beside it, and nothing else: `_named` folders that
+    hold only what such a writer makes (`debris`). Removed only under the folder's lock
+    (`map_write_lock`), where no writer of it lives."""
+    return [path for kind, is_own in (("tmp", debris.new), ("old", debris.old))
+            if is_own is not None for path in _named(out, kind) if is_own(path)]
 
 
 def only_map_files(folder: Path) -> bool:
@@ -69,7 +72,10 @@ def only_map_files(folder: Path) -> bool:
         return False
 
 
-MAP_DEBRIS = Debris(new=only_map_files, old=is_map)  # a save cut short; a map moved aside
+# a save cut short; a map moved aside (only its files: removed; with a user's file: put back
+# where the map is missing, else kept)
+MAP_DEBRIS = Debris(new=only_map_files, old=lambda f: is_map(f) and only_map_files(f),
+                    put_back=is_map)
 
 
 @contextmanager
@@ -81,6 +87,8 @@ def map_write_lock(out: str | Path, what: str = "this map",
 
     A second process asking for it gets InputError at once. On entry, the leftovers of a
     killed writer are cleaned up (and an output it had moved aside is put back)."""
+    if what not in LOCK_HOLDERS:  # the record a later writer must recognise
+        raise ValueError(f"map_write_lock: `what` {what!r} is not one of {LOCK_HOLDERS}")
     out = Path(out)
     key = os.path.abspath(out)
     if key in _HELD:
@@ -152,22 +160,28 @@ def _open_lock(lock: Path, out: Path) -> int:
     return fd
 
 
+LOCK_HOLDERS = ("this map", "this dataset", "this COLMAP model")  # a lock record's WHAT
+
+
 def _lock_record_or_empty(fd: int) -> bool:
-    """Whether the lock file is empty or holds a writer's record ("PID\nWHAT\n", as a
-    killed writer leaves it): anything else is a user's file of that name."""
+    """Whether the lock file is empty or holds exactly a writer's record ("PID\nWHAT\n", PID
+    as a process id is written, WHAT one of `LOCK_HOLDERS`), as a killed writer leaves it:
+    anything else is a user's file of that name (`2024\nbudget\n`)."""
     size = os.fstat(fd).st_size
     if size == 0:
         return True
-    if size > 4096:
+    if size > 256:
         return False
-    pid, _, rest = os.pread(fd, size, 0).partition(b"\n")
-    return pid.isdigit() and rest.count(b"\n") <= 1 and rest.isascii()
+    text = os.pread(fd, size, 0)
+    pid, _, what = text.partition(b"\n")
+    return (writer_pid(pid.decode("ascii", "replace"), "") is not None
+            and what.endswith(b"\n") and what[:-1].decode("ascii", "replace") in LOCK_HOLDERS)
 
 
 def _recover(out: Path, debris: Debris) -> None:
     """Under the lock: put back an output a killed writer had moved aside; remove its
     leftovers."""
-    olds = [p for p in _leftovers(out, debris) if p.name.startswith(f".{out.name}.old-")]
+    olds = [p for p in _named(out, "old") if debris.put_back is not None and debris.put_back(p)]
     if olds and not os.path.lexists(out):
         newest = max(olds, key=lambda p: p.stat().st_mtime)
         os.replace(newest, out)
