@@ -40,8 +40,8 @@ import numpy as np
 
 from slamreloc.camera_models import MODELS, PARAMS, colmap_head
 from slamreloc.errors import InputError
-from slamreloc.io.outputs import (check_outputs, file_debris_names, make_temp_dir,
-                                  naming_output, temp_dir_path, write_json, writer_pid)
+from slamreloc.io.outputs import (check_outputs, is_file_debris_name, make_temp_dir,
+                                  naming_output, temp_dir_path, write_json)
 from slamreloc.map.lock import Debris, map_write_lock
 from slamreloc.io.video import is_video, video_frames
 from slamreloc.runtime.progress import console, make_progress
@@ -625,8 +625,7 @@ def _only_sfm_outputs(folder: Path) -> bool:
                         if not (stat.S_ISDIR(inside) or stat.S_ISREG(inside)):
                             return False
             elif not (entry.name == SFM_JSON and entry.is_file(follow_symlinks=False)
-                      or any(writer_pid(entry.name, prefix, suffix) is not None
-                             for prefix, suffix in file_debris_names(Path(SFM_JSON)))):
+                      or is_file_debris_name(entry.name, Path(SFM_JSON))):
                 return False
     except OSError:
         return False

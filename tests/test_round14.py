@@ -298,23 +298,15 @@ def test_reloads_waiting_at_once_are_bounded_and_health_answers(tmp_path, monkey
     import time
 
     from slamreloc.proto import relocalizer_pb2 as pb
-    from slamreloc.service.maps import ServedMap
     from slamreloc.service.server import ServeConfig, start_server
     from tests.test_fuzz_inputs import _tiny_map
     from tests.test_hardening import copy_map
-    from tests.test_service_hardening import _call
+    from tests.test_service_hardening import _call, held_loads
 
     first = _tiny_map(tmp_path / "a")
     maps = {"a": first, "b": copy_map(first, tmp_path / "b"), "c": copy_map(first, tmp_path / "c")}
     running = start_server(maps, ServeConfig(port=0, watch_s=0, max_reloads=2))
-    release = threading.Event()
-    real_load = ServedMap.load
-
-    def held_load(name, path):
-        release.wait(30)
-        return real_load(name, path)
-
-    monkeypatch.setattr(ServedMap, "load", staticmethod(held_load))
+    release = held_loads(monkeypatch)
     waiting = [threading.Thread(target=_call, args=(running.address, "ReloadMap",
                                                     pb.ReloadMapRequest(map=m)))
                for m in ("a", "b")]

@@ -318,16 +318,23 @@ def test_silent_sessions_are_cancelled_and_not_counted(slow_server):
     assert [u.WhichOneof("message") for u in updates] == ["opened", "closed"]
 
 
-def test_second_reload_of_a_loading_map_is_overloaded_at_once(tiny_map, monkeypatch):
-    running = start_server({"m": tiny_map}, ServeConfig(port=0, watch_s=0))
+def held_loads(monkeypatch, wait_s: float = 30.0) -> threading.Event:
+    """Every map load (`ServedMap.load`) waits until the returned event is set (at most
+    `wait_s`), then loads: reloads held in flight."""
     release = threading.Event()
     real_load = ServedMap.load
 
     def held_load(name, path):
-        release.wait(20)
+        release.wait(wait_s)
         return real_load(name, path)
 
     monkeypatch.setattr(ServedMap, "load", staticmethod(held_load))
+    return release
+
+
+def test_second_reload_of_a_loading_map_is_overloaded_at_once(tiny_map, monkeypatch):
+    running = start_server({"m": tiny_map}, ServeConfig(port=0, watch_s=0))
+    release = held_loads(monkeypatch, 20)
     try:
         first = threading.Thread(target=lambda: _call(running.address, "ReloadMap",
                                                       pb.ReloadMapRequest(map="m")))

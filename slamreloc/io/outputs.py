@@ -121,6 +121,8 @@ def _writers_name(name: str) -> bool:
     one Linux can give)."""
     match = WRITERS_NAME.fullmatch(name)
     return match is not None and (match.group(1) is None or int(match.group(1)) <= PID_LIMIT)
+
+
 # the longest of those beside NAME: `.NAME.train-checkpoint.pt`, `.NAME.names.old-PID.txt`...
 WORKING_NAME_EXTRA = 32
 MAX_OUTPUT_NAME = 255 - WORKING_NAME_EXTRA
@@ -530,30 +532,43 @@ def writer_pid(name: str, prefix: str, suffix: str = "") -> int | None:
 PID_LIMIT = 1 << 22  # Linux's largest process id (PID_MAX_LIMIT), whatever this system's
 
 
-def file_debris_names(path: Path) -> tuple[tuple[str, str], ...]:
-    """(prefix, suffix) of the names `atomic_file`'s writers of the file `path` work under
-    beside it (`.STEM.tmp-PID.SUFFIX`, `.STEM.old-PID.SUFFIX`)."""
-    return tuple((f".{path.stem}.{role}-", path.suffix) for role in ("tmp", "old"))
+def is_file_debris_name(name: str, path: Path) -> bool:
+    """Whether `name` is exactly one `atomic_file`'s writers of the file `path` work under
+    beside it: `.STEM.tmp-PID.SUFFIX` or `.STEM.old-PID.SUFFIX` (PID as `writer_pid` takes
+    it)."""
+    return any(writer_pid(name, f".{path.stem}.{role}-", path.suffix) is not None
+               for role in ("tmp", "old"))
+
+
+def _lock_unheld(path: str | Path) -> int | None:
+    """A descriptor of the regular file at `path` (not a link, a device or a pipe, which is
+    never opened) locked with an exclusive `flock`, where no process holds it; else None."""
+    import fcntl
+
+    try:
+        if not stat.S_ISREG(os.lstat(path).st_mode):
+            return None
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError:  # gone, a link, or not ours to open
+        return None
+    try:
+        if stat.S_ISREG(os.fstat(fd).st_mode):
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return fd
+    except OSError:  # held by a live writer
+        pass
+    os.close(fd)
+    return None
 
 
 def _unheld_file(path: Path) -> bool:
     """Whether `path` is a regular file (not a link) that no process holds with `flock`: a
     killed writer's temporary, which the next writer removes (`remove_dead_leftovers`)."""
-    import fcntl
-
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
-    except OSError:
+    fd = _lock_unheld(path)
+    if fd is None:
         return False
-    try:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
-            return False
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        return True
-    except OSError:
-        return False
-    finally:
-        os.close(fd)
+    os.close(fd)
+    return True
 
 
 def remove_dead_leftovers(path: str | Path) -> list[Path]:
@@ -564,8 +579,6 @@ def remove_dead_leftovers(path: str | Path) -> list[Path]:
     across PID namespaces and whatever the PID). A link, a folder, a live writer's file or a
     user's file of another name (`.r.old-mine.json`, `.r.old-0123.json`) is never taken.
     Returns what was removed."""
-    import fcntl
-
     path = Path(path)
     try:
         entries = list(os.scandir(path.parent))
@@ -573,22 +586,17 @@ def remove_dead_leftovers(path: str | Path) -> list[Path]:
         return []
     removed = []
     for entry in entries:
-        if not any(writer_pid(entry.name, prefix, suffix) is not None
-                   for prefix, suffix in file_debris_names(path)):
+        if not is_file_debris_name(entry.name, path):
+            continue
+        fd = _lock_unheld(entry.path)
+        if fd is None:
             continue
         try:
-            fd = os.open(entry.path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
-        except OSError:  # gone, a link, or not ours to open
-            continue
-        try:
-            if not stat.S_ISREG(os.fstat(fd).st_mode):
-                continue
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             if _same_file(fd, Path(entry.path)):  # still the file locked, not a new one
                 os.unlink(entry.path)
                 removed.append(Path(entry.path))
-        except (BlockingIOError, FileNotFoundError):  # a live writer's, or gone meanwhile
-            continue
+        except FileNotFoundError:  # gone meanwhile
+            pass
         finally:
             os.close(fd)
     return removed

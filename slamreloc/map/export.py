@@ -270,10 +270,6 @@ COLMAP_MODEL_FILES = frozenset(f"{name}.{ext}" for name in ("cameras", "images",
                                for ext in ("txt", "bin"))
 EXPORT_MARK = "slamreloc_export.json"  # beside the model files: who wrote them, their digests
 COLMAP_TEXT_FILES = frozenset(f"{name}.txt" for name in ("cameras", "images", "points3D"))
-# a killed export's unfinished model, or the model it had moved aside: export's own, unchanged
-# (`is_colmap_model`), put back where none is there
-COLMAP_DEBRIS = Debris(new=_unfinished_model, old=lambda f: is_colmap_model(f),
-                       put_back=lambda f: is_colmap_model(f))
 
 
 def _write_export_mark(folder: Path, scene_map: SceneMap) -> None:
@@ -312,6 +308,11 @@ def is_colmap_model(folder: Path) -> bool:
     except (InputError, OSError, ValueError, KeyError, TypeError, AttributeError):
         return False
     return True
+
+
+# a killed export's unfinished model, or the model it had moved aside: export's own, unchanged
+# (`is_colmap_model`), put back where none is there
+COLMAP_DEBRIS = Debris(new=_unfinished_model, old=is_colmap_model, put_back=is_colmap_model)
 
 
 def write_ply(path: Path, points: ExportPoints) -> None:

@@ -80,7 +80,7 @@ MAP_DEBRIS = Debris(new=only_map_files, old=lambda f: is_map(f) and only_map_fil
 
 @contextmanager
 def map_write_lock(out: str | Path, what: str = "this map",
-                   debris: Debris | None = None) -> Iterator[None]:
+                   debris: Debris = MAP_DEBRIS) -> Iterator[None]:
     """Hold the exclusive write lock of the folder output `out` (re-entrant within a process;
     `what` the folder is, for the message; `debris` what its writers leave: a map's by
     default; `sfm`'s datasets and export's COLMAP models take it with their own).
@@ -127,7 +127,7 @@ def map_write_lock(out: str | Path, what: str = "this map",
             raise OSError(err.errno, err.strerror, str(lock)) from None
         _HELD.add(key)
         try:
-            _recover(out, debris or MAP_DEBRIS)
+            _recover(out, debris)
             yield
         finally:
             _HELD.discard(key)
