@@ -42,7 +42,7 @@ from slamreloc.camera_models import MODELS, PARAMS, colmap_head
 from slamreloc.errors import InputError
 from slamreloc.io.outputs import (check_outputs, is_file_debris_name, make_temp_dir,
                                   naming_output, temp_dir_path, write_json)
-from slamreloc.map.lock import Debris, map_write_lock
+from slamreloc.io.folder_lock import Debris, folder_write_lock
 from slamreloc.io.video import is_video, video_frames
 from slamreloc.runtime.progress import console, make_progress
 from slamreloc.types import Camera, frame_name_problem
@@ -598,7 +598,7 @@ def run_sfm(source: Path, out: Path, config: SfmConfig = SfmConfig(),
     made = [p for p in out.absolute().parents if not p.exists()]  # folders this run makes
     try:
         # a second writer fails at once, not late; a full disk names the output
-        with map_write_lock(out, "this dataset", SFM_DEBRIS), naming_output(out):
+        with folder_write_lock(out, "this dataset", SFM_DEBRIS), naming_output(out):
             return _run_into(source, out, config, progress)
     except BaseException:
         for folder in made:  # nearest first: a failed run leaves no folder it made

@@ -536,12 +536,12 @@ def test_a_line_name_of_undecodable_bytes_is_percent_encoded():
 
 # ---- G5: a full disk while the write lock is taken names the lock and leaves none ------------
 def test_a_full_disk_at_the_lock_names_it_and_leaves_none(tiny_map, tmp_path, monkeypatch):
-    from slamreloc.map import lock as map_lock
+    from slamreloc.io import folder_lock
 
     def full(fd, data, offset):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(map_lock.os, "pwrite", full)
+    monkeypatch.setattr(folder_lock.os, "pwrite", full)
     with pytest.raises(OSError) as err:
         _resave(tiny_map, tmp_path / "m")
     assert err.value.filename == str(tmp_path / ".m.lock")

@@ -446,8 +446,9 @@ def test_a_second_sfm_into_the_same_folder_fails_at_once(scene_dir, tmp_path):
 def _holding(out: Path) -> subprocess.Popen:
     """Another process holding `out`'s write lock (a lock is re-entrant within one)."""
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time\nfrom slamreloc.map.lock import "
-         "map_write_lock\nwith map_write_lock(sys.argv[1], 'this dataset'):\n    print('held', "
+        [sys.executable, "-c", "import sys, time\nfrom slamreloc.io.folder_lock import "
+         "folder_write_lock\nfrom slamreloc.sfm import SFM_DEBRIS\n"
+         "with folder_write_lock(sys.argv[1], 'this dataset', SFM_DEBRIS):\n    print('held', "
          "flush=True)\n    time.sleep(120)", str(out)], stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "held"
     return holder

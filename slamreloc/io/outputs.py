@@ -73,7 +73,7 @@ def marked_file(signature: bytes, marker: bytes, kind: str
 
 def write_lock_path(out: str | Path) -> Path:
     """The lock file of a folder being written (`.NAME.lock` beside it): held by the writer
-    of a map or an sfm dataset (`slamreloc.map.lock.map_write_lock`) while it works."""
+    of a folder output (`slamreloc.io.folder_lock.folder_write_lock`) while it works."""
     out = Path(out)
     return out.parent / f".{out.name}.lock"
 

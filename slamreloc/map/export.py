@@ -30,7 +30,7 @@ from slamreloc.io.images import pixel_colours, read_image
 from slamreloc.io.jsonio import read_json
 from slamreloc.runtime.progress import track
 from slamreloc.types import aspect_problem
-from slamreloc.map.lock import Debris, map_write_lock
+from slamreloc.io.folder_lock import Debris, folder_write_lock
 from slamreloc.map.scene_map import SceneMap, rows_by_frame
 
 # the PLY header's comment that marks a file `export` wrote (and may replace)
@@ -174,7 +174,7 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
                      else name)
     out.parent.mkdir(parents=True, exist_ok=True)
     held = ExitStack()  # the model's write lock, until its swap is done
-    held.enter_context(map_write_lock(out, "this COLMAP model", COLMAP_DEBRIS))
+    held.enter_context(folder_write_lock(out, "this COLMAP model", COLMAP_DEBRIS))
     try:
         tmp = make_temp_dir(temp_dir_path(out), str(out))
     except BaseException:

@@ -21,7 +21,8 @@ from slamreloc.errors import InputError
 from slamreloc.io.outputs import commit_output, exchange_paths, naming_output, temp_dir_path
 from slamreloc.map.format import (DATABASE, FORMAT_VERSION, MAP_FILES, META, WEIGHTS, is_map,
                                   is_map_file, sha256_file)
-from slamreloc.map.lock import fsync_dir, map_write_lock
+from slamreloc.io.folder_lock import fsync_dir
+from slamreloc.map.lock import map_write_lock
 from slamreloc.map.meta import MapMeta
 from slamreloc.map.weights import weight_arrays
 from slamreloc.regressor.model import SceneCoordinateRegressor

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
+import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -19,8 +21,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from slamreloc.errors import InputError
+from slamreloc.errors import InputError, WriterBusy
 from slamreloc.io.fileio import read_bytes
+from slamreloc.io.folder_lock import Debris, folder_write_lock
 from slamreloc.io.outputs import make_temp_dir, temp_dir_path
 from slamreloc.synthetic.render import RenderScene, render_frame
 from slamreloc.synthetic.room import build_room
@@ -115,21 +118,59 @@ def _write_frames(tmp: Path, config: SceneConfig, progress: Progress | None) -> 
     (tmp / "scene.json").write_text(json.dumps(scene_json(config), indent=2) + "\n")
 
 
+_SCENE_FILES = {"intrinsics.txt", "camera.txt", "TrainSplit.txt", "TestSplit.txt",
+                "scene.json"}
+_SEQUENCE = re.compile(r"seq-[0-9]{2}")
+_FRAME_FILE = re.compile(r"frame-[0-9]{6}\.(?:color\.png|depth\.png|pose\.txt)")
+
+
+def _only_scene_files(folder: Path) -> bool:
+    """Whether `folder` holds nothing but what `render_scene` writes: its top-level files
+    and `seq-XX` folders of frame files, all regular files (a killed render's temporary)."""
+    def regular(entry: os.DirEntry, names) -> bool:
+        return entry.is_file(follow_symlinks=False) and (
+            entry.name in names if isinstance(names, set) else names.fullmatch(entry.name))
+    try:
+        for entry in os.scandir(folder):
+            if entry.is_dir(follow_symlinks=False) and _SEQUENCE.fullmatch(entry.name):
+                if not all(regular(e, _FRAME_FILE) for e in os.scandir(entry.path)):
+                    return False
+            elif not regular(entry, _SCENE_FILES):
+                return False
+    except OSError:
+        return False
+    return True
+
+
+# a render cut short (a scene is written in one rename: never moved aside)
+SCENE_DEBRIS = Debris(new=_only_scene_files, old=None, put_back=None)
+
+
 def render_scene(out_dir: Path, config: SceneConfig = SceneConfig(),
                  progress: Progress | None = None) -> Path:
-    """Render all sequences into out_dir (atomically, via a temporary sibling folder)."""
+    """Render all sequences into out_dir (atomically, via a temporary sibling folder, under
+    the folder's write lock: a killed render's temporary is removed by the next one). While
+    another process renders the same folder, wait for it, then take its scene if it is this
+    one."""
     out_dir = Path(out_dir)
     if _existing(out_dir, config):
         return out_dir
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        try:
+            with folder_write_lock(out_dir, "this scene", SCENE_DEBRIS):
+                if not _existing(out_dir, config):
+                    _render_into(out_dir, config, progress)
+                return out_dir
+        except WriterBusy as busy:
+            if busy.what != "this scene":  # another kind of writer: not ours to wait for
+                raise
+            time.sleep(0.2)
+
+
+def _render_into(out_dir: Path, config: SceneConfig, progress: Progress | None) -> None:
     tmp = make_temp_dir(temp_dir_path(out_dir), str(out_dir))
     try:
         _write_frames(tmp, config, progress)
-        try:
-            os.replace(tmp, out_dir)
-        except OSError:
-            if not _existing(out_dir, config):  # someone else finished the same scene first
-                raise
+        os.replace(tmp, out_dir)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return out_dir

@@ -1,0 +1,183 @@
+"""The write lock of a folder output (a map, an sfm dataset, an exported COLMAP model, a
+rendered synthetic scene), and the clean-up of what a killed writer left beside it.
+
+A writer holds an exclusive lock on `.NAME.lock` beside the folder (removed when it is done);
+a second writer fails at once (`WriterBusy`). Under that lock no other writer of NAME lives
+(in any PID namespace), so a `.NAME.tmp-PID` folder holding only what such a writer writes (a
+save cut short) and a `.NAME.old-PID` folder holding such an output (one moved aside) are a
+killed writer's: removed at the next write of that folder (an output moved aside and never
+replaced is put back first). What counts is the writer's kind (`Debris`): an sfm run never
+takes a map for its own, a scene renderer never takes anything but frames it renders.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import shutil
+import stat
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from slamreloc.errors import InputError, WriterBusy
+from slamreloc.io.outputs import lock_record, write_lock_path, writer_pid
+
+_HELD: set[str] = set()  # folders whose write lock this process holds
+
+
+@dataclass(frozen=True)
+class Debris:
+    """What a killed writer of one kind of folder output leaves beside it: `new(folder)` for
+    its temporary `.NAME.tmp-PID` (only what it writes there), `old(folder)` for the output it
+    had moved aside, `.NAME.old-PID`, with nothing else in it (None: this writer never moves
+    one aside), and `put_back(folder)` for such a folder that may go back where NAME is
+    missing (it may hold a user's file written into the output meanwhile: put back whole,
+    never removed)."""
+    new: Callable[[Path], bool]
+    old: Callable[[Path], bool] | None
+    put_back: Callable[[Path], bool] | None
+
+
+def _named(out: Path, kind: str) -> list[Path]:
+    """The folders beside `out` named exactly `.NAME.KIND-PID` (`writer_pid`): compared as
+    strings, not as a pattern (a map named `m[1]` must not take `.m1.tmp-7` for its own), so a
+    user's folder of a like name (`.NAME.old-mine`, `.NAME.old-0123`) is never one."""
+    try:
+        entries = list(os.scandir(out.parent))
+    except OSError:  # no folder, or one that cannot be listed: nothing to clean
+        return []
+    return sorted(Path(e.path) for e in entries
+                  if writer_pid(e.name, f".{out.name}.{kind}-") is not None
+                  and e.is_dir(follow_symlinks=False))
+
+
+def leftovers(out: Path, debris: Debris) -> list[Path]:
+    """What a killed writer of `out` left beside it, and nothing else: `_named` folders that
+    hold only what such a writer makes (`debris`). Removed only under the folder's lock
+    (`folder_write_lock`), where no writer of it lives."""
+    return [path for kind, is_own in (("tmp", debris.new), ("old", debris.old))
+            if is_own is not None for path in _named(out, kind) if is_own(path)]
+
+
+@contextmanager
+def folder_write_lock(out: str | Path, what: str, debris: Debris) -> Iterator[None]:
+    """Hold the exclusive write lock of the folder output `out` (re-entrant within a process;
+    `what` the folder is, one of `LOCK_HOLDERS`, for the message and the lock's record;
+    `debris` what its writers leave).
+
+    A second process asking for it gets `WriterBusy` at once. On entry, the leftovers of a
+    killed writer are cleaned up (and an output it had moved aside is put back)."""
+    if what not in LOCK_HOLDERS:  # the record a later writer must recognise
+        raise ValueError(f"folder_write_lock: `what` {what!r} is not one of {LOCK_HOLDERS}")
+    out = Path(out)
+    key = os.path.abspath(out)
+    if key in _HELD:
+        yield
+        return
+    out.parent.mkdir(parents=True, exist_ok=True)
+    lock = write_lock_path(out)
+    while True:
+        fd = _open_lock(lock, out)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder, theirs = lock_record(fd)
+            os.close(fd)
+            raise WriterBusy(f"{out}: another process (pid {holder}) is writing {theirs}; "
+                             "try again when it has finished", theirs) from None
+        # the holder before us removes the lock file on release: make sure ours is the
+        # file at the path, not one it has just unlinked
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(lock))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    if not _lock_record_or_empty(fd):
+        os.close(fd)
+        raise InputError(f"{lock}: holds something that is not a slamreloc write lock; "
+                         f"refusing to overwrite it (move it to write {out.name})")
+    try:
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n{what}\n".encode(), 0)
+        except OSError as err:  # a full disk: no lock left behind, the path named
+            lock.unlink(missing_ok=True)
+            raise OSError(err.errno, err.strerror, str(lock)) from None
+        _HELD.add(key)
+        try:
+            _recover(out, debris)
+            yield
+        finally:
+            _HELD.discard(key)
+            lock.unlink(missing_ok=True)  # while still holding it (see above)
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def _open_lock(lock: Path, out: Path) -> int:
+    """The lock file's descriptor, created if absent; a symbolic link, a hard link (a file of
+    several names), a FIFO, a device or a folder at its path is refused, never followed,
+    written or waited on."""
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK
+                     | os.O_CLOEXEC, 0o644)
+    except OSError as err:
+        if err.errno in (errno.ELOOP, errno.EISDIR, errno.ENXIO):
+            raise InputError(f"{lock}: not a regular file (a link, folder or device); "
+                             f"refusing to use it as the write lock of {out.name}") from None
+        raise
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode):
+        os.close(fd)
+        raise InputError(f"{lock}: not a regular file (a link, folder or device); refusing "
+                         f"to use it as the write lock of {out.name}")
+    if info.st_nlink != 1:  # a hard link: writing the record would change another file
+        os.close(fd)
+        raise InputError(f"{lock}: a file with {info.st_nlink} names (hard links); refusing "
+                         f"to use it as the write lock of {out.name}")
+    return fd
+
+
+# what a lock records its writer writes (its WHAT)
+LOCK_HOLDERS = ("this map", "this dataset", "this COLMAP model", "this scene")
+
+
+def _lock_record_or_empty(fd: int) -> bool:
+    """Whether the lock file is empty or holds exactly a writer's record ("PID\nWHAT\n", PID
+    as a process id is written, WHAT one of `LOCK_HOLDERS`), as a killed writer leaves it:
+    anything else is a user's file of that name (`2024\nbudget\n`)."""
+    size = os.fstat(fd).st_size
+    if size == 0:
+        return True
+    if size > 256:
+        return False
+    text = os.pread(fd, size, 0)
+    pid, _, what = text.partition(b"\n")
+    return (writer_pid(pid.decode("ascii", "replace"), "") is not None
+            and what.endswith(b"\n") and what[:-1].decode("ascii", "replace") in LOCK_HOLDERS)
+
+
+def _recover(out: Path, debris: Debris) -> None:
+    """Under the lock: put back an output a killed writer had moved aside; remove its
+    leftovers."""
+    olds = [p for p in _named(out, "old") if debris.put_back is not None and debris.put_back(p)]
+    if olds and not os.path.lexists(out):
+        newest = max(olds, key=lambda p: p.stat().st_mtime)
+        os.replace(newest, out)
+        fsync_dir(out.parent)
+    for p in leftovers(out, debris):
+        shutil.rmtree(p, ignore_errors=True)
+
+
+def fsync_dir(path: Path) -> None:
+    """Make a folder's entries (renames, new files) durable."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
