@@ -14,15 +14,6 @@ class InputError(SlamrelocError):
     """Bad input: a missing or malformed file, wrong dimensions, a folder that is not a map."""
 
 
-class WriterBusy(InputError):
-    """Another process holds the write lock of an output folder; `what` is what it writes
-    there, as its lock records it ("this map", "this scene", ...)."""
-
-    def __init__(self, message: str, what: str):
-        super().__init__(message)
-        self.what = what
-
-
 class OutOfMemory(InputError):
     """An input whose processing did not fit in the memory the process may use (the service
     answers it TOO_LARGE, as an input over a bound)."""

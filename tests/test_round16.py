@@ -70,24 +70,77 @@ def test_a_killed_demos_partial_render_goes_with_the_next_render(tmp_path):
     assert _frames_in(out) == sum(TINY.counts().values())
 
 
-def test_a_render_waits_for_another_rendering_the_same_scene(tmp_path):
-    """Two processes asked for the same scene at once: the second waits for the first (it
-    holds the write lock) and takes its scene; neither fails, nothing is left beside it."""
+def test_a_second_render_of_a_scene_is_refused_at_once_naming_the_first(tmp_path):
+    """Round 16, P3: a second renderer of the same scene waited for the first with no
+    deadline and no message (forever, behind a stopped one). It is refused at once, naming
+    the process that renders, as every folder writer is; the first finishes its scene, and
+    nothing is left beside it."""
     out = tmp_path / "scene"
-    procs = [subprocess.Popen([sys.executable, "-c", RENDER, str(out)], env=ENV,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-             for _ in range(2)]
-    results = [p.communicate(timeout=300) for p in procs]
-    assert [p.returncode for p in procs] == [0, 0], [err for _, err in results]
-    assert all(o.strip() == "rendered" for o, _ in results)
+    first = subprocess.Popen([sys.executable, "-c", RENDER, str(out)], env=ENV,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not list(tmp_path.glob(".scene.tmp-*/seq-01/frame-*")):
+            assert first.poll() is None and time.monotonic() < deadline
+            time.sleep(0.02)
+        with pytest.raises(InputError, match=rf"scene: another process \(pid {first.pid}\) is "
+                                             r"writing this scene; try again"):
+            render_scene(out, TINY)
+    finally:
+        output, err = first.communicate(timeout=300)
+    assert first.returncode == 0 and output.strip() == "rendered", err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]
     assert _frames_in(out) == sum(TINY.counts().values())
 
 
+def test_a_writer_met_before_it_has_written_its_lock_record_is_named(tmp_path):
+    """Round 16, P1: a writer that had taken a folder's lock but not yet written its record
+    (`PID\nWHAT\n`, written just after) was told as "pid ?, this map", whatever it wrote.
+    The record is read again until it is there: the refusal names the holder and its kind."""
+    out = tmp_path / "scene"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import fcntl, os, sys, time\n"
+         "fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT, 0o644)\n"
+         "fcntl.flock(fd, fcntl.LOCK_EX)\nprint('held', flush=True)\ntime.sleep(0.3)\n"
+         "os.pwrite(fd, f'{os.getpid()}\\nthis scene\\n'.encode(), 0)\ntime.sleep(60)\n",
+         str(tmp_path / ".scene.lock")], env=ENV, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(InputError, match=rf"another process \(pid {holder.pid}\) is "
+                                             "writing this scene"):
+            render_scene(out, TINY)
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+@pytest.mark.parametrize("target", ["empty", "missing"])
+def test_a_scene_is_never_rendered_through_a_link(tmp_path, target):
+    """Round 16, P2: `demo` with WORKDIR/scene a symbolic link (to an empty folder, or to
+    nothing) rendered every frame, then failed with a raw `[Errno 20] Not a directory`
+    naming its own temporary. A link is refused before any work, as every folder output's
+    is, and left as it was."""
+    from tests.fuzzing import run_cli
+
+    work = tmp_path / "w"
+    work.mkdir()
+    (tmp_path / "empty").mkdir()
+    (work / "scene").symlink_to(tmp_path / target)
+    started = time.monotonic()
+    code, err = run_cli(["demo", "--workdir", str(work), "--no-viewer"])
+    last = err.strip().splitlines()[-1]
+    assert code == 2 and last == (f"error: {work / 'scene'}: is a symbolic link (to "
+                                  f"{tmp_path / target}); a scene is rendered into a folder, "
+                                  "never through a link: give a plain path"), err
+    assert time.monotonic() - started < 30  # before the render (410 frames), not after
+    assert os.readlink(work / "scene") == str(tmp_path / target)
+    assert sorted(p.name for p in work.iterdir()) == ["scene"]
+    assert list((tmp_path / "empty").iterdir()) == []
+
+
 def test_a_scene_is_not_rendered_where_another_kind_of_writer_holds_the_folder(tmp_path):
     """A scene aimed at a folder another command is writing (a map being trained there) is
-    refused at once, naming the folder and the writer; the scene renderer waits only for
-    another renderer."""
+    refused at once, naming the folder and the writer."""
     out = tmp_path / "m"
     holder = subprocess.Popen(
         [sys.executable, "-c", "import sys, time\nfrom slamreloc.map.lock import "

@@ -2,8 +2,8 @@
 rendered synthetic scene), and the clean-up of what a killed writer left beside it.
 
 A writer holds an exclusive lock on `.NAME.lock` beside the folder (removed when it is done);
-a second writer fails at once (`WriterBusy`). Under that lock no other writer of NAME lives
-(in any PID namespace), so a `.NAME.tmp-PID` folder holding only what such a writer writes (a
+a second writer fails at once (InputError naming it). Under that lock no other writer of NAME
+lives (in any PID namespace), so a `.NAME.tmp-PID` folder holding only what such a writer writes (a
 save cut short) and a `.NAME.old-PID` folder holding such an output (one moved aside) are a
 killed writer's: removed at the next write of that folder (an output moved aside and never
 replaced is put back first). What counts is the writer's kind (`Debris`): an sfm run never
@@ -22,7 +22,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from slamreloc.errors import InputError, WriterBusy
+from slamreloc.errors import InputError
 from slamreloc.io.outputs import lock_record, write_lock_path, writer_pid
 
 _HELD: set[str] = set()  # folders whose write lock this process holds
@@ -68,8 +68,9 @@ def folder_write_lock(out: str | Path, what: str, debris: Debris) -> Iterator[No
     `what` the folder is, one of `LOCK_HOLDERS`, for the message and the lock's record;
     `debris` what its writers leave).
 
-    A second process asking for it gets `WriterBusy` at once. On entry, the leftovers of a
-    killed writer are cleaned up (and an output it had moved aside is put back)."""
+    A second process asking for it gets InputError at once, naming the holder. On entry, the
+    leftovers of a killed writer are cleaned up (and an output it had moved aside is put
+    back)."""
     if what not in LOCK_HOLDERS:  # the record a later writer must recognise
         raise ValueError(f"folder_write_lock: `what` {what!r} is not one of {LOCK_HOLDERS}")
     out = Path(out)
@@ -86,8 +87,8 @@ def folder_write_lock(out: str | Path, what: str, debris: Debris) -> Iterator[No
         except BlockingIOError:
             holder, theirs = lock_record(fd)
             os.close(fd)
-            raise WriterBusy(f"{out}: another process (pid {holder}) is writing {theirs}; "
-                             "try again when it has finished", theirs) from None
+            raise InputError(f"{out}: another process (pid {holder}) is writing {theirs}; "
+                             "try again when it has finished") from None
         # the holder before us removes the lock file on release: make sure ours is the
         # file at the path, not one it has just unlinked
         try:

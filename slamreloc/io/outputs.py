@@ -12,6 +12,7 @@ import re
 import stat
 import tempfile
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -78,11 +79,19 @@ def write_lock_path(out: str | Path) -> Path:
     return out.parent / f".{out.name}.lock"
 
 
-def lock_record(fd: int) -> tuple[str, str]:
-    """(process id, what it writes) as a writer records them in its lock file ("PID\nWHAT")."""
-    text = os.pread(fd, 256, 0).decode(errors="replace")
-    pid, _, what = text.partition("\n")
-    return pid.strip() or "?", what.strip() or "this map"
+def lock_record(fd: int, wait_s: float = 1.0) -> tuple[str, str]:
+    """(process id, what it writes) as a live writer records them in its lock file
+    ("PID\nWHAT\n"). A writer writes its record just after it takes the lock: one met in
+    between is read again for up to `wait_s` seconds, then told as ("?", "this folder")."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        text = os.pread(fd, 256, 0).decode(errors="replace")
+        pid, _, what = text.partition("\n")
+        if what.endswith("\n") and pid.strip() and what.strip():
+            return pid.strip(), what.strip()
+        if time.monotonic() > deadline:
+            return pid.strip() or "?", what.strip() or "this folder"
+        time.sleep(0.01)
 
 
 def busy_writer(out: str | Path) -> str | None:

@@ -34,7 +34,7 @@ MAP_DEBRIS = Debris(new=only_map_files, old=lambda f: is_map(f) and only_map_fil
 @contextmanager
 def map_write_lock(out: str | Path) -> Iterator[None]:
     """Hold the exclusive write lock of the map folder `out` (re-entrant within a process); a
-    second process gets `WriterBusy` at once. On entry a killed writer's leftovers are
+    second process gets InputError at once. On entry a killed writer's leftovers are
     cleaned up, and a map it had moved aside is put back."""
     with folder_write_lock(out, "this map", MAP_DEBRIS):
         yield

@@ -13,7 +13,6 @@ import json
 import os
 import re
 import shutil
-import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -21,9 +20,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from slamreloc.errors import InputError, WriterBusy
+from slamreloc.errors import InputError
 from slamreloc.io.fileio import read_bytes
-from slamreloc.io.folder_lock import Debris, folder_write_lock
+from slamreloc.io.folder_lock import Debris, folder_write_lock, leftovers
 from slamreloc.io.outputs import make_temp_dir, temp_dir_path
 from slamreloc.synthetic.render import RenderScene, render_frame
 from slamreloc.synthetic.room import build_room
@@ -149,22 +148,21 @@ SCENE_DEBRIS = Debris(new=_only_scene_files, old=None, put_back=None)
 def render_scene(out_dir: Path, config: SceneConfig = SceneConfig(),
                  progress: Progress | None = None) -> Path:
     """Render all sequences into out_dir (atomically, via a temporary sibling folder, under
-    the folder's write lock: a killed render's temporary is removed by the next one). While
-    another process renders the same folder, wait for it, then take its scene if it is this
-    one."""
+    the folder's write lock: a killed render's temporary is removed by the next render of
+    it). A scene already there with this config is taken as it is; another process writing
+    the folder is refused at once, as every folder writer does; a symbolic
+    link at out_dir is refused before any work, never rendered through."""
     out_dir = Path(out_dir)
-    if _existing(out_dir, config):
+    if os.path.islink(out_dir):
+        raise InputError(f"{out_dir}: is a symbolic link (to {os.readlink(out_dir)[:200]}); a "
+                         "scene is rendered into a folder, never through a link: give a plain "
+                         "path")
+    if _existing(out_dir, config) and not leftovers(out_dir, SCENE_DEBRIS):
         return out_dir
-    while True:
-        try:
-            with folder_write_lock(out_dir, "this scene", SCENE_DEBRIS):
-                if not _existing(out_dir, config):
-                    _render_into(out_dir, config, progress)
-                return out_dir
-        except WriterBusy as busy:
-            if busy.what != "this scene":  # another kind of writer: not ours to wait for
-                raise
-            time.sleep(0.2)
+    with folder_write_lock(out_dir, "this scene", SCENE_DEBRIS):
+        if not _existing(out_dir, config):
+            _render_into(out_dir, config, progress)
+    return out_dir
 
 
 def _render_into(out_dir: Path, config: SceneConfig, progress: Progress | None) -> None:
