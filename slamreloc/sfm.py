@@ -27,6 +27,7 @@ the widest and of neighbouring views), with the advice that fits it.
 
 from __future__ import annotations
 
+import errno
 import os
 import stat
 import shutil
@@ -643,9 +644,13 @@ def _run_into(source: Path, out: Path, config: SfmConfig, progress: bool) -> dic
     tmp = make_temp_dir(temp_dir_path(out), str(out))
     try:
         summary = _run(source, tmp, config, progress)
-        if out.exists():
-            out.rmdir()
-        os.replace(tmp, out)
+        try:  # one rename, over the empty folder given: a kill leaves it or the dataset
+            os.replace(tmp, out)
+        except OSError as err:
+            if err.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+                raise
+            raise InputError(f"{out}: something was put into this folder while sfm ran; "
+                             "refusing to replace it (the dataset was not written)") from None
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     summary["dataset"] = str(out)

@@ -155,3 +155,61 @@ def test_a_scene_is_not_rendered_where_another_kind_of_writer_holds_the_folder(t
         holder.kill()
         holder.wait()
     assert not out.exists()
+
+
+# ---- round 15's minor findings (M3-M5) -------------------------------------------------------
+def test_a_files_second_name_in_the_way_is_refused_before_the_work(tmp_path):
+    """M4: a folder at the second name the replaced file is kept under
+    (`.t.names.old-PID.txt`, this process's id) was refused only at the commit, after the
+    work; like the temporary, it is now refused when the outputs are checked. A killed
+    writer's unheld file of that name is no refusal (the writer removes it)."""
+    from slamreloc.io.outputs import check_outputs, temp_file_path
+
+    out = tmp_path / "t.names.txt"
+    out.write_text("old names\n")
+    second = temp_file_path(out, "old")
+    second.mkdir()
+    with pytest.raises(InputError, match=r"its temporary path .*\.t\.names\.old-\d+\.txt is "
+                                         r"in the way.* live writer's in another PID namespace"):
+        check_outputs({"--trajectory's names file": out}, {})
+    second.rmdir()
+    second.write_text("a killed writer's")
+    check_outputs({"--trajectory's names file": out}, {})
+    assert out.read_text() == "old names\n"
+
+
+def test_sfm_never_removes_a_file_put_into_its_output_while_it_ran(scene_dir, tmp_path):
+    """M5: sfm removed the empty output folder it was given, then renamed its dataset in: a
+    kill between the two lost the folder and the run's work, and a file put into the folder
+    meanwhile made an unclear error. One rename now puts the dataset over the empty folder;
+    a file put there meanwhile is kept, and the run says so in one line."""
+    import shutil
+    import threading
+
+    from slamreloc.datasets import load_dataset
+    from tests.fuzzing import run_cli
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for frame in load_dataset(scene_dir).frames("seq-01")[:12]:
+        shutil.copyfile(frame.image_path, photos / f"{frame.name.split('/')[-1]}.png")
+    out = tmp_path / "o"
+    out.mkdir()
+
+    def put_a_file_in_when_sfm_has_started():
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            if any(tmp_path.glob(".o.tmp-*/images/*")):
+                (out / "notes.txt").write_text("mine")
+                return
+            time.sleep(0.01)
+
+    writer = threading.Thread(target=put_a_file_in_when_sfm_has_started)
+    writer.start()
+    code, err = run_cli(["sfm", str(photos), "--out", str(out)], hang_s=300.0)
+    writer.join()
+    last = err.strip().splitlines()[-1]
+    assert code == 2 and last.startswith("error: "), err
+    assert "something was put into this folder while sfm ran" in last
+    assert (out / "notes.txt").read_text() == "mine" and list(out.iterdir()) == [out / "notes.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o", "photos"]

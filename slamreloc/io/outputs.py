@@ -253,9 +253,11 @@ def check_outputs(outputs: dict[str, str | Path | None],
                 raise InputError(f"{out}: {option} exists and is not "
                                  f"{own_kind or 'this output'}; refusing to replace it (move "
                                  "it or write elsewhere)")
-        tmp = temp_dir_path(out) if want_dir else temp_file_path(Path(out))
-        if os.path.lexists(tmp) and (want_dir or not _unheld_file(tmp)):  # refused now, not
-            raise InputError(temp_in_the_way(tmp, f"{out}: {option}"))  # after the work
+        # its writer's temporary and (a file's) second name: refused now, not after the work
+        for tmp in ((temp_dir_path(out),) if want_dir else
+                    (temp_file_path(Path(out)), temp_file_path(Path(out), "old"))):
+            if os.path.lexists(tmp) and (want_dir or not _unheld_file(tmp)):
+                raise InputError(temp_in_the_way(tmp, f"{out}: {option}"))
         _check_writable(Path(out), option)
 
 
@@ -382,8 +384,9 @@ def temp_in_the_way(tmp: Path, what: str) -> str:
     a user's file, a link, or a killed writer's leftover whose process id this one has again
     (as in a container). None of them is this process's to delete or write through."""
     return (f"{what} cannot be written: its temporary path {tmp} is in the way, and not made "
-            "by this process (a user's, or a killed writer's with this process id); "
-            "refusing to delete or write through it (move it)")
+            "by this process (a user's, a killed writer's with this process id, or a live "
+            "writer's in another PID namespace, as in a container); refusing to delete or "
+            "write through it (move it, or try again when that writer has finished)")
 
 
 @contextmanager
