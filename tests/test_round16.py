@@ -213,3 +213,48 @@ def test_sfm_never_removes_a_file_put_into_its_output_while_it_ran(scene_dir, tm
     assert "something was put into this folder while sfm ran" in last
     assert (out / "notes.txt").read_text() == "mine" and list(out.iterdir()) == [out / "notes.txt"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["o", "photos"]
+
+
+# ---- attack round 16, service side ---------------------------------------------------------
+def test_a_folders_write_lock_is_held_by_one_thread_at_a_time(tmp_path):
+    """S2: the lock was re-entrant for the whole process, so a second thread (a server's load
+    cleaning a map's leftovers, while a session saved it) entered at once, or was refused
+    naming its own process, and its exit removed the lock file while the first still wrote.
+    It is re-entrant within a thread only: another thread waits for it (then gets it, the
+    lock file still there for the first), or after `wait_s` is refused, saying so."""
+    import threading
+
+    from slamreloc.io.folder_lock import folder_write_lock
+    from slamreloc.map.lock import MAP_DEBRIS, map_write_lock
+
+    out = tmp_path / "m"
+    events: list[tuple[str, float]] = []
+    entered = threading.Event()
+
+    def first():
+        with map_write_lock(out):
+            with map_write_lock(out):  # re-entrant in its own thread
+                entered.set()
+                time.sleep(0.5)
+                events.append(("first still has the lock file",
+                               (tmp_path / ".m.lock").is_file()))
+            events.append(("first leaves", time.monotonic()))
+
+    def second():
+        assert entered.wait(10)
+        with pytest.raises(InputError, match=r"m: another thread of this process \(pid \d+\) "
+                                             r"is writing it; try again"):
+            with folder_write_lock(out, "this map", MAP_DEBRIS, wait_s=0.1):
+                pass
+        with map_write_lock(out):
+            events.append(("second enters", time.monotonic()))
+
+    threads = [threading.Thread(target=first), threading.Thread(target=second)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    named = dict(events)
+    assert named["first still has the lock file"] is True
+    assert named["second enters"] >= named["first leaves"]
+    assert list(tmp_path.iterdir()) == []

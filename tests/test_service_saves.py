@@ -368,3 +368,64 @@ def test_saves_under_new_names_are_bounded(tmp_path, frames):  # noqa: F811
         running.stop()
     code, err = run_cli(["serve", "--max-learned-maps", "3", str(tmp_path / "m")])
     assert code == 2 and "--learned-maps" in err and err.count("\n") == 1, err
+
+
+def test_a_map_a_killed_writer_moved_aside_is_put_back_and_not_saved_over(learning):
+    """Attack round 16, S1: with `lm` absent and a killed writer's `.lm.old-PID` holding a
+    map, a save of `lm` passed its check, then the writer's lock put the map back and the
+    save replaced it (its surface.npz lost). The target is checked again under the map's
+    write lock, as the clean-up leaves it: the map put back is one this server does not
+    serve, and is kept whole."""
+    running, folder, client, session = learning
+    aside = folder / ".lm.old-999999"
+    shutil.copytree(folder / "seed", aside)
+    before = tree(aside)
+    err = refused(lambda: session.save("lm"), "FAILED_PRECONDITION")
+    assert "does not serve" in str(err) and str(folder) not in str(err), err
+    assert tree(folder / "lm") == before and not aside.exists()
+    assert "lm" not in {m.name for m in client.list_maps()}
+    shutil.rmtree(folder / "lm")
+
+
+def test_a_reload_loop_never_holds_a_save_off(learning, monkeypatch):
+    """Attack round 16, S3: a client reloading a learned map in a loop held that map's save
+    off (the save's own load was refused while one ran, and the loop started the next first)
+    for up to `load_timeout_s`, with other sessions' saves refused meanwhile. While a save
+    puts its map in, no other load of it starts: the save waits for the one running, then
+    loads its own; the loop's reloads meanwhile are refused OVERLOADED, saying why."""
+    from slamreloc.service import maps
+
+    running, folder, client, session = learning
+    load = maps.ServedMap.load
+
+    def slow(name, path):  # a large map: every load takes a while, so one always runs
+        time.sleep(0.3)
+        return load(name, path)
+
+    monkeypatch.setattr(maps.ServedMap, "load", staticmethod(slow))
+    stop, answers = threading.Event(), []
+
+    def reload_loop():
+        with Client(running.address, timeout_s=30) as other:
+            while not stop.is_set():
+                try:
+                    answers.append(other.reload_map("seed").map.version)
+                except RemoteError as err:
+                    answers.append(err)
+
+    loopers = [threading.Thread(target=reload_loop) for _ in range(2)]  # one always waiting
+    for looper in loopers:
+        looper.start()
+    try:
+        while not answers:
+            time.sleep(0.05)
+        saved = quick(lambda: session.save("seed"))  # 1.5 s here; 14 s before, or up to
+        # `load_timeout_s`
+    finally:
+        stop.set()
+        for looper in loopers:
+            looper.join(60)
+    assert saved.map_version == {m.name: m.version for m in client.list_maps()}["seed"]
+    waits = [a for a in answers if isinstance(a, RemoteError)]
+    assert all(a.kind == "OVERLOADED" for a in waits), waits
+    assert any("being replaced by a session's save" in str(a) for a in waits), waits

@@ -17,6 +17,7 @@ import fcntl
 import os
 import shutil
 import stat
+import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -25,7 +26,10 @@ from pathlib import Path
 from slamreloc.errors import InputError
 from slamreloc.io.outputs import lock_record, write_lock_path, writer_pid
 
-_HELD: set[str] = set()  # folders whose write lock this process holds
+_HELD: dict[str, int] = {}  # folder -> the thread of this process holding its write lock
+_IN_PROCESS: dict[str, threading.Lock] = {}  # folder -> its lock among this process's threads
+_GUARD = threading.Lock()  # guards _IN_PROCESS
+IN_PROCESS_WAIT_S = 30.0  # how long a thread waits for another of its process (seconds)
 
 
 @dataclass(frozen=True)
@@ -63,21 +67,44 @@ def leftovers(out: Path, debris: Debris) -> list[Path]:
 
 
 @contextmanager
-def folder_write_lock(out: str | Path, what: str, debris: Debris) -> Iterator[None]:
-    """Hold the exclusive write lock of the folder output `out` (re-entrant within a process;
+def folder_write_lock(out: str | Path, what: str, debris: Debris,
+                      wait_s: float = IN_PROCESS_WAIT_S) -> Iterator[None]:
+    """Hold the exclusive write lock of the folder output `out` (re-entrant within a thread;
     `what` the folder is, one of `LOCK_HOLDERS`, for the message and the lock's record;
     `debris` what its writers leave).
 
-    A second process asking for it gets InputError at once, naming the holder. On entry, the
-    leftovers of a killed writer are cleaned up (and an output it had moved aside is put
-    back)."""
+    A second process asking for it gets InputError at once, naming the holder; another
+    thread of this process (a server's save, and a load cleaning the same map's leftovers)
+    waits for it up to `wait_s` seconds, then gets InputError. On entry, the leftovers of a
+    killed writer are cleaned up (and an output it had moved aside is put back)."""
     if what not in LOCK_HOLDERS:  # the record a later writer must recognise
         raise ValueError(f"folder_write_lock: `what` {what!r} is not one of {LOCK_HOLDERS}")
     out = Path(out)
     key = os.path.abspath(out)
-    if key in _HELD:
+    if _HELD.get(key) == threading.get_ident():
         yield
         return
+    with _GUARD:
+        local = _IN_PROCESS.setdefault(key, threading.Lock())
+    if not local.acquire(timeout=wait_s):
+        raise InputError(f"{out}: another thread of this process (pid {os.getpid()}) is "
+                         f"writing it; try again when it has finished")
+    try:
+        with _flocked(out, what):
+            _HELD[key] = threading.get_ident()
+            try:
+                _recover(out, debris)
+                yield
+            finally:
+                del _HELD[key]
+    finally:
+        local.release()
+
+
+@contextmanager
+def _flocked(out: Path, what: str) -> Iterator[None]:
+    """Hold `out`'s lock file with `flock` (no other process holds it: InputError naming the
+    one that does), its record written; removed when done."""
     out.parent.mkdir(parents=True, exist_ok=True)
     lock = write_lock_path(out)
     while True:
@@ -109,12 +136,9 @@ def folder_write_lock(out: str | Path, what: str, debris: Debris) -> Iterator[No
         except OSError as err:  # a full disk: no lock left behind, the path named
             lock.unlink(missing_ok=True)
             raise OSError(err.errno, err.strerror, str(lock)) from None
-        _HELD.add(key)
         try:
-            _recover(out, debris)
             yield
         finally:
-            _HELD.discard(key)
             lock.unlink(missing_ok=True)  # while still holding it (see above)
     finally:
         os.close(fd)  # releases the lock

@@ -201,6 +201,7 @@ class MapRegistry:
         self.load_timeout_s = load_timeout_s
         self._reload_lock = threading.Lock()  # held only to look up and to swap, never to load
         self._loading: dict[str, _Load] = {}
+        self._registering: set[str] = set()  # maps a save is putting in: no other load starts
         self._stop = threading.Event()
         self._watcher: threading.Thread | None = None
 
@@ -234,14 +235,22 @@ class MapRegistry:
         """Load the map's folder again and swap it in; (the map now served, whether its content
         changed since this call began). force=False: only when the folder's stamp changed.
         ServiceError OVERLOADED at once while another caller waits for a load of the map (at
-        most one runs, and one caller waits for it), and when the load outlasts
-        `load_timeout_s` (it is left to finish on its own: the next reload waits for it and
-        takes its result if it still runs then); INTERNAL for a folder that fails its checks.
-        The map already loaded serves meanwhile, and on any refusal."""
+        most one runs, and one caller waits for it), while a session's save of it is being put
+        in (`register`), and when the load outlasts `load_timeout_s` (it is left to finish on
+        its own: the next reload waits for it and takes its result if it still runs then);
+        INTERNAL for a folder that fails its checks. The map already loaded serves meanwhile,
+        and on any refusal."""
+        return self._reload(name, force, registering=False)
+
+    def _reload(self, name: str, force: bool, registering: bool) -> tuple[ServedMap, bool]:
         with self._reload_lock:
             if self._stop.is_set():
                 raise ServiceError(pb.OVERLOADED, "the server is stopping")
             old = self.get(name)
+            if old.name in self._registering and not registering:
+                raise ServiceError(pb.OVERLOADED, f"map {quoted(old.name)} is being replaced "
+                                   "by a session's save; still serving version "
+                                   f"{old.version}: try again when it is done")
             load = self._loading.get(old.name)
             if load is not None and not load.done.is_set():
                 if load.waited:  # one caller waits for a map's load, never more
@@ -319,8 +328,19 @@ class MapRegistry:
         (as `reload`: requests in flight finish on the old one). ServiceError
         FAILED_PRECONDITION where `name` is served from another folder; INTERNAL for a folder
         that fails its checks; OVERLOADED while the server stops, or when another load of the
-        map (the watch's) outlasts `load_timeout_s`."""
+        map (a ReloadMap's, the watch's) outlasts `load_timeout_s`. Meanwhile no other load of
+        `name` starts (a ReloadMap loop cannot hold the save off): one running is waited for,
+        never taken (it may have read the folder before the save), then the map is loaded."""
         path = Path(path)
+        with self._reload_lock:
+            self._registering.add(name)
+        try:
+            return self._register(name, path)
+        finally:
+            with self._reload_lock:
+                self._registering.discard(name)
+
+    def _register(self, name: str, path: Path) -> ServedMap:
         until = time.monotonic() + self.load_timeout_s
         while True:
             with self._reload_lock:
@@ -341,9 +361,13 @@ class MapRegistry:
                         self._maps = {**self._maps, name: new}
                         return new
                 continue
+            running = self._loading.get(name)
+            if running is not None:  # begun before the save: waited for, never taken (a
+                # finished load is stale to `_reload`, which loads the folder anew)
+                running.done.wait(max(0.0, until - time.monotonic()))
             try:
-                return self.reload(name)[0]
-            except ServiceError as err:  # the watch is loading it: wait for that load
+                return self._reload(name, True, registering=True)[0]
+            except ServiceError as err:  # another load still runs: wait for it
                 if err.kind != pb.OVERLOADED or self._stop.is_set() \
                         or time.monotonic() > until:
                     raise

@@ -45,6 +45,7 @@ from slamreloc.io.address import bind_problem, check_host, is_loopback, listen_a
 from slamreloc.io.fileio import relation, resolved
 from slamreloc.io.pem import read_pem
 from slamreloc.map.format import META
+from slamreloc.map.lock import map_write_lock
 from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
@@ -543,7 +544,8 @@ class RelocalizerService:
         The training round the save waits for (up to 2 x `Session.SAVE_WAIT_S`) runs on the
         session's own learner and holds neither a worker slot nor the save lock: Localize,
         other sessions' frames and saves, Health and ListMaps go on meanwhile. The lock is
-        held only to check the target again, write the map and register it."""
+        held only to check the target again (under the map's write lock, as found after a
+        killed writer's clean-up), write the map and register it."""
         if not session.learning:
             raise ServiceError(pb.FAILED_PRECONDITION, "save: this session tracks in a served "
                                "map and learns none (open it with SessionOpen.learn)")
@@ -569,8 +571,11 @@ class RelocalizerService:
                 if self.stopping.is_set():  # a save either ends written and logged, or not begun
                     raise ServiceError(pb.FAILED_PRECONDITION, f"save.name {quoted(name)}: "
                                        "the server is stopping; nothing was written")
-                self._check_target(name, path)  # again: the maps may have changed meanwhile
-                saved = session.write(path)
+                # again, under the map's write lock: the maps may have changed meanwhile,
+                # and a map a killed writer had moved aside is put back, then checked
+                with map_write_lock(path):
+                    self._check_target(name, path)
+                    saved = session.write(path)
                 if saved is None:
                     live = session.live_map
                     raise ServiceError(pb.FAILED_PRECONDITION, f"save.name {quoted(name)}: no "
