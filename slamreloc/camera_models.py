@@ -28,7 +28,7 @@ from functools import lru_cache
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.numbers import number_problem
+from slamreloc.io.numbers import DECIMAL_WORDS, number_problem
 
 # COLMAP model name -> its parameter names; "f" means fx = fy
 PARAMS: dict[str, tuple[str, ...]] = {
@@ -143,9 +143,10 @@ def split_camera_string(text: str, source: str) -> tuple[str, int, int, list[flo
         raise InputError(f"{source}: width and height must be whole numbers (plain decimal "
                          f"digits), got {text[:60]!r}")
     for word in words[3:]:
-        if number_problem(word) is not None:
-            raise InputError(f"{source}: {word[:40]!r} is not a plain decimal number "
-                             f"(digits 0-9, a point, an exponent), in {text[:60]!r}")
+        problem = number_problem(word)
+        if problem is not None:  # the rule's own reason: `1e999` is beyond a number's range
+            raise InputError(f"{source}: parameter {word[:40]!r} is {problem} "
+                             f"({DECIMAL_WORDS}), in {text[:60]!r}")
     return words[0].upper(), int(words[1]), int(words[2]), [float(w) for w in words[3:]]
 
 

@@ -96,7 +96,10 @@ def test_camera_strings_round_trip_and_scale(camera, width, height):
                                        "got 4"),
     ("KANNALA 640 480 1 2 3", "expected 'MODEL WIDTH HEIGHT PARAMS...'"),
     ("PINHOLE 640 x 500 500 320 240", "width and height must be whole numbers"),
-    ("OPENCV_FISHEYE 640 480 500 500 320 240 nan 0 0 0", "'nan' is not a plain decimal number"),
+    ("OPENCV_FISHEYE 640 480 500 500 320 240 nan 0 0 0", "parameter 'nan' is not a number"),
+    # round 17, T4: the rule's own reason, not "not a plain decimal" for a plain decimal
+    ("PINHOLE 640 480 1e999 500 320 240", "parameter '1e999' is beyond the range of a number"),
+    ("PINHOLE 640 480 " + "5" * 401 + " 500 320 240", "is a number of 401 characters"),
     ("PINHOLE 640 480 0 500 320 240", "focal lengths must be positive"),
 ])
 def test_bad_camera_strings_are_one_line_errors(text, problem, tmp_path):

@@ -781,18 +781,24 @@ MIN_RSA_BITS = 2048
 def certificate_problem(cert: bytes, now=None) -> str | None:
     """Why no client could complete a TLS handshake with the (first) PEM certificate, or None
     (also None without the `cryptography` package to tell): not yet valid or expired (at
-    `now`, a UTC datetime, default the present), an RSA key under MIN_RSA_BITS, an ECDSA key
-    on a curve other than TLS_CURVES, another key type (DSA, EdDSA)."""
+    `now`, a UTC datetime, default the present), a key usage that allows no signature (every
+    TLS key exchange here is signed: ECDHE) or an extended key usage without serverAuth, an
+    RSA key under MIN_RSA_BITS or one for RSA-PSS only, an ECDSA key on a curve other than
+    TLS_CURVES or given by explicit parameters, another key type (DSA, EdDSA)."""
     try:
         from datetime import datetime, timezone
 
         from cryptography import x509
         from cryptography.hazmat.primitives.asymmetric import ec, rsa
+        from cryptography.hazmat.primitives.serialization import Encoding
+        from cryptography.x509.oid import ExtendedKeyUsageOID, PublicKeyAlgorithmOID
     except ImportError:
         return None
     try:
         leaf = x509.load_pem_x509_certificates(cert)[0]
         key = leaf.public_key()
+        algorithm = leaf.public_key_algorithm_oid
+        der = leaf.public_bytes(Encoding.DER)
     except Exception:  # noqa: BLE001 - parsed by pem_problem already
         return None
     now = now or datetime.now(timezone.utc)
@@ -800,6 +806,20 @@ def certificate_problem(cert: bytes, now=None) -> str | None:
         return f"not valid before {leaf.not_valid_before_utc:%Y-%m-%d %H:%M} UTC"
     if now > leaf.not_valid_after_utc:
         return f"expired on {leaf.not_valid_after_utc:%Y-%m-%d %H:%M} UTC"
+    usage = _extension(leaf, x509.KeyUsage)
+    if usage is not None and not usage.digital_signature:
+        return ("its key usage (keyUsage) does not allow digitalSignature, which every TLS "
+                "handshake here needs (its key signs the key exchange)")
+    purposes = _extension(leaf, x509.ExtendedKeyUsage)
+    if purposes is not None and not {ExtendedKeyUsageOID.SERVER_AUTH,
+                                     ExtendedKeyUsageOID.ANY_EXTENDED_KEY_USAGE} & set(purposes):
+        names = ", ".join(getattr(o, "_name", o.dotted_string) for o in purposes)
+        return (f"its extended key usage allows only {names[:120]}, not serverAuth (a TLS "
+                "server's), so clients refuse it")
+    wanted = f"RSA (at least {MIN_RSA_BITS} bits) or ECDSA ({' or '.join(TLS_CURVES)}) keys"
+    if algorithm == PublicKeyAlgorithmOID.RSASSA_PSS:
+        return (f"its key is for RSA-PSS only, which gRPC's TLS does not take: TLS here takes "
+                f"{wanted}")
     if isinstance(key, rsa.RSAPublicKey):
         if key.key_size < MIN_RSA_BITS:
             return f"an RSA key of {key.key_size} bits (at least {MIN_RSA_BITS})"
@@ -808,9 +828,33 @@ def certificate_problem(cert: bytes, now=None) -> str | None:
         if key.curve.name not in TLS_CURVES:
             return (f"an ECDSA key on curve {key.curve.name}, which TLS here does not sign with "
                     f"({' or '.join(TLS_CURVES)})")
+        if _explicit_curve(der):
+            return ("its ECDSA key gives its curve by explicit parameters, which gRPC's TLS "
+                    "does not take: write the key with the curve's name "
+                    f"({' or '.join(TLS_CURVES)})")
         return None
     return (f"its key is {type(key).__name__.replace('PublicKey', '').lstrip('_')}: TLS here takes "
-            f"RSA (at least {MIN_RSA_BITS} bits) or ECDSA ({' or '.join(TLS_CURVES)}) keys")
+            f"{wanted}")
+
+
+def _extension(cert, kind):
+    """The value of the certificate's extension of class `kind`, or None where it has none."""
+    from cryptography import x509
+
+    try:
+        return cert.extensions.get_extension_for_class(kind).value
+    except x509.ExtensionNotFound:
+        return None
+
+
+_EC_PUBLIC_KEY = bytes.fromhex("06072a8648ce3d0201")  # DER: the OID id-ecPublicKey
+
+
+def _explicit_curve(der: bytes) -> bool:
+    """Whether the certificate's (DER) ECDSA key names its curve by explicit parameters (a
+    SEQUENCE after id-ecPublicKey), not by the curve's OID."""
+    at = der.find(_EC_PUBLIC_KEY)
+    return at >= 0 and der[at + len(_EC_PUBLIC_KEY):at + len(_EC_PUBLIC_KEY) + 1] == b"\x30"
 
 
 def pair_problem(key: bytes, cert: bytes) -> str | None:
@@ -933,11 +977,13 @@ def start_server(maps: dict[str, Path], config: ServeConfig = ServeConfig()) -> 
         port, reason = 0, " ".join(str(err).split())[:200]
     else:
         reason = "in use, or not an address of this machine"
-    if tls is not None:
-        reason += f"; or a TLS pair gRPC refuses: `tls_cert` {config.tls_cert}"
     if port == 0:
         registry.close()
         service.deadlines.close()
+        if tls is not None and _listens_without_tls(address):  # the pair, not the address
+            raise InputError(f"{config.tls_cert}: `tls_cert` (with `tls_key` {config.tls_key}) "
+                             f"is a TLS pair gRPC refuses: it listens on {address} without "
+                             f"TLS, not with this pair ({reason})")
         raise InputError(f"`port` {config.port} / `host` {quoted(config.host)}: cannot listen "
                          f"on {address} ({reason})")
     threads_before = split_threads(config.workers)
@@ -947,6 +993,17 @@ def start_server(maps: dict[str, Path], config: ServeConfig = ServeConfig()) -> 
                                                       f"now version {m.version}"),
                        lambda message: _log(f"warning: {message}"))
     return RunningServer(server, service, registry, config.host, port, threads_before)
+
+
+def _listens_without_tls(address: str) -> bool:
+    """Whether a server may listen on `address` without TLS (tried, then closed at once)."""
+    probe = grpc.server(futures.ThreadPoolExecutor(1), options=[("grpc.so_reuseport", 0)])
+    try:
+        return probe.add_insecure_port(address) != 0
+    except RuntimeError:
+        return False
+    finally:
+        probe.stop(None)
 
 
 def serve_forever(maps: dict[str, Path], config: ServeConfig) -> None:
