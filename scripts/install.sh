@@ -26,12 +26,13 @@ if ! command -v chromium >/dev/null 2>&1 && [ "$(id -u)" = "0" ] && command -v a
   (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
     || echo "warning: could not install chromium; the viewer's browser test will be skipped" >&2
 fi
-# Optional: gRPC C++, protobuf and CMake for the C++ client (clients/cpp; its test is skipped
+# Optional: gRPC C++, protobuf, OpenSSL and CMake for the C++ client (clients/cpp; its test is skipped
 # without them).
 if ! { command -v cmake && command -v g++ && command -v protoc && command -v grpc_cpp_plugin \
-        && pkg-config --exists grpc++ protobuf; } >/dev/null 2>&1 \
+        && pkg-config --exists grpc++ protobuf openssl; } >/dev/null 2>&1 \
     && [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null; then
   (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq cmake g++ \
-     pkg-config libgrpc++-dev libprotobuf-dev protobuf-compiler protobuf-compiler-grpc >/dev/null) \
+     pkg-config libgrpc++-dev libprotobuf-dev protobuf-compiler protobuf-compiler-grpc libssl-dev \
+     >/dev/null) \
     || echo "warning: could not install gRPC C++ and CMake; the C++ client's test will be skipped" >&2
 fi

@@ -45,16 +45,17 @@ from slamreloc.io.outputs import (check_outputs, is_file_debris_name, make_temp_
                                   naming_output, temp_dir_path, write_json)
 from slamreloc.io.folder_lock import Debris, folder_write_lock
 from slamreloc.io.video import is_video, video_frames
-from slamreloc.runtime.progress import console, make_progress
+from slamreloc.runtime.progress import console, make_progress, shown
 from slamreloc.types import Camera, frame_name_problem
 
 SFM_JSON = "sfm.json"
-# the photos of a folder, by name: every format `read_image` reads (PNG, JPEG, BMP, TIFF, WebP,
-# PNM); a photo of another format is refused by name, never left out unsaid
+# the photos of a folder, by name: every format both `read_image` and COLMAP read (PNG, JPEG,
+# BMP, TIFF, PNM); a photo of another format (WebP: COLMAP's reader has none) is refused by
+# name, never left out unsaid nor "not registered"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".jpe", ".jfif", ".bmp", ".dib", ".tif", ".tiff",
-                  ".webp", ".ppm", ".pgm", ".pbm", ".pnm")
-UNREAD_IMAGE_SUFFIXES = (".gif", ".heic", ".heif", ".avif", ".jp2", ".jxl", ".dng", ".cr2",
-                         ".nef", ".arw", ".raw")
+                  ".ppm", ".pgm", ".pbm", ".pnm")
+UNREAD_IMAGE_SUFFIXES = (".webp", ".gif", ".heic", ".heif", ".avif", ".jp2", ".jxl", ".dng",
+                         ".cr2", ".nef", ".arw", ".raw")
 MATCHING = ("auto", "sequential", "exhaustive")
 MAPPERS = ("auto", "global", "incremental")
 EXHAUSTIVE_UP_TO = 60  # images; beyond, "auto" matches sequentially
@@ -133,9 +134,9 @@ class SfmConfig:
         if self.mapper not in MAPPERS:
             raise InputError(f"`mapper` must be one of {', '.join(MAPPERS)}, got "
                              f"{self.mapper!r}")
-        if self.scale is not None and not 0 < self.scale < 1e6:
-            raise InputError(f"`scale` must be metres per SfM unit, more than 0 and under "
-                             f"1e6, got {self.scale:g}")
+        if self.scale is not None and not 1e-6 < self.scale < 1e6:  # poses stay in metres
+            raise InputError(f"`scale` must be metres per SfM unit, over 1e-6 and under 1e6, "
+                             f"got {self.scale:g}")
         if self.scale is not None and self.scale_from_depth:
             raise InputError("`scale` and `scale_from_depth`: give one of them")
         initial_camera(self, None)  # a bad --camera fails before any work
@@ -367,7 +368,7 @@ def _is_image_file(path: Path, root: Path) -> bool:
     or could not name a frame (`frame_name_problem`: a line break in it)."""
     if path.suffix.lower() in UNREAD_IMAGE_SUFFIXES:
         raise InputError(f"{path}: a photo of a format sfm does not read (PNG, JPEG, BMP, "
-                         "TIFF, WebP and PNM are read): convert it, or move it out")
+                         "TIFF and PNM are read): convert it, or move it out")
     if path.suffix.lower() not in IMAGE_SUFFIXES:
         return False
     if not path.is_file():
@@ -965,10 +966,10 @@ def print_sfm_summary(s: dict) -> None:
     sel = s.get("selection")
     kept = (f" (kept by parallax from {sel['n_candidates']})" if sel else "")
     console.print(
-        f"[green]SfM dataset written[/green] to {s['dataset']}: {s['n_registered']}/"
+        f"[green]SfM dataset written[/green] to {shown(s['dataset'])}: {s['n_registered']}/"
         f"{s['n_images']} images{kept} registered, {s['n_points']} points, mean track length "
         f"{s['mean_track_length']:.1f}, mean reprojection error "
         f"{s['mean_reprojection_error_px']:.2f} px, units {s['units']}, camera {s['camera']}, "
         f"{s['timings_s']['total_s']:.0f} s")
     if unreg:
-        console.print(f"[yellow]not registered[/yellow]: {listed}")
+        console.print(f"[yellow]not registered[/yellow]: {shown(listed)}")

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from slamreloc.client import Client
+from slamreloc.errors import InputError
 from slamreloc.datasets import load_dataset
 from slamreloc.service.server import ServeConfig, start_server
 from tests.fuzzing import run_cli_output
@@ -29,8 +30,10 @@ def _missing_tools() -> list[str]:
     missing = [tool for tool in ("cmake", "g++", "protoc", "grpc_cpp_plugin", "pkg-config")
                if shutil.which(tool) is None]
     if "pkg-config" not in missing and subprocess.run(
-            ["pkg-config", "--exists", "grpc++", "protobuf"], check=False).returncode != 0:
-        missing.append("pkg-config grpc++/protobuf (libgrpc++-dev, libprotobuf-dev)")
+            ["pkg-config", "--exists", "grpc++", "protobuf", "openssl"],
+            check=False).returncode != 0:
+        missing.append("pkg-config grpc++/protobuf/openssl (libgrpc++-dev, libprotobuf-dev, "
+                       "libssl-dev)")
     return missing
 
 
@@ -38,7 +41,7 @@ MISSING = _missing_tools()
 # checked before any fixture: without the tools, no scene or map is built for this module
 pytestmark = pytest.mark.skipif(
     bool(MISSING), reason=f"the C++ client needs {', '.join(MISSING)} (Debian: libgrpc++-dev "
-    "protobuf-compiler-grpc libprotobuf-dev protobuf-compiler cmake g++ pkg-config; "
+    "protobuf-compiler-grpc libprotobuf-dev protobuf-compiler cmake g++ pkg-config libssl-dev; "
     "scripts/install.sh installs them as root)")
 
 
@@ -225,6 +228,32 @@ def _self_signed(cert: Path, key: Path) -> None:
                     "-keyout", str(key), "-out", str(cert)], check=True, capture_output=True)
 
 
+def _pem(kind: str, der: bytes) -> bytes:
+    """`der` armoured as a PEM block of `kind` (whatever the bytes are)."""
+    import base64
+
+    body = base64.encodebytes(der).decode()
+    return f"-----BEGIN {kind}-----\n{body}-----END {kind}-----\n".encode()
+
+
+def _certificate_pem() -> bytes:
+    """A self-signed certificate (the `cryptography` package makes it)."""
+    from datetime import datetime, timedelta, timezone
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "localhost")])
+    now = datetime.now(timezone.utc)
+    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name)
+            .public_key(key.public_key()).serial_number(1).not_valid_before(now)
+            .not_valid_after(now + timedelta(days=1)).sign(key, hashes.SHA256()))
+    return cert.public_bytes(serialization.Encoding.PEM)
+
+
 def test_tls(client_binary, small_map, sequence, tmp_path):
     """--tls-ca: the same answer over TLS; the server's certificate is checked."""
     if shutil.which("openssl") is None:
@@ -282,7 +311,20 @@ def test_files_tokens_and_cameras_follow_the_python_rules(client_binary, server,
     garbage.write_text("-----BEGIN CERTIFICATE-----\nnot base64 !\n-----END CERTIFICATE-----\n")
     line = _error_line(run_client(client_binary, "--server", address, "--tls-ca", str(garbage),
                                   str(sequence)))
-    assert str(garbage) in line and "not base64" in line
+    assert str(garbage) in line and "certificate 1 cannot be read" in line, line
+    # round 17, T3: every certificate block is read, as the Python client reads them: a first
+    # block that is no certificate (a key's bytes), and a good one then a broken one
+    good = _certificate_pem()
+    for blocks in ([_pem("CERTIFICATE", b"\x30\x03\x02\x01\x00")], [good, _pem("CERTIFICATE",
+                                                                            b"garbage")]):
+        ca = tmp_path / "blocks.pem"
+        ca.write_bytes(b"".join(blocks))
+        with pytest.raises(InputError):  # the Python client's rule
+            Client(address, token=TOKEN, tls_ca=ca)
+        line = _error_line(run_client(client_binary, "--server", address, "--tls-ca", str(ca),
+                                      str(sequence)))
+        assert str(ca) in line and "--tls-ca is not a PEM certificate" in line, line
+        assert f"certificate {len(blocks)} cannot be read" in line, line
     port = address.rsplit(":", 1)[1]
     cases = [(["--tls-ca", ""], "--tls-ca: empty"), (["--camera", " "], "--camera: empty"),
              # the address and number rules of the Python side (target_problem, numbers)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from slamreloc.datasets.rosbag import is_rosbag
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import check_folder
 from slamreloc.map.export import check_dataset_of_map
@@ -26,8 +27,8 @@ def load_scene_data(inputs: ViewerInputs) -> SceneData:
     """Read every input; InputError on the first bad one."""
     reports = [(Path(p), read_json(p)) for p in inputs.reports]
     trajectories = [read_trajectory(p) for p in inputs.trajectories]
-    if inputs.dataset is not None:
-        check_folder(Path(inputs.dataset), "dataset")
+    if inputs.dataset is not None and not is_rosbag(Path(inputs.dataset)):  # a bag: a file
+        check_folder(Path(inputs.dataset), "dataset")  # (ROS 1), read as every command does
     reference = None
     if inputs.poses is not None:
         from slamreloc.datasets import apply_poses, read_reference

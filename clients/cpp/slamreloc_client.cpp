@@ -52,6 +52,9 @@
 #include <unistd.h>
 
 #include <grpc/support/log.h>
+#include <openssl/err.h>
+#include <openssl/pem.h>
+#include <openssl/x509.h>
 #include <grpcpp/grpcpp.h>
 
 #include "relocalizer.grpc.pb.h"
@@ -483,28 +486,36 @@ std::vector<fs::path> sequence_images(const fs::path& dir) {
   return images;
 }
 
-// The trusted certificate(s) of --tls-ca: a PEM file, as slamreloc.io.pem checks it.
+// The trusted certificate(s) of --tls-ca: a PEM file, as slamreloc.io.pem checks it: every
+// CERTIFICATE block parses as an X.509 certificate (OpenSSL here, `cryptography` there).
 std::string read_tls_ca(const fs::path& path) {
   std::string pem = read_file(path, "--tls-ca", kMaxPemBytes);
   const std::string name = path.string() + ": --tls-ca is not a PEM certificate";
   if (pem.rfind("\xEF\xBB\xBF", 0) == 0)
     throw Error(name + " (it starts with a UTF-8 byte-order mark, which gRPC's TLS does not "
                        "read: save it without)");
-  const std::string begin = "-----BEGIN CERTIFICATE-----", end = "-----END CERTIFICATE-----";
-  const auto first = pem.find(begin);
-  if (first == std::string::npos) throw Error(name + " (no 'BEGIN CERTIFICATE' block)");
-  const auto last = pem.find(end, first);
-  if (last == std::string::npos) throw Error(name + " (no 'END CERTIFICATE' line)");
-  std::size_t n = 0;  // the block's body: base64 in whole groups of 4
-  for (std::size_t i = first + begin.size(); i < last; ++i) {
-    const unsigned char c = pem[i];
-    if (std::isspace(c)) continue;
-    if (!(std::isalnum(c) || c == '+' || c == '/' || c == '='))
-      throw Error(name + " (its first certificate is not base64)");
-    ++n;
+  if (pem.find("-----BEGIN CERTIFICATE-----") == std::string::npos)
+    throw Error(name + " (no 'BEGIN CERTIFICATE' block)");
+  std::unique_ptr<BIO, decltype(&BIO_free)> bio(
+      BIO_new_mem_buf(pem.data(), static_cast<int>(pem.size())), &BIO_free);
+  if (!bio) throw Error(path.string() + ": --tls-ca: out of memory");
+  ERR_clear_error();
+  for (int n = 1;; ++n) {
+    X509* cert = PEM_read_bio_X509(bio.get(), nullptr, nullptr, nullptr);
+    if (cert != nullptr) {
+      X509_free(cert);
+      continue;
+    }
+    const unsigned long err = ERR_peek_last_error();
+    if (n > 1 && ERR_GET_LIB(err) == ERR_LIB_PEM && ERR_GET_REASON(err) == PEM_R_NO_START_LINE) {
+      ERR_clear_error();  // no further certificate: every one read
+      return pem;
+    }
+    char reason[256];
+    ERR_error_string_n(err, reason, sizeof reason);
+    ERR_clear_error();
+    throw Error(name + " (certificate " + std::to_string(n) + " cannot be read: " + reason + ")");
   }
-  if (n == 0 || n % 4 != 0) throw Error(name + " (its first certificate is not base64)");
-  return pem;
 }
 
 void print_result(const std::string& name, const v1::LocalizeResponse& r) {

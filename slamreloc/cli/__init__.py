@@ -158,7 +158,7 @@ def _run_app() -> int | None:
         if not hasattr(err, "format_message"):
             raise
         where = getattr(getattr(err, "ctx", None), "command_path", None) or "slamreloc"
-        message = " ".join(err.format_message().split()).rstrip(".")
+        message = err.format_message().strip().rstrip(".")  # a value as given (no folding)
         print(f"error: {terminal_line(message)} (see {where} --help)", file=sys.stderr)
         return 2
     except typer.Abort as err:  # how typer on plain click answers a Ctrl-C
@@ -190,7 +190,7 @@ def _end_interrupted(message: str = "interrupted") -> NoReturn:
     import atexit
     import os
 
-    print(message, file=sys.stderr)
+    print(terminal_line(message), file=sys.stderr)
     atexit._run_exitfuncs()
     sys.stdout.flush()
     sys.stderr.flush()
@@ -243,10 +243,11 @@ def main() -> None:
         if isinstance(status, int) and status:
             sys.exit(status)
     except Interrupted as err:
-        _end_interrupted(f"interrupted: {with_flags(' '.join(str(err).split()))}")
+        _end_interrupted(f"interrupted: {with_flags(str(err).strip())}")
     except (SlamrelocError, ValueError, OSError) as err:
-        # one line, whatever the message holds (some libraries' messages span lines)
-        message = with_flags(' '.join(str(err).split())) or type(err).__name__
+        # one line, whatever the message holds: a line break or a tab (in a library's
+        # message, or a file's name) as its escape, never folded (`a  b.tum` is not `a b.tum`)
+        message = with_flags(str(err).strip()) or type(err).__name__
         print(f"error: {terminal_line(message)}", file=sys.stderr)
         sys.exit(2)
     except Exception as err:  # an allocation that failed is one line too

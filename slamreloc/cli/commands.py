@@ -24,7 +24,7 @@ from slamreloc.cli.choices import (
     Update,
 )
 from slamreloc.cli.serve import serve
-from slamreloc.errors import InputError
+from slamreloc.errors import InputError, terminal_line
 from slamreloc.io.outputs import naming_output
 
 POSES_HELP = ("take the frames' poses from this file instead of the dataset's: a COLMAP model "
@@ -66,7 +66,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
 app.command()(serve)
 
 
-NO_DATASET_COMMANDS = ("localize", "demo", "serve")  # commands that never read a dataset
+NO_DATASET_COMMANDS = ("demo", "serve")  # commands that never read a dataset (localize reads
+# a ROS bag given as its images)
 
 
 @app.callback()
@@ -220,7 +221,7 @@ def localize(
                                        guided_choice(method, guided)):
         if status == "error":
             errors += 1
-            typer.echo(with_flags(line), err=True)
+            typer.echo(terminal_line(with_flags(line)), err=True)  # a name's ESC or break
             continue
         try:
             with naming_output("standard output"):  # a full disk, a closed pipe: said so
@@ -343,14 +344,14 @@ def export(
 ) -> None:
     """Export MAP's labelled points and training cameras to COLMAP, PLY and TUM."""
     from slamreloc.map.export import export_map
-    from slamreloc.runtime.progress import console
+    from slamreloc.runtime.progress import console, shown
 
     s = export_map(map_dir, colmap, ply, tum, dataset)
     written = ", ".join(str(p) for p in (colmap, ply, tum) if p is not None)
     points = (f"{s['points']} points ({s['observations']} observations, colours "
               f"{'from the images' if s['coloured_from_images'] else 'grey: no dataset'}), "
               if "points" in s else "")
-    console.print(f"[green]exported[/green] {points}{s['frames']} cameras to {written}")
+    console.print(f"[green]exported[/green] {points}{s['frames']} cameras to {shown(written)}")
 
 
 @app.command()
@@ -502,16 +503,16 @@ def view(
 
 
 def _print_map(scene_map) -> None:
-    from slamreloc.runtime.progress import console
+    from slamreloc.runtime.progress import console, shown
 
     info = scene_map.info
-    console.print(f"[green]map written[/green] to {scene_map.root}: {info.regressor_arch} "
+    console.print(f"[green]map written[/green] to {shown(scene_map.root)}: {info.regressor_arch} "
                   f"regressor ({info.n_parameters / 1e6:.2f} M parameters, trained in "
                   f"{info.train_config.precision}, {scene_map.size_bytes() / 1e6:.1f} MB), "
                   f"trained on {info.n_labelled} labelled keypoints")
     poses = info.poses_source
     if poses != "dataset":
-        console.print(f"[green]poses[/green]: from {poses} (--poses), not the dataset's")
+        console.print(f"[green]poses[/green]: from {shown(poses)} (--poses), not the dataset's")
     if not info.metric:
         console.print("[yellow]units[/yellow]: the dataset's SfM units, not metres (it was "
                       "made by `slamreloc sfm` without --scale or --scale-from-depth)")

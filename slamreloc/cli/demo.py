@@ -18,7 +18,7 @@ from slamreloc.io.outputs import check_outputs, write_json
 from slamreloc.geometry import NAMES_SUFFIX
 from slamreloc.map.build import MapConfig, build_map
 from slamreloc.cli import jobs
-from slamreloc.runtime.progress import console, make_progress
+from slamreloc.runtime.progress import console, make_progress, shown
 from slamreloc.regressor.train import TrainConfig
 from slamreloc.synthetic import SceneConfig, render_scene
 
@@ -129,7 +129,7 @@ def run_demo(workdir: Path, viewer: bool = True, port: int = 8080,
     console.rule("results")
     print_demo_summary(summaries, slam, console)
     console.print(f"demo finished in {time.perf_counter() - t0:.0f} s; scene, map and reports "
-                  f"are in {workdir}")
+                  f"are in {shown(workdir)}")
     for line in next_steps(workdir, dataset.frames("test")[0].image_path, viewer):
         console.print(line, soft_wrap=True, highlight=False, markup=False)
     if viewer:

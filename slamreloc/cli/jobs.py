@@ -41,7 +41,7 @@ from slamreloc.map.format import check_is_map, is_map
 from slamreloc.map.lock import map_write_lock
 from slamreloc.map.scene_map import SceneMap
 from slamreloc.map.surface import IcpConfig, read_frame_depth, refine_with_depth
-from slamreloc.runtime.progress import console
+from slamreloc.runtime.progress import console, shown
 from slamreloc.types import Camera, Frame, camera_problem, lens_camera_problem
 
 
@@ -328,7 +328,7 @@ def pseudo_label(map_dir: Path, dataset_dir: Path, out: Path, report: Path,
                                  scoring_truth(dataset, truth, poses), progress, report)
     prec = result.get("pseudo_label_precision_10cm")
     console.print(
-        f"[green]map written[/green] to {new_map.root}: {result['n_frames_registered']}/"
+        f"[green]map written[/green] to {shown(new_map.root)}: {result['n_frames_registered']}/"
         f"{result['n_frames']} frames registered, {result['n_pseudo_labels']} pseudo-labels "
         f"({result['n_new_points']} new points)"
         + ("" if prec is None else f", precision {100 * prec:.1f} % within 10 cm, median pose "
@@ -366,4 +366,4 @@ def print_slam_summary(r: dict) -> None:
         console.print(f"map learned: {live['n_keyframes']} keyframes, {live['n_rows']} rows, "
                       f"{len(live['rounds'])} training rounds (learner busy "
                       f"{100 * (live['learner_share'] or 0):.0f} % of the session); written "
-                      f"to {live['out']}")
+                      f"to {shown(live['out'])}")

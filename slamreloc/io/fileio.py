@@ -72,7 +72,14 @@ def read_bytes(path: str | Path, what: str, limit: int | str) -> bytes:
             size = regular_size(f)
             if size > most:
                 raise too_large(bytes_text(size))
-            data = f.read(most + 1)  # a file growing while read is bounded too
+            # as much as it holds (never a buffer of the bound's size: `--limit` may be
+            # huge), then on in chunks to the bound: a file growing while read is bounded too
+            data = f.read(min(most, size) + 1)
+            while len(data) <= most:
+                more = f.read(min(most + 1 - len(data), 1 << 20))
+                if not more:
+                    break
+                data += more
         except OSError as err:
             raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None
     if len(data) > most:

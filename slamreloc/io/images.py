@@ -406,7 +406,7 @@ def image_header(path: str | Path, what: str = "image") -> ImageHeader:
             if size > limits().max_image_bytes:
                 raise InputError(f"{path}: encoded {what} of " + over_limit(
                     "max_image_bytes", bytes_text(size)))
-            head += f.read(limits().max_image_bytes)
+            head += f.read(size)  # (a buffer of its size, not of the bound, which may be huge)
     except OSError as err:
         raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None
     return encoded_header(head, path, what)

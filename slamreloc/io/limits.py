@@ -65,7 +65,13 @@ def whole_limit(text: str, source: str) -> int:
     value = int(text)
     if value <= 0:
         raise InputError(f"{source}: must be a positive whole number, got {text[:40]}")
+    if value > MAX_LIMIT:  # a byte count a read or an allocation can still be asked for
+        raise InputError(f"{source}: at most {MAX_LIMIT} (2**48: no input of that size can be "
+                         f"read here), got {text[:40]}")
     return value
+
+
+MAX_LIMIT = 1 << 48  # the largest value of any bound (256 TB, 2.8e14 pixels)
 
 
 def pixels_text(n: int) -> str:

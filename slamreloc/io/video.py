@@ -67,5 +67,9 @@ def _sampled(cap, path: Path, fps: float) -> Iterator[tuple[float, np.ndarray]]:
         if n_out == 0:
             raise InputError(f"{path}: no frame could be decoded (not a video, or a codec "
                              "OpenCV's FFmpeg lacks)")
+        declared = cap.get(cv2.CAP_PROP_FRAME_COUNT)  # the header's (or the container's
+        if 0 < declared < 1e9 and index < declared - max(2, 0.1 * declared):  # estimate)
+            raise InputError(f"{path}: only {index} of the {int(declared)} frames its header "
+                             "declares could be read: the file is cut short or damaged")
     finally:
         cap.release()

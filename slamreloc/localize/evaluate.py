@@ -22,7 +22,7 @@ from slamreloc.geometry import (Rigid3, Sim3, align_poses, distinct_stamps, pose
                                 write_tum_trajectory)
 from slamreloc.localize.localizer import Localizer, make_localizer
 from slamreloc.map.scene_map import SceneMap
-from slamreloc.runtime.progress import console, track
+from slamreloc.runtime.progress import console, shown, track
 from slamreloc.types import Frame
 
 THRESHOLDS = {"1cm1deg": (0.01, 1.0), "2cm2deg": (0.02, 2.0), "5cm5deg": (0.05, 5.0),
@@ -374,10 +374,10 @@ def print_summary(summaries: list[dict]) -> None:
     notes = []
     for s in summaries:
         primary = s.get("reference", "dataset")
-        rows = [(s["method"], "dataset" if primary == "dataset" else Path(primary).name, s,
+        rows = [(s["method"], "dataset" if primary == "dataset" else shown(Path(primary).name), s,
                  f"{s['timing_ms'].get('total', float('nan')):.0f}")]
         for label, ref in s.get("references", {}).items():
-            rows.append(("", label, ref, "-"))
+            rows.append(("", shown(label), ref, "-"))
             notes.append(_reference_note(label, ref))
         for method, reference, r, ms in rows:
             med_t, med_r = r["median_translation_m"], r["median_rotation_deg"]
@@ -393,7 +393,7 @@ def _reference_note(label: str, ref: dict) -> str:
     a = ref["alignment"]
     how = (f"aligned by a similarity (scale {a['scale']:.4f})" if a["aligned"]
            else "in the map's frame already (no transform)")
-    note = (f"reference {label}: {how}, {a['n_frames']} training cameras, residual median "
+    note = (f"reference {shown(label)}: {how}, {a['n_frames']} training cameras, residual median "
             f"{100 * a['median_residual_m']:.2f} cm / {a['median_residual_deg']:.2f} deg")
     missing = ref.get("n_queries_without_reference", 0)
     if missing:

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import open_regular
+from slamreloc.io.fileio import read_bytes
 from slamreloc.map.format import LEGACY_WEIGHTS, MAX_ARRAY_BYTES, WEIGHTS, one_line, read_npz
 from slamreloc.map.meta import MapMeta
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
@@ -58,14 +58,7 @@ def _read_legacy_weights(path: Path,
     if tuple(int(p) for p in torch.__version__.split(".")[:2]) < (2, 6):
         raise InputError(f"{path}: reading a format-1 map safely needs torch >= 2.6 "
                          f"(have {torch.__version__}); re-create the map")
-    with open_regular(path, "regressor weights") as f:
-        try:
-            data = f.read(MAX_ARRAY_BYTES + 1)
-        except OSError as err:
-            raise InputError(f"{path}: cannot read regressor weights "
-                             f"({err.strerror or err})") from None
-    if len(data) > MAX_ARRAY_BYTES:
-        raise InputError(f"{path}: over {MAX_ARRAY_BYTES} bytes; refusing to read it")
+    data = read_bytes(path, "regressor weights", MAX_ARRAY_BYTES)
     if digests is not None:
         digests[path.name] = hashlib.sha256(data).hexdigest()
     if not zipfile.is_zipfile(io.BytesIO(data)):

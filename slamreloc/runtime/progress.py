@@ -11,11 +11,21 @@ from collections.abc import Iterable, Iterator
 from typing import TypeVar
 
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
                            TimeElapsedColumn, TimeRemainingColumn)
 
+from slamreloc.errors import terminal_line
+
 T = TypeVar("T")
-console = Console(stderr=True)
+console = Console(stderr=True, emoji=False)  # `:smile:` in a file name is no emoji
+
+
+def shown(text) -> str:
+    """User text (a path, a file name) as a markup line of `console` shows it: rich markup
+    escaped (`a[/x].tum` is no closing tag, `[red]z` no colour) and characters a terminal must
+    not be sent as their escapes (`terminal_line`)."""
+    return escape(terminal_line(str(text)))
 _SHOWN: list[Progress] = []  # bars started and not yet stopped, oldest first
 
 
