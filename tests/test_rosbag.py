@@ -466,3 +466,25 @@ def test_a_bag_file_that_is_a_named_pipe_is_refused_not_waited_on(tmp_path):
     os.mkfifo(bag / "bag_0.db3")
     with pytest.raises(InputError, match="bag_0.db3: ROS bag file is not a regular file"):
         load_rosbag(bag)
+
+
+def test_localize_and_view_read_a_bag_as_the_other_commands_do(scene, tmp_path, tiny_map):
+    """Attack round 17: `localize` on a bag of two image topics asked for `--topic image=`,
+    then refused it ("'localize' reads no dataset", Q2); `view --dataset` refused a ROS 1
+    bag as "a file, not a folder" (Q11). Both read the bag as every command does."""
+    dataset, frames = scene
+    msgs = Messages(2)
+    second = [msgs.raw(frame_stamp(f), read_image(f.image_path), "rgb8") for f in frames[:3]]
+    bag = write_bag(dataset, frames[:3], tmp_path / "two", extra={"/cam2/image_raw": second})
+    code, err = run_cli(["localize", str(tiny_map), str(bag), "--method", "matching"])
+    assert code == 2 and "--topic image=NAME" in err.splitlines()[-1], err
+    code, err = run_cli(["--topic", "image=/cam2/image_raw", "--topic",
+                         "camera_info=/cam/color/camera_info", "localize", str(tiny_map),
+                         str(bag), "--method", "matching"])
+    assert code == 0, err
+    ros1 = write_bag(dataset, frames[:3], tmp_path / "run.bag", version=1)
+    code, err = run_cli(["view", str(tiny_map), "--dataset", str(ros1), "--port", "0"])
+    last = err.strip().splitlines()[-1]  # the map's frames are not the bag's: refused for that
+    assert code == 2 and last == (f"error: --dataset {ros1}: holds none of the map's 2 frames "
+                                  "(such as 'seq-01/frame-000000'): not the dataset it was built "
+                                  "from"), err

@@ -106,3 +106,99 @@ def test_keys_grpc_refuses_are_refused_naming_the_certificate(tmp_path, tiny_map
     want = "RSA-PSS only" if kind == "rsa-pss" else "explicit parameters"
     assert lines[0].startswith(f"error: {tmp_path / 'cert.pem'}: --tls-cert cannot serve TLS")
     assert want in lines[0] and "cannot listen" not in lines[0], lines[0]
+
+
+# ---- CLI side ----------------------------------------------------------------------------------
+def test_output_paths_with_markup_are_shown_as_given(tiny_map, tmp_path):
+    """Q4: `export --tum 'a[/x].tum'` wrote its file, then ended in rich's MarkupError (a
+    traceback, exit 1); `[red]z.tum` and `x:smile:.tum` were shown as other names. The
+    success line names the file as given."""
+    for name in ("a[/x].tum", "[red]z.tum", "x:smile:.tum"):
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        code, err = run_cli(["export", str(tiny_map), "--tum", str(tmp_path / name)])
+        assert code == 0 and (tmp_path / name).is_file(), err
+        assert f"cameras to {tmp_path / name}" in " ".join(err.split()), err
+
+
+def test_a_limit_no_read_could_use_is_refused_and_a_large_one_reads(tiny_map, tmp_path):
+    """Q7: `--limit max_image_bytes=9223372036854775807` ended in OverflowError (a
+    traceback): a read asked for a buffer of the bound's size. A bound is at most 2**48, and
+    a read takes a buffer of the file's size, whatever the bound."""
+    import cv2
+    import numpy as np
+
+    code, err = run_cli(["--limit", "max_image_bytes=9223372036854775807", "localize",
+                         str(tiny_map), "x.png"])
+    assert code == 2 and err.strip().splitlines()[-1] == (
+        "error: slamreloc --limit 'max_image_bytes=9223372036854775807': at most "
+        "281474976710656 (2**48: no input of that size can be read here), got "
+        "9223372036854775807"), err
+    for suffix in (".png", ".webp"):  # a header read, and a whole-file read
+        image = tmp_path / f"q{suffix}"
+        cv2.imwrite(str(image), np.zeros((48, 64, 3), np.uint8))
+        code, err = run_cli(["--limit", f"max_image_bytes={1 << 48}", "--limit",
+                             f"max_text_bytes={1 << 48}", "localize", str(tiny_map), str(image),
+                             "--method", "matching"])
+        assert code == 0, err
+
+
+def test_error_lines_keep_a_names_blanks_and_escape_its_control_characters(tiny_map, tmp_path):
+    """Q9: an error line folded a name's whitespace (`a  b.png` shown as `a b.png`, another
+    file; a tab as a space); Q3: localize's per-image error printed a name's line break (two
+    lines) and ESC sequences raw. Both are one line, the name as it is, its control
+    characters as escapes."""
+    code, err = run_cli(["localize", str(tiny_map), str(tmp_path / "a  b.png")])
+    assert code == 2 and f"{tmp_path}/a  b.png" in err.strip().splitlines()[-1], err
+    code, err = run_cli(["localize", str(tiny_map), str(tmp_path / "a\tb.png")])
+    assert code == 2 and f"{tmp_path}/a\\tb.png" in err.strip().splitlines()[-1], err
+    odd = tmp_path / "x\n\x1b[31mnone.png"
+    odd.write_bytes(b"not an image")
+    code, err = run_cli(["localize", str(tiny_map), str(odd)])
+    errors = [line for line in err.splitlines() if "none.png" in line]
+    assert len(errors) == 1 and "x\\n\\x1b[31mnone.png" in errors[0], err
+    assert "\x1b" not in err
+
+
+def test_sfm_refuses_photos_colmap_cannot_read_and_a_scale_under_its_bound(tmp_path):
+    """Q1: WebP photos passed the format check, then COLMAP read none ("registered only 0 of
+    10 images ... too little overlap"); Q8: `--scale 1e-300` was taken (camera centres of
+    3e-300 m; map then labelled nothing). Both are refused before any work."""
+    import cv2
+    import numpy as np
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(photos / f"p{i}.png"), np.zeros((48, 64, 3), np.uint8))
+    cv2.imwrite(str(photos / "p3.webp"), np.zeros((48, 64, 3), np.uint8))
+    code, err = run_cli(["sfm", str(photos), "--out", str(tmp_path / "o")])
+    assert code == 2 and err.strip().splitlines()[-1] == (
+        f"error: {photos / 'p3.webp'}: a photo of a format sfm does not read (PNG, JPEG, BMP, "
+        "TIFF and PNM are read): convert it, or move it out"), err
+    (photos / "p3.webp").unlink()
+    code, err = run_cli(["sfm", str(photos), "--out", str(tmp_path / "o"), "--scale", "1e-300"])
+    assert code == 2 and "--scale must be metres per SfM unit, over 1e-6 and under 1e6" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_video_cut_short_is_refused(tmp_path):
+    """Q10: a video whose file was cut short was read up to the cut, unsaid (3 of 40
+    frames, then "SfM needs at least 2 images"; a longer cut ran SfM on what was left)."""
+    import cv2
+    import numpy as np
+
+    from slamreloc.errors import InputError
+    from slamreloc.io.video import video_frames
+
+    video = tmp_path / "v.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 48))
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        writer.write(rng.integers(0, 255, (48, 64, 3), np.uint8))
+    writer.release()
+    assert len(list(video_frames(video, 10))) == 40
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(video.read_bytes()[: video.stat().st_size // 3])
+    with pytest.raises(InputError, match=r"cut\.avi: only \d+ of the 40 frames its header "
+                                         "declares could be read: the file is cut short"):
+        list(video_frames(cut, 10))
