@@ -202,3 +202,39 @@ def test_a_video_cut_short_is_refused(tmp_path):
     with pytest.raises(InputError, match=r"cut\.avi: only \d+ of the 40 frames its header "
                                          "declares could be read: the file is cut short"):
         list(video_frames(cut, 10))
+
+
+def test_a_trajectory_of_no_poses_is_read_where_it_can_be(small_map, scene_dir, tmp_path):
+    """Q5: `slam --trajectory T` from a session that never anchored writes a TUM file of no
+    poses, which `view --trajectory` refused. view shows it as a trajectory of none (as it
+    does when a report names it); `slam --odometry` still refuses it, saying why."""
+    from slamreloc.viewer.data import ViewerInputs
+    from slamreloc.viewer.loaders import load_scene_data
+
+    empty = tmp_path / "t.tum"
+    empty.write_text("# timestamp tx ty tz qx qy qz qw\n")
+    data = load_scene_data(ViewerInputs(small_map.root, trajectories=[empty]))
+    assert [len(t.poses) for t in data.trajectories] == [0]
+    code, err = run_cli(["slam", str(scene_dir), "--map", str(small_map.root), "--report",
+                         str(tmp_path / "r.json"), "--split", "seq-02", "--odometry", str(empty)])
+    assert code == 2 and err.strip().splitlines()[-1] == (
+        f"error: {empty}: no poses in the trajectory file, and odometry needs the poses of the "
+        "frames it tracks"), err
+
+
+def test_a_map_is_not_extended_by_another_datasets_frames_of_its_names(small_map, scene_dir,
+                                                                         tmp_path):
+    """Q6: `slam OTHER --map M --out N` with OTHER another dataset whose frames are named as
+    M's recorded N's dataset as OTHER only, so `export --ply` coloured M's points from
+    OTHER's images of the same names. Refused before the session, naming both; a session of
+    the map's own dataset extends it."""
+    other = tmp_path / "other"
+    shutil.copytree(scene_dir, other)
+    out = tmp_path / "n"
+    code, err = run_cli(["slam", str(other), "--map", str(small_map.root), "--out", str(out),
+                         "--report", str(tmp_path / "r.json"), "--split", "seq-02"])
+    last = err.strip().splitlines()[-1]
+    assert code == 2 and last.startswith(f"error: {other}: holds frames named as the map "
+                                         f"{small_map.root}'s own (such as 'seq-01/"), err
+    assert f"from another dataset ({scene_dir.resolve()})" in last, last
+    assert not out.exists() and not (tmp_path / "r.json").exists()

@@ -587,7 +587,7 @@ def test_log_lines_are_one_write_each(monkeypatch):
 def test_camera_numbers_are_plain_ascii_decimals(word, at):
     words = ["PINHOLE", "320", "240", "262", "262", "160", "120"]
     words[1 + at] = word
-    with pytest.raises(InputError, match="plain decimal"):
+    with pytest.raises(InputError, match="plain (ASCII )?decimal"):  # size, parameter
         Camera.parse(" ".join(words), "`camera`")
 
 

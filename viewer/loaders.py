@@ -26,7 +26,9 @@ from slamreloc.viewer.trajectories import (attach_truth, read_trajectory, truth_
 def load_scene_data(inputs: ViewerInputs) -> SceneData:
     """Read every input; InputError on the first bad one."""
     reports = [(Path(p), read_json(p)) for p in inputs.reports]
-    trajectories = [read_trajectory(p) for p in inputs.trajectories]
+    # one with no poses is one of none (a session that never anchored writes one), as in a
+    # report's
+    trajectories = [read_trajectory(p, allow_empty=True) for p in inputs.trajectories]
     if inputs.dataset is not None and not is_rosbag(Path(inputs.dataset)):  # a bag: a file
         check_folder(Path(inputs.dataset), "dataset")  # (ROS 1), read as every command does
     reference = None

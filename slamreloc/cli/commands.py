@@ -207,6 +207,11 @@ def localize(
 
     if camera is not None and intrinsics is not None:
         raise InputError("--camera and --intrinsics: give one of them")
+    from slamreloc.datasets.rosbag import default_topics_unread, is_rosbag
+
+    if default_topics_unread() and not any(is_rosbag(p) for p in images):  # before the work
+        raise InputError("`topic` chooses a ROS bag DATASET's topics, and 'localize' reads no "
+                         "bag here (its IMAGEs are image files)")
     if camera is not None:
         from slamreloc.types import Camera
 

@@ -103,12 +103,32 @@ def _live_plugins(dataset, map_dir: Path | None, out: Path, config: SlamRunConfi
     from slamreloc.map.meta import DatasetMeta
     from slamreloc.map.scene_map import SceneMap
 
-    live = LiveMap(config.live, prior=None if map_dir is None else SceneMap.load(map_dir))
+    prior = None if map_dir is None else SceneMap.load(map_dir)
+    if prior is not None:
+        _check_extension(prior, map_dir, dataset)
+    live = LiveMap(config.live, prior=prior)
     recorded = DatasetMeta(root=str(dataset.root.resolve()), kind=dataset.kind,
                            split=config.split, metric=True, poses="slam")
     return [load_plugin("live_mapping", live_map=live, out=out, dataset=recorded,
                         save_every_s=config.save_every_s),
             load_plugin("relocalization", localizer=live, **config.plugin_options)]
+
+
+def _check_extension(prior, map_dir: Path, dataset) -> None:
+    """InputError unless the map `map_dir` may be extended by a session of `dataset`: the
+    extended map records one dataset, the session's, so the map's own frames must come from
+    it too (the same root, or one that is no longer there: moved), or be named apart from its
+    frames (else `export`, `evaluate` and `view` would take the map's frames for these)."""
+    recorded = prior.info.dataset_root
+    if recorded is None or not recorded.exists() or recorded == dataset.root.resolve():
+        return
+    own = set(prior.info.frame_names or ())
+    clash = next((f.name for f in dataset.frames("all") if f.name in own), None)
+    if clash is not None:
+        raise InputError(f"{dataset.root}: holds frames named as the map {map_dir}'s own (such "
+                         f"as {clash[:80]!r}), which come from another dataset ({recorded}); "
+                         "the extended map records one dataset and would take its frames for "
+                         "these: extend it with a session of its own dataset")
 
 
 def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = SlamRunConfig(),
