@@ -29,15 +29,21 @@ def _own_test(value) -> tuple:
 
 def _check_writable(out: Path, option: str) -> None:
     """InputError naming `option` unless a file can be created where `out` goes: a probe
-    created in the nearest existing folder of its path and removed
-    (a read-only or pseudo file system, /proc or /sys, refuses it there, not after the work)."""
+    created in the nearest existing folder of its path (unnamed where the file system allows,
+    so that a kill leaves no probe behind) and removed (a read-only or pseudo file system,
+    /proc or /sys, refuses it there, not after the work)."""
     folder = next((p for p in (out.parent, *out.parent.parents) if os.path.isdir(p)), None)
     if folder is None:
         return
     try:
-        fd, name = tempfile.mkstemp(prefix=f".{out.name}.probe-", dir=folder)
-        os.close(fd)
-        os.unlink(name)
+        try:  # an unnamed file (O_TMPFILE): a kill -9 here leaves nothing in the folder
+            os.close(os.open(folder, os.O_TMPFILE | os.O_WRONLY, 0o600))
+        except OSError as err:  # a file system without unnamed files: a named probe
+            if err.errno not in (errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL):
+                raise
+            fd, name = tempfile.mkstemp(prefix=f".{out.name}.probe-", dir=folder)
+            os.close(fd)
+            os.unlink(name)
     except OSError as err:
         raise InputError(f"{out}: {option} cannot be written there ({folder}: "
                          f"{err.strerror or err})") from None
