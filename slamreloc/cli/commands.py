@@ -66,8 +66,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
 app.command()(serve)
 
 
-NO_DATASET_COMMANDS = ("demo", "serve")  # commands that never read a dataset (localize reads
-# a ROS bag given as its images)
+# commands that never read a dataset (localize reads a ROS bag given as its images)
+NO_DATASET_COMMANDS = ("demo", "serve")
 
 
 @app.callback()

@@ -3,9 +3,9 @@ rendered synthetic scene), and the clean-up of what a killed writer left beside 
 
 A writer holds an exclusive lock on `.NAME.lock` beside the folder (removed when it is done);
 a second writer fails at once (InputError naming it). Under that lock no other writer of NAME
-lives (in any PID namespace), so a `.NAME.tmp-PID` folder holding only what such a writer writes (a
-save cut short) and a `.NAME.old-PID` folder holding such an output (one moved aside) are a
-killed writer's: removed at the next write of that folder (an output moved aside and never
+lives (in any PID namespace), so a `.NAME.tmp-PID` folder holding only what such a writer
+writes (a save cut short) and a `.NAME.old-PID` folder holding such an output (one moved aside)
+are a killed writer's: removed at the next write of that folder (an output moved aside and never
 replaced is put back first). What counts is the writer's kind (`Debris`): an sfm run never
 takes a map for its own, a scene renderer never takes anything but frames it renders.
 """
@@ -56,6 +56,15 @@ def _named(out: Path, kind: str) -> list[Path]:
     return sorted(Path(e.path) for e in entries
                   if writer_pid(e.name, f".{out.name}.{kind}-") is not None
                   and e.is_dir(follow_symlinks=False))
+
+
+def holds_only(folder: str | Path, accept: Callable[[os.DirEntry], bool]) -> bool:
+    """Whether every entry of `folder` is one `accept` takes (False where it cannot be
+    listed): the test of a `Debris` rule, "nothing but what this writer writes"."""
+    try:
+        return all(accept(entry) for entry in os.scandir(folder))
+    except OSError:
+        return False
 
 
 def leftovers(out: Path, debris: Debris) -> list[Path]:

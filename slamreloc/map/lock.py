@@ -6,23 +6,19 @@ folder lock every folder output shares (`slamreloc.io.folder_lock`). `build_map`
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.io.folder_lock import Debris, folder_write_lock, leftovers
+from slamreloc.io.folder_lock import Debris, folder_write_lock, holds_only, leftovers
 from slamreloc.map.format import is_map, is_map_file
 
 
 def only_map_files(folder: Path) -> bool:
     """Whether `folder` holds nothing but regular files a map writer writes."""
-    try:
-        return all(is_map_file(e) for e in os.scandir(folder))
-    except OSError:
-        return False
+    return holds_only(folder, is_map_file)
 
 
 # a save cut short; a map moved aside (only its files: removed; with a user's file: put back
@@ -33,9 +29,9 @@ MAP_DEBRIS = Debris(new=only_map_files, old=lambda f: is_map(f) and only_map_fil
 
 @contextmanager
 def map_write_lock(out: str | Path) -> Iterator[None]:
-    """Hold the exclusive write lock of the map folder `out` (re-entrant within a process); a
-    second process gets InputError at once. On entry a killed writer's leftovers are
-    cleaned up, and a map it had moved aside is put back."""
+    """Hold the exclusive write lock of the map folder `out` (re-entrant within a thread;
+    `folder_write_lock`); a second process gets InputError at once. On entry a killed
+    writer's leftovers are cleaned up, and a map it had moved aside is put back."""
     with folder_write_lock(out, "this map", MAP_DEBRIS):
         yield
 

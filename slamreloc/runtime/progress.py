@@ -19,6 +19,7 @@ from slamreloc.errors import terminal_line
 
 T = TypeVar("T")
 console = Console(stderr=True, emoji=False)  # `:smile:` in a file name is no emoji
+_SHOWN: list[Progress] = []  # bars started and not yet stopped, oldest first
 
 
 def shown(text) -> str:
@@ -26,7 +27,6 @@ def shown(text) -> str:
     escaped (`a[/x].tum` is no closing tag, `[red]z` no colour) and characters a terminal must
     not be sent as their escapes (`terminal_line`)."""
     return escape(terminal_line(str(text)))
-_SHOWN: list[Progress] = []  # bars started and not yet stopped, oldest first
 
 
 class _Bar(Progress):

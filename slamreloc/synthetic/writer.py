@@ -22,7 +22,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import read_bytes
-from slamreloc.io.folder_lock import Debris, folder_write_lock, leftovers
+from slamreloc.io.folder_lock import Debris, folder_write_lock, holds_only, leftovers
 from slamreloc.io.outputs import make_temp_dir, temp_dir_path
 from slamreloc.synthetic.render import RenderScene, render_frame
 from slamreloc.synthetic.room import build_room
@@ -126,19 +126,18 @@ _FRAME_FILE = re.compile(r"frame-[0-9]{6}\.(?:color\.png|depth\.png|pose\.txt)")
 def _only_scene_files(folder: Path) -> bool:
     """Whether `folder` holds nothing but what `render_scene` writes: its top-level files
     and `seq-XX` folders of frame files, all regular files (a killed render's temporary)."""
-    def regular(entry: os.DirEntry, names) -> bool:
-        return entry.is_file(follow_symlinks=False) and (
-            entry.name in names if isinstance(names, set) else names.fullmatch(entry.name))
-    try:
-        for entry in os.scandir(folder):
-            if entry.is_dir(follow_symlinks=False) and _SEQUENCE.fullmatch(entry.name):
-                if not all(regular(e, _FRAME_FILE) for e in os.scandir(entry.path)):
-                    return False
-            elif not regular(entry, _SCENE_FILES):
-                return False
-    except OSError:
-        return False
-    return True
+    def regular(entry: os.DirEntry) -> bool:
+        return entry.is_file(follow_symlinks=False)
+
+    def frame(entry: os.DirEntry) -> bool:
+        return regular(entry) and _FRAME_FILE.fullmatch(entry.name) is not None
+
+    def scene_entry(entry: os.DirEntry) -> bool:
+        if entry.is_dir(follow_symlinks=False) and _SEQUENCE.fullmatch(entry.name):
+            return holds_only(entry.path, frame)
+        return regular(entry) and entry.name in _SCENE_FILES
+
+    return holds_only(folder, scene_entry)
 
 
 # a render cut short (a scene is written in one rename: never moved aside)
