@@ -311,7 +311,7 @@ def test_files_tokens_and_cameras_follow_the_python_rules(client_binary, server,
     garbage.write_text("-----BEGIN CERTIFICATE-----\nnot base64 !\n-----END CERTIFICATE-----\n")
     line = _error_line(run_client(client_binary, "--server", address, "--tls-ca", str(garbage),
                                   str(sequence)))
-    assert str(garbage) in line and "certificate 1 cannot be read" in line, line
+    assert str(garbage) in line and "the certificate block at line 1 is not base64" in line, line
     # round 17, T3: every certificate block is read, as the Python client reads them: a first
     # block that is no certificate (a key's bytes), and a good one then a broken one
     good = _certificate_pem()
@@ -324,7 +324,8 @@ def test_files_tokens_and_cameras_follow_the_python_rules(client_binary, server,
         line = _error_line(run_client(client_binary, "--server", address, "--tls-ca", str(ca),
                                       str(sequence)))
         assert str(ca) in line and "--tls-ca is not a PEM certificate" in line, line
-        assert f"certificate {len(blocks)} cannot be read" in line, line
+        at = 1 + sum(block.count(b"\n") for block in blocks[:-1])  # the last block's line
+        assert f"the certificate block at line {at} is not an X.509 certificate" in line, line
     port = address.rsplit(":", 1)[1]
     cases = [(["--tls-ca", ""], "--tls-ca: empty"), (["--camera", " "], "--camera: empty"),
              # the address and number rules of the Python side (target_problem, numbers)
@@ -372,3 +373,56 @@ def test_rgb_txt_follows_the_tum_readers_rules(client_binary, server, tmp_path, 
     (tmp_path / "rgb.txt").write_text(rows)
     line = _error_line(run_client(client_binary, "--server", server.address, str(tmp_path)))
     assert str(tmp_path / "rgb.txt") in line and words in line, line
+
+
+# pieces of a generated CA file: (name, bytes) built from two certificates `a` and `b`
+def _ca_pieces(a: bytes, b: bytes) -> dict[str, bytes]:
+    from tests.test_round18 import pem
+
+    return {
+        "a": pem(a), "b": pem(b), "a wide": pem(a, width=76), "a one line": pem(a, width=4096),
+        "a x509 label": pem(a, "X509 CERTIFICATE"), "a trailing": pem(a + b"\x00\x01"),
+        "a headers": pem(a, headers="Proc-Type: 4,ENCRYPTED\nDEK-Info: AES-128-CBC,00\n\n"),
+        "a ber": pem(b"\x30\x83\x00" + a[2:]), "a cut": pem(a[:-5]),
+        "a no end": pem(a).rsplit(b"-----END", 1)[0], "a trusted": pem(a, "TRUSTED CERTIFICATE"),
+        "a bad char": pem(a).replace(b"A", b"*", 1), "a padding": pem(a).replace(b"\n-----E",
+                                                                                  b"==\n-----E"),
+        "key": pem(b"\x30\x03\x02\x01\x00", "PRIVATE KEY"),
+        "key not base64": b"-----BEGIN PRIVATE KEY-----\nnot*base64\n-----END PRIVATE KEY-----\n",
+        "comment": b"# a comment\n", "marker comment": b"# -----BEGIN CERTIFICATE----- see\n",
+        "lone end": b"-----END CERTIFICATE-----\n", "odd marker": b"-----BEGIN x-y-----\n",
+        "blank": b"\n", "crlf": b"\r\n", "trailing blanks": b" \t\n",
+    }
+
+
+def test_the_two_clients_read_ca_files_by_one_rule(client_binary, tmp_path_factory):
+    """U1, U2 (attack round 18): the C++ client read --tls-ca with OpenSSL's PEM reader (which
+    asked for a pass phrase on a block with headers, took bytes after a certificate, long-form
+    lengths and a marker inside a comment, and refused a last block with no END that Python
+    took). It now states the rule of slamreloc.io.pem.certificates_der: on generated files,
+    each is refused by one client exactly when the other refuses it."""
+    pytest.importorskip("cryptography")
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from slamreloc.io.pem import pem_problem
+    from tests.test_round18 import der, make_certificate
+
+    pieces = _ca_pieces(*(der(make_certificate(f"c{i}")[0]) for i in range(2)))
+    folder = tmp_path_factory.mktemp("ca_rule")
+    (folder / "seq").mkdir()
+    port = _closed_port()
+
+    @settings(max_examples=60, deadline=None, database=None)
+    @given(st.lists(st.sampled_from(sorted(pieces)), min_size=1, max_size=4))
+    def check(names):
+        data = b"".join(pieces[n] for n in names)
+        (folder / "ca.pem").write_bytes(data)
+        done = run_client(client_binary, "--server", f"127.0.0.1:{port}", "--timeout", "2",
+                          "--tls-ca", str(folder / "ca.pem"), str(folder / "seq"))
+        refused = "--tls-ca is not a PEM certificate" in done.stderr
+        problem = pem_problem(data, "certificate")
+        assert refused == (problem is not None), (names, problem, done.stderr)
+        assert "pass phrase" not in done.stderr
+
+    check()

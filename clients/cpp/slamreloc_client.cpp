@@ -486,36 +486,157 @@ std::vector<fs::path> sequence_images(const fs::path& dir) {
   return images;
 }
 
-// The trusted certificate(s) of --tls-ca: a PEM file, as slamreloc.io.pem checks it: every
-// CERTIFICATE block parses as an X.509 certificate (OpenSSL here, `cryptography` there).
+// --tls-ca's PEM rule, the one slamreloc.io.pem.certificates_der states (read there), so that
+// both clients refuse the same files: lines end at "\n" (then "\r" and trailing blanks are
+// dropped); text outside blocks is skipped; "-----BEGIN LABEL-----" opens a block that
+// "-----END LABEL-----" must close; a marker after other text is refused; blocks of other
+// labels are skipped but must be base64 after their "Name: value" headers; a TRUSTED
+// CERTIFICATE is refused; a certificate block holds base64 only (no headers) and decodes to
+// one X.509 certificate in strict DER; the file holds at least one.
+bool ascii_space(char c) {
+  return c == ' ' || c == '\t' || c == '\n' || c == '\r' || c == '\v' || c == '\f';
+}
+
+std::string without_blanks(const std::string& text) {
+  std::string out;
+  for (char c : text)
+    if (!ascii_space(c)) out += c;
+  return out;
+}
+
+// The bytes of base64 `text` (blanks removed already); nullopt where it is not base64: other
+// characters, padding anywhere but at the end or over two, a length not a multiple of 4.
+std::optional<std::string> base64_bytes(const std::string& text) {
+  static const std::string alphabet =
+      "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+  const size_t data_end = text.find_last_not_of('=') + 1;
+  const size_t padding = text.size() - data_end;
+  if (text.empty() || text.size() % 4 != 0 || padding > 2) return std::nullopt;
+  std::string out;
+  unsigned value = 0;
+  int bits = 0;
+  for (size_t i = 0; i < data_end; ++i) {
+    const size_t digit = alphabet.find(text[i]);
+    if (digit == std::string::npos) return std::nullopt;
+    value = (value << 6) | static_cast<unsigned>(digit);
+    bits += 6;
+    if (bits >= 8) {
+      bits -= 8;
+      out += static_cast<char>((value >> bits) & 0xFF);
+    }
+  }
+  return out;
+}
+
+bool starts_with(const std::string& s, const std::string& prefix) {
+  return s.compare(0, prefix.size(), prefix) == 0;
+}
+
+// The LABEL of a marker line "PREFIX LABEL-----" (ASCII letters, digits and spaces).
+std::optional<std::string> marker_label(const std::string& line, const std::string& prefix) {
+  const std::string rest = line.substr(prefix.size());
+  if (rest.size() <= 5 || rest.compare(rest.size() - 5, 5, "-----") != 0) return std::nullopt;
+  const std::string label = rest.substr(0, rest.size() - 5);
+  bool any = false;
+  for (char c : label) {
+    if (c == ' ') continue;
+    if (!std::isalnum(static_cast<unsigned char>(c)) || static_cast<unsigned char>(c) > 127)
+      return std::nullopt;
+    any = true;
+  }
+  if (!any) return std::nullopt;
+  return label;
+}
+
+// The trusted certificate(s) of --tls-ca, checked by the rule above (never by OpenSSL's PEM
+// reader, which would prompt for a pass phrase on an encrypted-looking block).
 std::string read_tls_ca(const fs::path& path) {
   std::string pem = read_file(path, "--tls-ca", kMaxPemBytes);
   const std::string name = path.string() + ": --tls-ca is not a PEM certificate";
+  auto refuse = [&](const std::string& why) { throw Error(name + " (" + why + ")"); };
   if (pem.rfind("\xEF\xBB\xBF", 0) == 0)
-    throw Error(name + " (it starts with a UTF-8 byte-order mark, which gRPC's TLS does not "
-                       "read: save it without)");
-  if (pem.find("-----BEGIN CERTIFICATE-----") == std::string::npos)
-    throw Error(name + " (no 'BEGIN CERTIFICATE' block)");
-  std::unique_ptr<BIO, decltype(&BIO_free)> bio(
-      BIO_new_mem_buf(pem.data(), static_cast<int>(pem.size())), &BIO_free);
-  if (!bio) throw Error(path.string() + ": --tls-ca: out of memory");
-  ERR_clear_error();
-  for (int n = 1;; ++n) {
-    X509* cert = PEM_read_bio_X509(bio.get(), nullptr, nullptr, nullptr);
-    if (cert != nullptr) {
-      X509_free(cert);
+    refuse("it starts with a UTF-8 byte-order mark, which gRPC's TLS does not read: save it "
+           "without");
+  std::optional<std::string> label;
+  size_t opened = 0, number = 0, certificates = 0;
+  std::vector<std::string> body;
+  for (size_t pos = 0; pos <= pem.size();) {
+    size_t nl = pem.find('\n', pos);
+    if (nl == std::string::npos) nl = pem.size();
+    std::string line = pem.substr(pos, nl - pos);
+    pos = nl + 1;
+    ++number;
+    const std::string at = "line " + std::to_string(number);
+    while (!line.empty() && line.back() == '\r') line.pop_back();
+    while (!line.empty() && (line.back() == ' ' || line.back() == '\t')) line.pop_back();
+    const bool begin = starts_with(line, "-----BEGIN "), end = starts_with(line, "-----END ");
+    if (!begin && !end &&
+        (line.find("-----BEGIN ") != std::string::npos ||
+         line.find("-----END ") != std::string::npos))
+      refuse(at + " holds a PEM marker after other text");
+    if (!label) {
+      if (end) refuse(at + " ends a block that no BEGIN line opened");
+      if (begin) {
+        label = marker_label(line, "-----BEGIN ");
+        if (!label) refuse(at + " is not a PEM marker line ('-----BEGIN LABEL-----')");
+        if (*label == "TRUSTED CERTIFICATE")
+          refuse(at + " opens a TRUSTED CERTIFICATE block, which TLS here does not read: write "
+                      "it as a CERTIFICATE (openssl x509 -in FILE -out NEW)");
+        opened = number;
+        body.clear();
+      }
       continue;
     }
-    const unsigned long err = ERR_peek_last_error();
-    if (n > 1 && ERR_GET_LIB(err) == ERR_LIB_PEM && ERR_GET_REASON(err) == PEM_R_NO_START_LINE) {
-      ERR_clear_error();  // no further certificate: every one read
-      return pem;
+    const std::string block = "block at line " + std::to_string(opened);
+    if (begin) refuse(at + " opens a block inside the one opened at line " + std::to_string(opened));
+    if (!end) {
+      body.push_back(line);
+      continue;
     }
-    char reason[256];
-    ERR_error_string_n(err, reason, sizeof reason);
-    ERR_clear_error();
-    throw Error(name + " (certificate " + std::to_string(n) + " cannot be read: " + reason + ")");
+    const std::optional<std::string> closing = marker_label(line, "-----END ");
+    if (!closing) refuse(at + " is not a PEM marker line ('-----END LABEL-----')");
+    if (*closing != *label)
+      refuse(at + " ends '" + *closing + "', but line " + std::to_string(opened) + " opened '" +
+             *label + "'");
+    const bool certificate = *label == "CERTIFICATE" || *label == "X509 CERTIFICATE";
+    std::string text;
+    for (const std::string& l : body) {
+      if (l.find(':') != std::string::npos) {
+        if (certificate)
+          refuse("the certificate " + block + " has PEM headers (an encrypted or annotated "
+                 "block), which a certificate never has");
+        continue;
+      }
+      text += without_blanks(l);
+    }
+    const std::optional<std::string> der = base64_bytes(text);
+    if (!der) refuse("the " + (certificate ? std::string("certificate") : *label) + " " + block +
+                     " is not base64");
+    if (certificate) {
+      const auto* start = reinterpret_cast<const unsigned char*>(der->data());
+      const unsigned char* p = start;
+      std::unique_ptr<X509, decltype(&X509_free)> cert(
+          d2i_X509(nullptr, &p, static_cast<long>(der->size())), &X509_free);
+      ERR_clear_error();
+      if (!cert) refuse("the certificate " + block + " is not an X.509 certificate");
+      if (p != start + der->size())
+        refuse("the certificate " + block + " is not an X.509 certificate (" +
+               std::to_string(start + der->size() - p) + " bytes after it)");
+      unsigned char* again = nullptr;
+      const int n = i2d_X509(cert.get(), &again);
+      const bool same = n == static_cast<int>(der->size()) &&
+                        std::memcmp(again, der->data(), der->size()) == 0;
+      OPENSSL_free(again);
+      if (!same)
+        refuse("the certificate " + block + " is not in strict DER (it does not encode back to "
+               "the same bytes)");
+      ++certificates;
+    }
+    label.reset();
   }
+  if (label) refuse("the block opened at line " + std::to_string(opened) + " has no END line");
+  if (certificates == 0) refuse("no 'BEGIN CERTIFICATE' block");
+  return pem;
 }
 
 void print_result(const std::string& name, const v1::LocalizeResponse& r) {

@@ -32,25 +32,128 @@ def check_pem(data: bytes, what: str, setting: str, path: Path | None = None) ->
 
 def pem_problem(data: bytes, what: str) -> str | None:
     """Why `data` is not a PEM `what` ("private key" or "certificate"), or None."""
-    marker = b"PRIVATE KEY-----" if what == "private key" else b"-----BEGIN CERTIFICATE-----"
     if data.startswith(b"\xef\xbb\xbf"):  # Python's parsers skip it, gRPC's TLS does not
         return ("it starts with a UTF-8 byte-order mark, which gRPC's TLS does not read: save "
                 "it without")
-    if marker not in data:
-        return "no " + ("'PRIVATE KEY'" if what == "private key" else "'BEGIN CERTIFICATE'") \
-            + " block"
+    if what != "private key":
+        try:
+            certificates_der(data)
+        except ValueError as err:
+            return str(err)
+        return None
+    if b"PRIVATE KEY-----" not in data:
+        return "no 'PRIVATE KEY' block"
     try:
-        from cryptography import x509
         from cryptography.hazmat.primitives.serialization import load_pem_private_key
     except ImportError:
         return None
     try:
-        if what == "private key":
-            load_pem_private_key(data, password=None)
-        else:
-            x509.load_pem_x509_certificates(data)
+        load_pem_private_key(data, password=None)
     except (ValueError, TypeError) as err:  # cryptography's parse errors
         return " ".join(str(err).split())[:200] or type(err).__name__
     except Exception as err:  # noqa: BLE001 - an unsupported algorithm, a Rust-side error
         return f"{type(err).__name__}: {' '.join(str(err).split())[:200]}"
     return None
+
+
+# The labels of a certificate's PEM block (OpenSSL reads both as one); a TRUSTED CERTIFICATE
+# (OpenSSL's certificate with trust settings) is refused by name: TLS here does not read it.
+CERTIFICATE_LABELS = ("CERTIFICATE", "X509 CERTIFICATE")
+_BASE64 = frozenset(b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/=")
+
+
+def certificates_der(data: bytes) -> list[bytes]:
+    """The DER bytes of every certificate block of a PEM certificate file, by one rule that
+    the C++ client mirrors (`read_tls_ca`), so that both clients and the server refuse the same
+    files; ValueError saying why (with its line number) otherwise:
+    - lines end at "\n" (a "\r" before it and trailing blanks are dropped); text outside
+      blocks (comments, `openssl x509 -text` output) is skipped;
+    - a line starting "-----BEGIN LABEL-----" opens a block that a line "-----END LABEL-----"
+      of the same label must close; a PEM marker after other text on a line is refused;
+    - blocks of other labels (a private key, a CRL) are skipped, but must be base64 after
+      their headers; a TRUSTED CERTIFICATE is refused;
+    - a certificate block holds base64 only (no "Name: value" headers, which only encrypted
+      or annotated blocks have) and decodes to one X.509 certificate in strict DER (no bytes
+      after it, no long-form lengths: it encodes back to the same bytes);
+    - the file holds at least one certificate."""
+    out: list[bytes] = []
+    label, opened, body = None, 0, []
+    for number, raw in enumerate(data.split(b"\n"), 1):
+        line = raw.rstrip(b"\r").rstrip(b" \t")
+        begin, end = line.startswith(b"-----BEGIN "), line.startswith(b"-----END ")
+        if not (begin or end) and (b"-----BEGIN " in line or b"-----END " in line):
+            raise ValueError(f"line {number} holds a PEM marker after other text")
+        if label is None:
+            if end:
+                raise ValueError(f"line {number} ends a block that no BEGIN line opened")
+            if begin:
+                label, opened, body = _marker_label(line, b"-----BEGIN ", number), number, []
+                if label == "TRUSTED CERTIFICATE":
+                    raise ValueError(f"line {number} opens a TRUSTED CERTIFICATE block, which "
+                                     "TLS here does not read: write it as a CERTIFICATE "
+                                     "(openssl x509 -in FILE -out NEW)")
+            continue
+        if begin:
+            raise ValueError(f"line {number} opens a block inside the one opened at line "
+                             f"{opened}")
+        if not end:
+            body.append(line.strip())
+            continue
+        closing = _marker_label(line, b"-----END ", number)
+        if closing != label:
+            raise ValueError(f"line {number} ends '{closing}', but line {opened} opened "
+                             f"'{label}'")
+        if label in CERTIFICATE_LABELS:
+            out.append(_certificate_der(body, opened))
+        else:  # read as OpenSSL reads every block: headers ("Name: value") aside, base64
+            _base64(b"".join(b"".join(x.split()) for x in body if b":" not in x), label, opened)
+        label = None
+    if label is not None:
+        raise ValueError(f"the block opened at line {opened} has no END line")
+    if not out:
+        raise ValueError("no 'BEGIN CERTIFICATE' block")
+    return out
+
+
+def _marker_label(line: bytes, prefix: bytes, number: int) -> str:
+    """The LABEL of a marker line "PREFIX LABEL-----"; ValueError where it is not one."""
+    label = line[len(prefix):]
+    if not label.endswith(b"-----") or len(label) <= 5 or b"-" * 5 in label[:-5] \
+            or not label[:-5].isascii() or not label[:-5].replace(b" ", b"").isalnum():
+        raise ValueError(f"line {number} is not a PEM marker line ('{prefix.decode()}LABEL-----')")
+    return label[:-5].decode("ascii")
+
+
+def _base64(text: bytes, label: str, opened: int) -> bytes:
+    """The bytes of a block's base64 `text` (blanks removed); ValueError where it is not
+    base64 (other characters, padding misplaced, a length not a multiple of 4)."""
+    import binascii
+
+    padding = len(text) - len(text.rstrip(b"="))
+    if not text or not set(text) <= _BASE64 or len(text) % 4 or padding > 2 \
+            or b"=" in text.rstrip(b"="):
+        raise ValueError(f"the {label} block at line {opened} is not base64")
+    return binascii.a2b_base64(text)
+
+
+def _certificate_der(body: list[bytes], opened: int) -> bytes:
+    """The strict DER certificate of the certificate block opened at line `opened`."""
+    if any(b":" in line for line in body):
+        raise ValueError(f"the certificate block at line {opened} has PEM headers (an encrypted "
+                         "or annotated block), which a certificate never has")
+    der = _base64(b"".join(b"".join(line.split()) for line in body), "certificate", opened)
+    try:
+        from cryptography import x509
+        from cryptography.hazmat.primitives.serialization import Encoding
+    except ImportError:
+        return der
+    try:
+        same = x509.load_der_x509_certificate(der).public_bytes(Encoding.DER) == der
+    except Exception as err:  # noqa: BLE001 - cryptography's parse errors, Rust-side ones
+        reason = " ".join(str(err).split())[:160] or type(err).__name__
+        raise ValueError(f"the certificate block at line {opened} is not an X.509 certificate "
+                         f"({reason})") from None
+    if not same:
+        raise ValueError(f"the certificate block at line {opened} is not in strict DER (it "
+                         "does not encode back to the same bytes)")
+    return der

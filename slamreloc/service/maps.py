@@ -400,8 +400,9 @@ class MapRegistry:
                             continue
                         served, changed = self.reload(name, force=False)
                     except ServiceError as err:
-                        if err.kind != pb.OVERLOADED:  # a load still running: try again later
-                            failed[name] = stamp
+                        if err.kind == pb.OVERLOADED:  # a load or a save of it still runs:
+                            continue  # looked at again next time (its refusal is a client's)
+                        failed[name] = stamp
                         if not self._stop.is_set():
                             report(err.message)
                         continue

@@ -43,7 +43,7 @@ from slamreloc import __version__
 from slamreloc.errors import InputError, OutOfMemory, is_out_of_memory
 from slamreloc.io.address import bind_problem, check_host, is_loopback, listen_address
 from slamreloc.io.fileio import relation, resolved
-from slamreloc.io.pem import read_pem
+from slamreloc.io.pem import certificates_der, read_pem
 from slamreloc.map.format import META
 from slamreloc.map.lock import map_write_lock
 from slamreloc.proto import PROTOCOL
@@ -779,33 +779,45 @@ MIN_RSA_BITS = 2048
 
 
 def certificate_problem(cert: bytes, now=None) -> str | None:
-    """Why no client could complete a TLS handshake with the (first) PEM certificate, or None
-    (also None without the `cryptography` package to tell): not yet valid or expired (at
-    `now`, a UTC datetime, default the present), a key usage that allows no signature (every
-    TLS key exchange here is signed: ECDHE) or an extended key usage without serverAuth, an
-    RSA key under MIN_RSA_BITS or one for RSA-PSS only, an ECDSA key on a curve other than
-    TLS_CURVES or given by explicit parameters, another key type (DSA, EdDSA)."""
+    """Why no client could complete a TLS handshake with the PEM certificate chain (the server's
+    certificate first), or None (also None without the `cryptography` package to tell): any
+    certificate of the chain not yet valid or expired (at `now`, a UTC datetime, default the
+    present) or marking critical an extension TLS verifiers do not handle
+    (`TLS_CRITICAL_EXTENSIONS`); the server's own certificate with a key usage that allows no
+    signature (every TLS key exchange here is signed: ECDHE) or an extended key usage without
+    serverAuth, an RSA key under MIN_RSA_BITS or one for RSA-PSS only, an ECDSA key on a curve
+    other than TLS_CURVES or given by explicit parameters, another key type (DSA, EdDSA)."""
     try:
         from datetime import datetime, timezone
 
         from cryptography import x509
         from cryptography.hazmat.primitives.asymmetric import ec, rsa
-        from cryptography.hazmat.primitives.serialization import Encoding
         from cryptography.x509.oid import ExtendedKeyUsageOID, PublicKeyAlgorithmOID
     except ImportError:
         return None
     try:
-        leaf = x509.load_pem_x509_certificates(cert)[0]
+        chain = [x509.load_der_x509_certificate(der) for der in certificates_der(cert)]
+        leaf = chain[0]
         key = leaf.public_key()
         algorithm = leaf.public_key_algorithm_oid
-        der = leaf.public_bytes(Encoding.DER)
     except Exception:  # noqa: BLE001 - parsed by pem_problem already
         return None
     now = now or datetime.now(timezone.utc)
-    if now < leaf.not_valid_before_utc:
-        return f"not valid before {leaf.not_valid_before_utc:%Y-%m-%d %H:%M} UTC"
-    if now > leaf.not_valid_after_utc:
-        return f"expired on {leaf.not_valid_after_utc:%Y-%m-%d %H:%M} UTC"
+    for number, one in enumerate(chain, 1):
+        which = "" if number == 1 else f"certificate {number} of its chain "
+        if now < one.not_valid_before_utc:
+            return (f"{which and which + 'is '}not valid before "
+                    f"{one.not_valid_before_utc:%Y-%m-%d %H:%M} UTC")
+        if now > one.not_valid_after_utc:
+            return f"{which}expired on {one.not_valid_after_utc:%Y-%m-%d %H:%M} UTC"
+        try:
+            unknown = [e.oid.dotted_string for e in one.extensions
+                       if e.critical and e.oid.dotted_string not in TLS_CRITICAL_EXTENSIONS]
+        except Exception as err:  # noqa: BLE001 - an extension cryptography cannot parse
+            return f"{which or 'it '}cannot be read ({' '.join(str(err).split())[:120]})"
+        if unknown:
+            return (f"{which or 'it '}marks critical an extension TLS clients do not handle "
+                    f"({', '.join(unknown)[:120]}), so they refuse it")
     usage = _extension(leaf, x509.KeyUsage)
     if usage is not None and not usage.digital_signature:
         return ("its key usage (keyUsage) does not allow digitalSignature, which every TLS "
@@ -828,13 +840,28 @@ def certificate_problem(cert: bytes, now=None) -> str | None:
         if key.curve.name not in TLS_CURVES:
             return (f"an ECDSA key on curve {key.curve.name}, which TLS here does not sign with "
                     f"({' or '.join(TLS_CURVES)})")
-        if _explicit_curve(der):
+        if _explicit_curve(leaf.tbs_certificate_bytes):
             return ("its ECDSA key gives its curve by explicit parameters, which gRPC's TLS "
                     "does not take: write the key with the curve's name "
                     f"({' or '.join(TLS_CURVES)})")
         return None
     return (f"its key is {type(key).__name__.replace('PublicKey', '').lstrip('_')}: TLS here takes "
             f"{wanted}")
+
+
+# Extensions that TLS verifiers (OpenSSL, BoringSSL) handle when marked critical: any other
+# critical extension makes them refuse the certificate (RFC 5280, 4.2)
+TLS_CRITICAL_EXTENSIONS = frozenset({
+    "2.5.29.19",  # basicConstraints
+    "2.5.29.15",  # keyUsage
+    "2.5.29.37",  # extendedKeyUsage
+    "2.5.29.17",  # subjectAltName
+    "2.5.29.30",  # nameConstraints
+    "2.5.29.32",  # certificatePolicies
+    "2.5.29.33",  # policyMappings
+    "2.5.29.36",  # policyConstraints
+    "2.5.29.54",  # inhibitAnyPolicy
+})
 
 
 def _extension(cert, kind):
@@ -847,14 +874,28 @@ def _extension(cert, kind):
         return None
 
 
-_EC_PUBLIC_KEY = bytes.fromhex("06072a8648ce3d0201")  # DER: the OID id-ecPublicKey
+def _explicit_curve(tbs: bytes) -> bool:
+    """Whether the certificate's key (its DER tbsCertificate) gives its algorithm's parameters
+    as a SEQUENCE (an ECDSA curve by explicit parameters) rather than a curve's OID."""
 
+    def element(at: int) -> tuple[int, int]:  # (where its value starts, where it ends)
+        size = tbs[at + 1]
+        if size < 0x80:
+            return at + 2, at + 2 + size
+        n = size & 0x7F
+        return at + 2 + n, at + 2 + n + int.from_bytes(tbs[at + 2:at + 2 + n], "big")
 
-def _explicit_curve(der: bytes) -> bool:
-    """Whether the certificate's (DER) ECDSA key names its curve by explicit parameters (a
-    SEQUENCE after id-ecPublicKey), not by the curve's OID."""
-    at = der.find(_EC_PUBLIC_KEY)
-    return at >= 0 and der[at + len(_EC_PUBLIC_KEY):at + len(_EC_PUBLIC_KEY) + 1] == b"\x30"
+    try:
+        at = element(0)[0]  # into tbsCertificate
+        if tbs[at] == 0xA0:  # [0] version
+            at = element(at)[1]
+        for _ in range(5):  # serialNumber, signature, issuer, validity, subject
+            at = element(at)[1]
+        algorithm = element(at)[0]  # subjectPublicKeyInfo -> its AlgorithmIdentifier
+        after_oid = element(element(algorithm)[0])[1]
+        return tbs[after_oid] == 0x30
+    except IndexError:
+        return False
 
 
 def pair_problem(key: bytes, cert: bytes) -> str | None:
@@ -867,7 +908,7 @@ def pair_problem(key: bytes, cert: bytes) -> str | None:
         return None
     try:
         public = serialization.load_pem_private_key(key, password=None).public_key()
-        leaf = x509.load_pem_x509_certificates(cert)[0].public_key()
+        leaf = x509.load_der_x509_certificate(certificates_der(cert)[0]).public_key()
         fmt = (serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo)
         if public.public_bytes(*fmt) != leaf.public_bytes(*fmt):
             return "their public keys differ"
