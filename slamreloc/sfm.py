@@ -56,6 +56,20 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".jpe", ".jfif", ".bmp", ".dib", ".ti
                   ".ppm", ".pgm", ".pbm", ".pnm")
 UNREAD_IMAGE_SUFFIXES = (".webp", ".gif", ".heic", ".heif", ".avif", ".jp2", ".jxl", ".dng",
                          ".cr2", ".nef", ".arw", ".raw")
+# the first bytes of the formats COLMAP reads (PNG, JPEG, BMP, TIFF, PNM): a photo is taken by
+# its content, not its name, since OpenCV (every other reader here) decodes more
+COLMAP_IMAGE_MAGIC = (b"\x89PNG\r\n\x1a\n", b"\xff\xd8\xff", b"BM", b"II*\x00", b"MM\x00*",
+                      b"P1", b"P2", b"P3", b"P4", b"P5", b"P6")
+# formats OpenCV or a camera may give under another name, recognised to say which
+OTHER_IMAGE_FORMATS = (
+    ("WebP", lambda d: d[:4] == b"RIFF" and d[8:12] == b"WEBP"),
+    ("GIF", lambda d: d[:4] == b"GIF8"),
+    ("HEIC/AVIF", lambda d: d[4:8] == b"ftyp"),
+    ("JPEG 2000", lambda d: d.startswith((b"\x00\x00\x00\x0cjP  ", b"\xff\x4f\xff\x51"))),
+    ("JPEG XL", lambda d: d.startswith((b"\xff\x0a", b"\x00\x00\x00\x0cJXL "))),
+    ("OpenEXR", lambda d: d[:4] == b"\x76\x2f\x31\x01"),
+    ("Radiance HDR", lambda d: d.startswith((b"#?RADIANCE", b"#?RGBE"))),
+)
 MATCHING = ("auto", "sequential", "exhaustive")
 MAPPERS = ("auto", "global", "incremental")
 EXHAUSTIVE_UP_TO = 60  # images; beyond, "auto" matches sequentially
@@ -359,6 +373,12 @@ def checked_image(path: Path) -> tuple[bytes, np.ndarray]:
     from slamreloc.io.images import decode_rgb
 
     data = read_bytes(path, "image", "max_image_bytes")
+    if not data.startswith(COLMAP_IMAGE_MAGIC):  # named .jpg, but a WebP (a web download)
+        kind = next((name for name, test in OTHER_IMAGE_FORMATS if test(data)), None)
+        what = f"a {kind} image" if kind else "not a PNG, JPEG, BMP, TIFF or PNM image"
+        raise InputError(f"{path}: {what} by its content (whatever its name), a format sfm "
+                         "does not read (PNG, JPEG, BMP, TIFF and PNM are read): convert it, "
+                         "or move it out")
     return data, decode_rgb(data, path)  # `check_encoded_image`'s rules, every reader's
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import base64
 from datetime import datetime, timedelta, timezone
+from pathlib import Path
 
 import pytest
 from hypothesis import given, settings
@@ -181,3 +182,100 @@ def test_a_tls_certificate_with_pem_headers_is_refused_in_one_line(tmp_path):
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and "has PEM headers" in lines[0], err
     assert str(tmp_path / "cert.pem") in lines[0]
+
+
+# ---- CLI side ----------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny_map(tmp_path_factory) -> Path:
+    return _tiny_map(tmp_path_factory.mktemp("round18") / "map")
+
+
+def test_a_trajectory_of_no_poses_is_shown_as_an_empty_layer(small_map, tmp_path):
+    """R1: round 17's Q5 let view read a trajectory of no poses (a session that never
+    anchored writes one), but drawing it ended in viser's AssertionError (a traceback). It is
+    a layer that says it has no poses."""
+    import socket
+
+    from slamreloc.viewer import ViewerInputs, build_scene, load_scene_data, make_server
+
+    empty = tmp_path / "t.tum"
+    empty.write_text("# timestamp tx ty tz qx qy qz qw\n")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = make_server("127.0.0.1", port)
+    try:
+        handles = build_scene(server, load_scene_data(ViewerInputs(small_map.root,
+                                                                   trajectories=[empty])))
+        names = list(handles.layers)
+        handles.stop()
+    finally:
+        server.stop()
+    assert "estimate: t (no poses)" in names, names
+
+
+@pytest.mark.parametrize("args", [
+    ["export", "{map}", "--tum", "{loop}"],
+    ["export", "{map}", "--colmap", "{loop}"],
+    ["export", "{map}", "--tum", "{loop}/x.tum"],
+    ["map", "{scene}", "--out", "{loop}"],
+    ["evaluate", "{map}", "{loop}", "--report", "{tmp}/r.json"],
+    ["evaluate", "{map}", "{scene}", "--poses", "{loop}", "--report", "{tmp}/r.json"],
+    ["demo", "--workdir", "{loop}", "--no-viewer"],
+])
+def test_a_symbolic_link_loop_at_an_input_or_output_is_one_line(tiny_map, scene_dir, tmp_path,
+                                                                args):
+    """R2: a link loop at an output path (or an input compared with the outputs) ended in
+    `RuntimeError: Symlink loop` (a traceback, exit 1) from every writing command."""
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop.name)
+    argv = [a.format(map=tiny_map, loop=loop, scene=scene_dir, tmp=tmp_path) for a in args]
+    code, err = run_cli(argv)
+    lines = err.strip().splitlines()
+    assert code == 2 and "Traceback" not in err and lines[-1].startswith(f"error: {loop}"), err
+    assert "symbolic link" in lines[-1], lines[-1]
+
+
+@pytest.mark.parametrize("name", ["report.json", "report_pseudo_label.json",
+                                  "report_regressor.json", "poses_matching.txt",
+                                  "trajectory_slam.names.txt", "map_updated"])
+def test_demo_refuses_a_users_file_at_any_of_its_outputs_before_any_work(tmp_path, name):
+    """R3: demo replaced a user's report.json and report_pseudo_label.json in its workdir
+    unchecked, and refused a user's report_regressor.json only after rendering and training.
+    Every demo output is checked by its command's rule before the scene is rendered."""
+    workdir = tmp_path / "w"
+    workdir.mkdir()
+    user = workdir / name
+    if name == "map_updated":
+        user.mkdir()
+        (user / "notes.txt").write_text("mine")
+        user = user / "notes.txt"
+    else:
+        user.write_text('{"mine": "user data"}\n')
+    code, err = run_cli(["demo", "--workdir", str(workdir), "--no-viewer"], hang_s=120)
+    assert code == 2 and f"the demo's {name.replace('.names.txt', '.txt')}" in err, err
+    assert user.read_text().startswith(("mine", '{"mine"'))
+    assert not (workdir / "scene").exists()  # nothing rendered
+
+
+def test_sfm_refuses_a_webp_photo_named_as_a_jpeg(tmp_path):
+    """R4: the WebP refusal of round 17 went by the name; a WebP saved as .jpg (a web
+    download) was read by OpenCV, then dropped by COLMAP as "not registered". Photos are
+    taken by content."""
+    import cv2
+    import numpy as np
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    image = np.random.default_rng(0).integers(0, 255, (48, 64, 3), np.uint8)
+    for i in range(3):
+        cv2.imwrite(str(photos / f"p{i}.png"), image)
+    ok, webp = cv2.imencode(".webp", image)
+    assert ok
+    (photos / "p3.jpg").write_bytes(webp.tobytes())
+    code, err = run_cli(["sfm", str(photos), "--out", str(tmp_path / "o")])
+    assert code == 2 and err.strip().splitlines()[-1] == (
+        f"error: {photos / 'p3.jpg'}: a WebP image by its content (whatever its name), a "
+        "format sfm does not read (PNG, JPEG, BMP, TIFF and PNM are read): convert it, or "
+        "move it out"), err
+    assert not (tmp_path / "o").exists()

@@ -175,6 +175,8 @@ def add_trajectory(server, traj: Trajectory, key: str, g: Geometry) -> Trajector
     pos = traj.positions
     color = palette.GROUND_TRUTH if traj.kind == "groundtruth" else palette.ESTIMATE
     base = f"/trajectories/{key}"
+    if len(pos) == 0:  # a session that never anchored writes one: a layer with nothing to show
+        return TrajectoryNodes(Layer(f"{traj.kind}: {traj.name} (no poses)", []))
     if len(pos) >= 2:
         plain = server.scene.add_line_segments(f"{base}/line", polyline_segments(pos), color,
                                                thickness=2.5, thickness_units="screen")

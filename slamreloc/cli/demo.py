@@ -87,6 +87,35 @@ def pseudo_label_stage(workdir: Path, map_dir: Path, dataset,
     return [after, *rows]
 
 
+# what the demo writes in its workdir, besides the rendered scene (`render_scene` checks that)
+DEMO_REPORTS = ("report.json", "report_regressor.json", "report_matching.json",
+                "report_slam.json", "report_pseudo_label.json", "report_kidnap_before.json",
+                "report_kidnap_after.json", "report_updated.json")
+DEMO_TRAJECTORIES = ("poses_regressor.txt", "poses_matching.txt", "trajectory_slam.txt")
+DEMO_MAPS = ("map", "map_updated")
+
+
+def check_demo_outputs(workdir: Path) -> None:
+    """Every output the demo writes in `workdir` checked before any work, by the rules of the
+    commands that write them (a user's file of one of those names is refused, not replaced
+    at the end of its stage)."""
+    from slamreloc.datasets.poses import NAMES_FILE, TUM_FILE
+    from slamreloc.map.format import is_map
+
+    outputs, files = {}, {}
+    for name in DEMO_REPORTS:
+        outputs[f"the demo's {name}"] = workdir / name
+        files[f"the demo's {name}"] = jobs.REPORT_FILE
+    for name in DEMO_TRAJECTORIES:
+        outputs[f"the demo's {name}"] = workdir / name
+        files[f"the demo's {name}"] = TUM_FILE
+        outputs[f"the demo's {name} names file"] = jobs.sidecar(workdir / name)
+        files[f"the demo's {name} names file"] = NAMES_FILE
+    maps = {f"the demo's {name}": (is_map, "a slamreloc map") for name in DEMO_MAPS}
+    outputs.update({f"the demo's {name}": workdir / name for name in DEMO_MAPS})
+    check_outputs(outputs, {}, folders=maps, files=files)
+
+
 def run_demo(workdir: Path, viewer: bool = True, port: int = 8080,
              map_config: MapConfig = DEMO_MAP, scene_config: SceneConfig = SceneConfig()) -> dict:
     """The stages `slamreloc demo --help` lists, each under a header saying what it does;
@@ -94,6 +123,7 @@ def run_demo(workdir: Path, viewer: bool = True, port: int = 8080,
     workdir = Path(workdir)
     # a folder (a previous demo's is reused), never under a file: one line before any work
     check_outputs({"--workdir": workdir}, {}, folders=("--workdir",))
+    check_demo_outputs(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     counts = scene_config.counts()

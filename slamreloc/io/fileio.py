@@ -3,6 +3,7 @@ following what it must not; what is at a path, in words. (Writing outputs: `outp
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
 import stat
@@ -132,7 +133,18 @@ def file_kind(mode: int) -> str:
     return ("a folder" if stat.S_ISDIR(mode) else "a file" if stat.S_ISREG(mode)
             else "a named pipe" if stat.S_ISFIFO(mode)
             else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
-            else "a socket" if stat.S_ISSOCK(mode) else "something else")
+            else "a socket" if stat.S_ISSOCK(mode)
+            # an lstat's mode: `stat_or_none` gives it where the link cannot be followed
+            else "a symbolic link loop" if stat.S_ISLNK(mode) else "something else")
+
+
+def is_link_loop(path: Path) -> bool:
+    """Whether following the symbolic links at `path` goes round in a loop."""
+    try:
+        os.stat(path)
+    except OSError as err:
+        return err.errno == errno.ELOOP
+    return False
 
 
 def stat_or_none(path: Path) -> os.stat_result | None:

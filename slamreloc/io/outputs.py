@@ -18,7 +18,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import file_kind, relation, stat_or_none
+from slamreloc.io.fileio import file_kind, is_link_loop, relation, resolved, stat_or_none
 
 
 def _own_test(value) -> tuple:
@@ -165,7 +165,7 @@ def check_outputs(outputs: dict[str, str | Path | None],
     regular file either, nor be there at all beside a folder output (`temp_dir_path`). An
     output that is itself a symbolic link is refused (the rename would
     replace the link: `/dev/stdout` is one); links among its parent folders are followed."""
-    ins = {what: Path(p).resolve() for what, p in inputs.items() if p is not None}
+    ins = {what: resolved(p) for what, p in inputs.items() if p is not None}  # loops too
     own = folders if isinstance(folders, dict) else dict.fromkeys(folders, ...)
     working = {}  # the paths each output's writer works in beside it (lock, temporaries)
     for option, out in outputs.items():
@@ -176,7 +176,7 @@ def check_outputs(outputs: dict[str, str | Path | None],
                                 ("old copy", temp_dir_path(out, "old"))) if option in own else
                                (("temporary file", temp_file_path(out)),
                                 ("old copy", temp_file_path(out, "old")))):
-                working[path.resolve()] = f"{option}'s {role}"
+                working[resolved(path)] = f"{option}'s {role}"
     seen: dict[Path, str] = {}
     for option, out in outputs.items():
         if out is None:
@@ -184,7 +184,7 @@ def check_outputs(outputs: dict[str, str | Path | None],
         if str(out) == "-":  # a user's hope for standard output, not a file named "-"
             raise InputError(f"-: {option} must name a path; '-' (standard output) is not "
                              "taken here")
-        target = Path(out).resolve()
+        target = resolved(out)
         if target in working:
             raise InputError(f"{out}: {option} is {working[target]}, which its writer makes "
                              "and removes; write it elsewhere")
@@ -214,8 +214,9 @@ def check_outputs(outputs: dict[str, str | Path | None],
                          if os.path.islink(p) and not p.exists()), None)
         if dangling is not None:  # a folder made there would fail only after the work
             raise InputError(f"{out}: {option} cannot be written there: its parent {dangling} "
-                             f"is a symbolic link to {os.readlink(dangling)[:200]}, which does "
-                             "not exist")
+                             + ("is a symbolic link loop" if is_link_loop(dangling) else
+                                f"is a symbolic link to {os.readlink(dangling)[:200]}, which "
+                                "does not exist"))
         parent = next((p for p in target.parents if p.exists()), None)
         if parent is not None and not parent.is_dir():
             kind = "a file" if parent.is_file() else "not a folder"
