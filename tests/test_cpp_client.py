@@ -378,8 +378,18 @@ def test_rgb_txt_follows_the_tum_readers_rules(client_binary, server, tmp_path, 
 # pieces of a generated CA file: (name, bytes) built from two certificates `a` and `b`
 def _ca_pieces(a: bytes, b: bytes) -> dict[str, bytes]:
     from tests.test_round18 import pem
+    from tests.test_round19 import non_der, parse_der, write_der
 
+    body = pem(a).decode().splitlines(keepends=True)
     return {
+        "a long length inside": pem(write_der(parse_der(a), long_at=8)),
+        **{f"a {form}": pem(non_der(a, form)) for form in (
+            "boolean 01", "false written", "integer padded", "time without seconds")},
+        "a blank in base64": "".join(body[:3] + ["\n"] + body[3:]).encode(),
+        "nul comment": b"# note\x00 here\n", "form feed": b"\x0c\n",
+        "other colon inside": b"-----BEGIN FOO-----\nAAAA\nx:y\n-----END FOO-----\n",
+        "other headers": b"-----BEGIN FOO-----\nA: b\n\nAAAA\n-----END FOO-----\n",
+        "other headers no blank": b"-----BEGIN FOO-----\nA: b\nAAAA\n-----END FOO-----\n",
         "a": pem(a), "b": pem(b), "a wide": pem(a, width=76), "a one line": pem(a, width=4096),
         "a x509 label": pem(a, "X509 CERTIFICATE"), "a trailing": pem(a + b"\x00\x01"),
         "a headers": pem(a, headers="Proc-Type: 4,ENCRYPTED\nDEK-Info: AES-128-CBC,00\n\n"),
@@ -408,12 +418,17 @@ def test_the_two_clients_read_ca_files_by_one_rule(client_binary, tmp_path_facto
     from slamreloc.io.pem import pem_problem
     from tests.test_round18 import der, make_certificate
 
-    pieces = _ca_pieces(*(der(make_certificate(f"c{i}")[0]) for i in range(2)))
+    from cryptography import x509
+
+    extensions = [(x509.BasicConstraints(ca=False, path_length=None), True),
+                  (x509.SubjectKeyIdentifier(b"\x01" * 20), False)]
+    pieces = _ca_pieces(der(make_certificate("c0", extensions=extensions)[0]),
+                        der(make_certificate("c1")[0]))
     folder = tmp_path_factory.mktemp("ca_rule")
     (folder / "seq").mkdir()
     port = _closed_port()
 
-    @settings(max_examples=60, deadline=None, database=None)
+    @settings(max_examples=80, deadline=None, database=None)
     @given(st.lists(st.sampled_from(sorted(pieces)), min_size=1, max_size=4))
     def check(names):
         data = b"".join(pieces[n] for n in names)

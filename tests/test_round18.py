@@ -279,3 +279,57 @@ def test_sfm_refuses_a_webp_photo_named_as_a_jpeg(tmp_path):
         "format sfm does not read (PNG, JPEG, BMP, TIFF and PNM are read): convert it, or "
         "move it out"), err
     assert not (tmp_path / "o").exists()
+
+
+def test_an_os_error_names_its_file_first(tiny_map, scene_dir, tmp_path, monkeypatch):
+    """Round 18 (minor): a full disk was `error: [Errno 28] No space left on device: 'fs/mm'`,
+    where every other error line names its file first."""
+    import errno
+
+    from slamreloc.cli import jobs
+
+    def no_space(path, data):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(jobs, "write_json", no_space)
+    report = tmp_path / "r.json"
+    code, err = run_cli(["evaluate", str(tiny_map), str(scene_dir), "--split", "seq-02",
+                         "--method", "matching", "--report", str(report)])
+    assert code == 2 and err.strip().splitlines()[-1] == (
+        f"error: {report}: No space left on device"), err
+
+
+def test_a_json_depth_bound_the_parser_cannot_reach_is_refused(tiny_map, tmp_path):
+    """Round 18 (minor): `--limit max_json_depth=10000` was taken, but the parser stops near
+    1000 levels ("nested too deeply", without the bound's words): the bound is at most 500,
+    and a deeper file is refused by the bound's message whatever its depth."""
+    code, err = run_cli(["--limit", "max_json_depth=10000", "view", str(tiny_map)])
+    assert code == 2 and "at most 500 (the JSON parser itself stops" in err, err
+    for depth in (100, 5000):
+        deep = tmp_path / f"deep{depth}.json"
+        deep.write_text("[" * depth + "]" * depth)
+        code, err = run_cli(["view", str(tiny_map), "--report", str(deep), "--port", "0"])
+        line = err.strip().splitlines()[-1]
+        assert code == 2 and "nested more than 64 levels deep" in line, err
+
+
+@pytest.mark.parametrize("kind", ["fifo", "folder", "user file"])
+def test_a_lock_path_the_writer_would_refuse_is_refused_before_the_work(tiny_map, tmp_path,
+                                                                      kind):
+    """Round 18 (minor): a FIFO, a folder or a user's file at `.NAME.lock` was refused only
+    once the writer took its lock, after the work (`export --colmap` coloured every point
+    first). It is refused with the outputs' checks, and the user's file is kept."""
+    import os
+
+    lock = tmp_path / ".ex.lock"
+    if kind == "fifo":
+        os.mkfifo(lock)
+    elif kind == "folder":
+        lock.mkdir()
+    else:
+        lock.write_text("2024\nbudget\n")
+    code, err = run_cli(["export", str(tiny_map), "--colmap", str(tmp_path / "ex")])
+    assert code == 2 and err.strip().splitlines()[-1].startswith(f"error: {lock}: "), err
+    assert not (tmp_path / "ex").exists()
+    if kind == "user file":
+        assert lock.read_text() == "2024\nbudget\n"

@@ -488,11 +488,12 @@ std::vector<fs::path> sequence_images(const fs::path& dir) {
 
 // --tls-ca's PEM rule, the one slamreloc.io.pem.certificates_der states (read there), so that
 // both clients refuse the same files: lines end at "\n" (then "\r" and trailing blanks are
-// dropped); text outside blocks is skipped; "-----BEGIN LABEL-----" opens a block that
-// "-----END LABEL-----" must close; a marker after other text is refused; blocks of other
-// labels are skipped but must be base64 after their "Name: value" headers; a TRUSTED
-// CERTIFICATE is refused; a certificate block holds base64 only (no headers) and decodes to
-// one X.509 certificate in strict DER; the file holds at least one.
+// dropped); no control character but a tab; text outside blocks is skipped;
+// "-----BEGIN LABEL-----" opens a block that "-----END LABEL-----" must close; a marker after
+// other text is refused; a body is base64 lines with no blank line among them, after (other
+// labels only) "Name: value" headers ended by one blank line; a TRUSTED CERTIFICATE is
+// refused; a certificate block decodes to one X.509 certificate (version 1 or 3) in strict
+// DER; the file holds at least one.
 bool ascii_space(char c) {
   return c == ' ' || c == '\t' || c == '\n' || c == '\r' || c == '\v' || c == '\f';
 }
@@ -548,6 +549,74 @@ std::optional<std::string> marker_label(const std::string& line, const std::stri
   return label;
 }
 
+// Why the DER elements in [p, end) break a rule of DER that OpenSSL's reader lets through
+// (it keeps a certificate's signed part as received), or "": a length not in its shortest
+// form (or indefinite), a BOOLEAN other than 0xFF (a FALSE is a DEFAULT, which DER leaves
+// out), an INTEGER with a redundant leading byte, a time without its seconds and Z.
+// Constructed elements are read through, at most `depth` levels deep.
+std::string der_problem(const unsigned char* p, const unsigned char* end, int depth) {
+  if (depth <= 0) return "nested too deeply";
+  while (p < end) {
+    const unsigned char tag = *p++;
+    if ((tag & 0x1F) == 0x1F) return "a tag in the long form";
+    if (p >= end) return "an element cut short";
+    size_t size = *p++;
+    if (size == 0x80) return "an indefinite length";
+    if (size > 0x80) {
+      const size_t bytes = size & 0x7F;
+      if (bytes > 4 || static_cast<size_t>(end - p) < bytes) return "a length cut short";
+      if (*p == 0) return "a length not in its shortest form";
+      size = 0;
+      for (size_t i = 0; i < bytes; ++i) size = (size << 8) | *p++;
+      if (size < 0x80) return "a length not in its shortest form";
+    }
+    if (size > static_cast<size_t>(end - p)) return "an element cut short";
+    const unsigned char* value = p;
+    p += size;
+    if (tag & 0x20) {
+      const std::string inner = der_problem(value, p, depth - 1);
+      if (!inner.empty()) return inner;
+    } else if (tag == 0x01 && (size != 1 || value[0] != 0xFF)) {
+      return size == 1 && value[0] == 0 ? "a BOOLEAN FALSE written out, which DER leaves out"
+                                        : "a BOOLEAN TRUE not written as 0xFF";
+    } else if (tag == 0x02 && (size == 0 || (size > 1 && ((value[0] == 0 && !(value[1] & 0x80)) ||
+                                                         (value[0] == 0xFF && (value[1] & 0x80)))))) {
+      return "an INTEGER not in its shortest form";
+    } else if ((tag == 0x17 && size != 13) || (tag == 0x18 && size != 15) ||
+               ((tag == 0x17 || tag == 0x18) && value[size - 1] != 'Z')) {
+      return "a time not written with its seconds and Z";
+    }
+  }
+  return "";
+}
+
+// Why `der` is not one X.509 certificate (version 1 or 3) in strict DER, or "": bytes after
+// it, a form DER forbids (`der_problem`), a version 1 written out or a version 2 or 4.
+std::string strict_der_certificate_problem(const std::string& der) {
+  const auto* start = reinterpret_cast<const unsigned char*>(der.data());
+  const unsigned char* p = start;
+  std::unique_ptr<X509, decltype(&X509_free)> cert(
+      d2i_X509(nullptr, &p, static_cast<long>(der.size())), &X509_free);
+  ERR_clear_error();
+  if (!cert) return "is not an X.509 certificate";
+  if (p != start + der.size())
+    return "is not an X.509 certificate (" + std::to_string(start + der.size() - p) +
+           " bytes after it)";
+  const std::string problem = der_problem(start, start + der.size(), 32);
+  if (!problem.empty()) return "is not in strict DER (" + problem + ")";
+  const long version = X509_get_version(cert.get());
+  // the signed part's first element ([0], 0xA0, where a version is written out); the
+  // lengths are in their shortest form here
+  const size_t outer = 2 + (start[1] & 0x80 ? start[1] & 0x7F : 0);
+  const size_t tbs = outer + 2 + (start[outer + 1] & 0x80 ? start[outer + 1] & 0x7F : 0);
+  const bool written = tbs < der.size() && start[tbs] == 0xA0;
+  if (version == 1 || version > 2 || (written && version != 2))
+    return "is not an X.509 certificate (version " + std::to_string(version + 1) +
+           (written && version == 0 ? " written out, which DER leaves out" : "") +
+           "; versions 1 and 3 are read)";
+  return "";
+}
+
 // The trusted certificate(s) of --tls-ca, checked by the rule above (never by OpenSSL's PEM
 // reader, which would prompt for a pass phrase on an encrypted-looking block).
 std::string read_tls_ca(const fs::path& path) {
@@ -569,6 +638,12 @@ std::string read_tls_ca(const fs::path& path) {
     const std::string at = "line " + std::to_string(number);
     while (!line.empty() && line.back() == '\r') line.pop_back();
     while (!line.empty() && (line.back() == ' ' || line.back() == '\t')) line.pop_back();
+    for (unsigned char c : line)
+      if ((c < 0x20 && c != '\t') || c == 0x7F) {
+        char hex[8];
+        std::snprintf(hex, sizeof hex, "0x%02x", c);
+        refuse(at + " holds a control character (" + hex + ")");
+      }
     const bool begin = starts_with(line, "-----BEGIN "), end = starts_with(line, "-----END ");
     if (!begin && !end &&
         (line.find("-----BEGIN ") != std::string::npos ||
@@ -590,7 +665,8 @@ std::string read_tls_ca(const fs::path& path) {
     const std::string block = "block at line " + std::to_string(opened);
     if (begin) refuse(at + " opens a block inside the one opened at line " + std::to_string(opened));
     if (!end) {
-      body.push_back(line);
+      const size_t first = line.find_first_not_of(" \t");
+      body.push_back(first == std::string::npos ? std::string() : line.substr(first));
       continue;
     }
     const std::optional<std::string> closing = marker_label(line, "-----END ");
@@ -599,37 +675,33 @@ std::string read_tls_ca(const fs::path& path) {
       refuse(at + " ends '" + *closing + "', but line " + std::to_string(opened) + " opened '" +
              *label + "'");
     const bool certificate = *label == "CERTIFICATE" || *label == "X509 CERTIFICATE";
+    const std::string what = "the " + (certificate ? std::string("certificate") : *label) + " " +
+                             block;
+    // "Name: value" headers first (other blocks only), ended by one blank line; then base64
+    // lines with no blank line among them
+    auto has_colon = [](const std::string& l) { return l.find(':') != std::string::npos; };
+    size_t from = 0;
+    if (std::any_of(body.begin(), body.end(), has_colon)) {
+      if (certificate)
+        refuse(what + " has PEM headers (an encrypted or annotated block), which a certificate "
+                      "never has");
+      const auto blank = std::find(body.begin(), body.end(), std::string());
+      if (blank == body.end()) refuse(what + " has headers with no blank line after them");
+      if (!std::all_of(body.begin(), blank, has_colon) ||
+          std::any_of(blank + 1, body.end(), has_colon))
+        refuse(what + " has text with ':' outside its headers");
+      from = static_cast<size_t>(blank - body.begin()) + 1;
+    }
     std::string text;
-    for (const std::string& l : body) {
-      if (l.find(':') != std::string::npos) {
-        if (certificate)
-          refuse("the certificate " + block + " has PEM headers (an encrypted or annotated "
-                 "block), which a certificate never has");
-        continue;
-      }
-      text += without_blanks(l);
+    for (size_t i = from; i < body.size(); ++i) {
+      if (body[i].empty()) refuse(what + " has a blank line inside its base64");
+      text += without_blanks(body[i]);
     }
     const std::optional<std::string> der = base64_bytes(text);
-    if (!der) refuse("the " + (certificate ? std::string("certificate") : *label) + " " + block +
-                     " is not base64");
+    if (!der) refuse(what + " is not base64");
     if (certificate) {
-      const auto* start = reinterpret_cast<const unsigned char*>(der->data());
-      const unsigned char* p = start;
-      std::unique_ptr<X509, decltype(&X509_free)> cert(
-          d2i_X509(nullptr, &p, static_cast<long>(der->size())), &X509_free);
-      ERR_clear_error();
-      if (!cert) refuse("the certificate " + block + " is not an X.509 certificate");
-      if (p != start + der->size())
-        refuse("the certificate " + block + " is not an X.509 certificate (" +
-               std::to_string(start + der->size() - p) + " bytes after it)");
-      unsigned char* again = nullptr;
-      const int n = i2d_X509(cert.get(), &again);
-      const bool same = n == static_cast<int>(der->size()) &&
-                        std::memcmp(again, der->data(), der->size()) == 0;
-      OPENSSL_free(again);
-      if (!same)
-        refuse("the certificate " + block + " is not in strict DER (it does not encode back to "
-               "the same bytes)");
+      const std::string why = strict_der_certificate_problem(*der);
+      if (!why.empty()) refuse(what + " " + why);
       ++certificates;
     }
     label.reset();

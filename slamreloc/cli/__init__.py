@@ -4,6 +4,7 @@ each importing its pipeline only when it runs. Bad input: one line on stderr, ex
 from __future__ import annotations
 
 import contextlib
+import os
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -247,7 +248,7 @@ def main() -> None:
     except (SlamrelocError, ValueError, OSError) as err:
         # one line, whatever the message holds: a line break or a tab (in a library's
         # message, or a file's name) as its escape, never folded (`a  b.tum` is not `a b.tum`)
-        message = with_flags(str(err).strip()) or type(err).__name__
+        message = with_flags(_error_text(err)) or type(err).__name__
         print(f"error: {terminal_line(message)}", file=sys.stderr)
         sys.exit(2)
     except Exception as err:  # an allocation that failed is one line too
@@ -260,6 +261,16 @@ def main() -> None:
         sys.exit(2)
     except KeyboardInterrupt:
         _end_interrupted()
+
+
+def _error_text(err: Exception) -> str:
+    """An error's message; an OSError that names its file as `PATH: reason` (`[Errno 28] No
+    space left on device: 'out/x'` reads `out/x: No space left on device`), as every other
+    error line names what it is about first."""
+    if isinstance(err, OSError) and err.filename is not None and err.strerror:
+        names = [err.filename] + ([err.filename2] if err.filename2 is not None else [])
+        return f"{' -> '.join(os.fsdecode(n) for n in names)}: {err.strerror}"
+    return str(err).strip()
 
 
 def run() -> None:

@@ -16,7 +16,6 @@ import errno
 import fcntl
 import os
 import shutil
-import stat
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -24,7 +23,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.io.outputs import lock_record, write_lock_path, writer_pid
+from slamreloc.io.outputs import (
+    LOCK_HOLDERS,
+    lock_file_refusal,
+    lock_record,
+    write_lock_path,
+    writer_pid,
+)
 
 _HELD: dict[str, int] = {}  # folder -> the thread of this process holding its write lock
 _IN_PROCESS: dict[str, threading.Lock] = {}  # folder -> its lock among this process's threads
@@ -134,10 +139,10 @@ def _flocked(out: Path, what: str) -> Iterator[None]:
         if same:
             break
         os.close(fd)
-    if not _lock_record_or_empty(fd):
+    refusal = lock_file_refusal(out, os.fstat(fd), fd)
+    if refusal is not None:
         os.close(fd)
-        raise InputError(f"{lock}: holds something that is not a slamreloc write lock; "
-                         f"refusing to overwrite it (move it to write {out.name})")
+        raise InputError(refusal)
     try:
         try:
             os.ftruncate(fd, 0)
@@ -165,35 +170,11 @@ def _open_lock(lock: Path, out: Path) -> int:
             raise InputError(f"{lock}: not a regular file (a link, folder or device); "
                              f"refusing to use it as the write lock of {out.name}") from None
         raise
-    info = os.fstat(fd)
-    if not stat.S_ISREG(info.st_mode):
+    refusal = lock_file_refusal(out, os.fstat(fd))  # its record is read once it is held
+    if refusal is not None:
         os.close(fd)
-        raise InputError(f"{lock}: not a regular file (a link, folder or device); refusing "
-                         f"to use it as the write lock of {out.name}")
-    if info.st_nlink != 1:  # a hard link: writing the record would change another file
-        os.close(fd)
-        raise InputError(f"{lock}: a file with {info.st_nlink} names (hard links); refusing "
-                         f"to use it as the write lock of {out.name}")
+        raise InputError(refusal)
     return fd
-
-
-# what a lock records its writer writes (its WHAT)
-LOCK_HOLDERS = ("this map", "this dataset", "this COLMAP model", "this scene")
-
-
-def _lock_record_or_empty(fd: int) -> bool:
-    """Whether the lock file is empty or holds exactly a writer's record ("PID\nWHAT\n", PID
-    as a process id is written, WHAT one of `LOCK_HOLDERS`), as a killed writer leaves it:
-    anything else is a user's file of that name (`2024\nbudget\n`)."""
-    size = os.fstat(fd).st_size
-    if size == 0:
-        return True
-    if size > 256:
-        return False
-    text = os.pread(fd, size, 0)
-    pid, _, what = text.partition(b"\n")
-    return (writer_pid(pid.decode("ascii", "replace"), "") is not None
-            and what.endswith(b"\n") and what[:-1].decode("ascii", "replace") in LOCK_HOLDERS)
 
 
 def _recover(out: Path, debris: Debris) -> None:

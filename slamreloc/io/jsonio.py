@@ -68,9 +68,9 @@ def _finite_float(text: str) -> float:
 def parse_json(data: bytes | str, source, what: str = "JSON") -> Any:
     """A parsed JSON value: InputError (naming `source`) on invalid JSON, NaN / Infinity, a key
     given twice in one object, a number literal that overflows (an integer beyond 64 bits, a
-    float that reads as infinite), nesting deeper than `max_json_depth` (the parser itself
-    stops at Python's recursion limit, ~1000 levels: a RecursionError, refused the same
-    way)."""
+    float that reads as infinite), nesting deeper than `max_json_depth` (at most 500: the
+    parser itself stops at Python's recursion limit, ~1000 levels, with a RecursionError,
+    refused the same way)."""
     lim = limits()
     if len(data) > lim.max_json_bytes:
         raise InputError(f"{source}: {what} of " + over_limit("max_json_bytes",
@@ -78,8 +78,9 @@ def parse_json(data: bytes | str, source, what: str = "JSON") -> Any:
     try:
         value = json.loads(data, parse_constant=_refuse_constant, parse_int=_bounded_int,
                            parse_float=_finite_float, object_pairs_hook=_unique_keys)
-    except RecursionError:
-        raise InputError(f"{source}: {what} is nested too deeply") from None
+    except RecursionError:  # deeper than any max_json_depth may be (LIMIT_MAXIMA)
+        raise InputError(f"{source}: {what} nested more than {lim.max_json_depth} levels "
+                         "deep, " + over_limit("max_json_depth")) from None
     except ValueError as err:  # JSONDecodeError, UnicodeDecodeError, NaN / Infinity
         raise InputError(f"{source}: not valid {what} ({' '.join(str(err).split())[:200]})"
                          ) from None

@@ -50,14 +50,20 @@ def _from_environment() -> InputLimits:
         text = os.environ.get(name)
         if text is None:
             continue
-        overrides[f.name] = whole_limit(text, f"environment variable {name}")
+        overrides[f.name] = whole_limit(text, f"environment variable {name}", f.name)
     return InputLimits(**overrides)
 
 
-def whole_limit(text: str, source: str) -> int:
+# bounds that something else caps below MAX_LIMIT: (the largest value, why)
+LIMIT_MAXIMA = {"max_json_depth": (500, "the JSON parser itself stops near Python's recursion "
+                                        "limit, about 1000 levels")}
+
+
+def whole_limit(text: str, source: str, name: str | None = None) -> int:
     """A bound's value as text (`--limit`, an environment variable): a positive whole number
     by the project's number rule for whole numbers (`slamreloc.io.numbers`: ASCII digits; no
-    exponent, fraction, separator or blank); InputError naming `source`."""
+    exponent, fraction, separator or blank), at most MAX_LIMIT (and LIMIT_MAXIMA's value for
+    the bound `name`); InputError naming `source`."""
     problem = number_problem(text, integer=True)
     if problem:
         raise InputError(f"{source}: {text[:40]!r} is {problem} ({WHOLE_WORDS}; a bound "
@@ -68,6 +74,9 @@ def whole_limit(text: str, source: str) -> int:
     if value > MAX_LIMIT:  # a byte count a read or an allocation can still be asked for
         raise InputError(f"{source}: at most {MAX_LIMIT} (2**48: no input of that size can be "
                          f"read here), got {text[:40]}")
+    if name in LIMIT_MAXIMA and value > LIMIT_MAXIMA[name][0]:
+        top, why = LIMIT_MAXIMA[name]
+        raise InputError(f"{source}: at most {top} ({why}), got {text[:40]}")
     return value
 
 
@@ -128,7 +137,7 @@ def parse_limits(items: list[str]) -> dict[str, int]:
         if not sep or name not in names:
             raise InputError(f"`limit` {item[:80]!r}: expected NAME=VALUE with NAME one of "
                              f"{', '.join(names)}")
-        value = whole_limit(text, f"`limit` {item[:80]!r}")
+        value = whole_limit(text, f"`limit` {item[:80]!r}", name)
         if name in out:
             raise InputError(f"`limit` {name} is given twice ({str(out[name])[:24]} and "
                              f"{str(value)[:24]}): give each bound once")

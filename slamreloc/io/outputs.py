@@ -100,6 +100,64 @@ def lock_record(fd: int, wait_s: float = 1.0) -> tuple[str, str]:
         time.sleep(0.01)
 
 
+# what a lock records its writer writes (its WHAT)
+LOCK_HOLDERS = ("this map", "this dataset", "this COLMAP model", "this scene")
+
+
+def lock_record_or_empty(fd: int) -> bool:
+    """Whether the lock file is empty or holds exactly a writer's record ("PID\nWHAT\n", PID
+    as a process id is written, WHAT one of `LOCK_HOLDERS`), as a killed writer leaves it:
+    anything else is a user's file of that name (`2024\nbudget\n`)."""
+    size = os.fstat(fd).st_size
+    if size == 0:
+        return True
+    if size > 256:
+        return False
+    text = os.pread(fd, size, 0)
+    pid, _, what = text.partition(b"\n")
+    return (writer_pid(pid.decode("ascii", "replace"), "") is not None
+            and what.endswith(b"\n") and what[:-1].decode("ascii", "replace") in LOCK_HOLDERS)
+
+
+def lock_file_refusal(out: str | Path, info: os.stat_result, fd: int | None = None
+                      ) -> str | None:
+    """Why the file at `out`'s lock path (`write_lock_path`; `info` its lstat or fstat, `fd`
+    open on it where its record is to be read) cannot be `out`'s write lock, or None: a link,
+    folder, pipe or device; a file of several names (its record would change another file);
+    a file that is neither empty nor a writer's record (a user's)."""
+    lock, name = write_lock_path(out), Path(out).name
+    if not stat.S_ISREG(info.st_mode):
+        return (f"{lock}: not a regular file (a link, folder or device); refusing to use it "
+                f"as the write lock of {name}")
+    if info.st_nlink != 1:
+        return (f"{lock}: a file with {info.st_nlink} names (hard links); refusing to use it "
+                f"as the write lock of {name}")
+    if fd is not None and not lock_record_or_empty(fd):
+        return (f"{lock}: holds something that is not a slamreloc write lock; refusing to "
+                f"overwrite it (move it to write {name})")
+    return None
+
+
+def lock_file_problem(out: str | Path) -> str | None:
+    """`lock_file_refusal` of what is at `out`'s lock path now, None where nothing is: what
+    the folder's writer would refuse when it takes the lock, said before the work."""
+    lock = write_lock_path(out)
+    try:
+        info = os.lstat(lock)
+    except OSError:
+        return None
+    if not stat.S_ISREG(info.st_mode) or info.st_nlink != 1:
+        return lock_file_refusal(out, info)
+    try:
+        fd = os.open(lock, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError:  # gone meanwhile, or unreadable: the writer says why
+        return None
+    try:
+        return lock_file_refusal(out, os.fstat(fd), fd)
+    finally:
+        os.close(fd)
+
+
 def busy_writer(out: str | Path) -> str | None:
     """`FOLDER: another process (pid N) is writing WHAT; ...` where a live writer (another
     process than this one) holds `out`'s write lock, else None."""
@@ -222,9 +280,9 @@ def check_outputs(outputs: dict[str, str | Path | None],
             kind = "a file" if parent.is_file() else "not a folder"
             raise InputError(f"{out}: {option} cannot be written there: its parent {parent} is "
                              f"{kind}")
-        busy = busy_writer(out)
-        if busy is not None:  # a map (or sfm dataset) being written there right now
-            raise InputError(busy)
+        busy = busy_writer(out) or (lock_file_problem(out) if option in own else None)
+        if busy is not None:  # a map (or sfm dataset) being written there right now, or a
+            raise InputError(busy)  # lock path its writer would refuse
         for what, src in ins.items():
             how = relation(target, src)
             if how is None or how == "lies inside" and not src.is_dir():

@@ -3,6 +3,7 @@ one rule for the server, the Python client and (mirrored) the C++ client."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 from slamreloc.errors import InputError
@@ -23,9 +24,12 @@ def read_pem(path: Path, what: str, setting: str) -> bytes:
 def check_pem(data: bytes, what: str, setting: str, path: Path | None = None) -> bytes:
     """`data` if it is a PEM `what` (`pem_problem`); else InputError naming its `setting`
     (and the file it came from, where it came from one)."""
+    where = f"{path}: " if path is not None else ""
+    if len(data) > MAX_PEM_BYTES:  # given as bytes (the Python client's tls_ca=...)
+        raise InputError(f"{where}`{setting}` is {len(data)} bytes, over the {MAX_PEM_BYTES} a "
+                         f"PEM {what} may hold")
     problem = pem_problem(data, what)
     if problem:
-        where = f"{path}: " if path is not None else ""
         raise InputError(f"{where}`{setting}` is not a PEM {what} ({problem})")
     return data
 
@@ -66,20 +70,24 @@ def certificates_der(data: bytes) -> list[bytes]:
     """The DER bytes of every certificate block of a PEM certificate file, by one rule that
     the C++ client mirrors (`read_tls_ca`), so that both clients and the server refuse the same
     files; ValueError saying why (with its line number) otherwise:
-    - lines end at "\n" (a "\r" before it and trailing blanks are dropped); text outside
-      blocks (comments, `openssl x509 -text` output) is skipped;
+    - lines end at "\n" (a "\r" before it and trailing blanks are dropped); no control
+      character but a tab anywhere (gRPC reads the file as a C string: a NUL ends it);
+      text outside blocks (comments, `openssl x509 -text` output) is skipped;
     - a line starting "-----BEGIN LABEL-----" opens a block that a line "-----END LABEL-----"
       of the same label must close; a PEM marker after other text on a line is refused;
-    - blocks of other labels (a private key, a CRL) are skipped, but must be base64 after
-      their headers; a TRUSTED CERTIFICATE is refused;
-    - a certificate block holds base64 only (no "Name: value" headers, which only encrypted
-      or annotated blocks have) and decodes to one X.509 certificate in strict DER (no bytes
-      after it, no long-form lengths: it encodes back to the same bytes);
+    - a block's body is base64 lines with no blank line among them, after (in blocks of other
+      labels only: a private key, a CRL, which are otherwise skipped) "Name: value" header
+      lines ended by one blank line; a TRUSTED CERTIFICATE is refused;
+    - a certificate block decodes to one X.509 certificate (version 1 or 3) in strict DER (no
+      bytes after it, no long-form lengths or other BER forms, times with their seconds);
     - the file holds at least one certificate."""
     out: list[bytes] = []
     label, opened, body = None, 0, []
     for number, raw in enumerate(data.split(b"\n"), 1):
         line = raw.rstrip(b"\r").rstrip(b" \t")
+        control = next((c for c in line if c < 0x20 and c != 0x09 or c == 0x7F), None)
+        if control is not None:
+            raise ValueError(f"line {number} holds a control character (0x{control:02x})")
         begin, end = line.startswith(b"-----BEGIN "), line.startswith(b"-----END ")
         if not (begin or end) and (b"-----BEGIN " in line or b"-----END " in line):
             raise ValueError(f"line {number} holds a PEM marker after other text")
@@ -103,10 +111,11 @@ def certificates_der(data: bytes) -> list[bytes]:
         if closing != label:
             raise ValueError(f"line {number} ends '{closing}', but line {opened} opened "
                              f"'{label}'")
-        if label in CERTIFICATE_LABELS:
-            out.append(_certificate_der(body, opened))
-        else:  # read as OpenSSL reads every block: headers ("Name: value") aside, base64
-            _base64(b"".join(b"".join(x.split()) for x in body if b":" not in x), label, opened)
+        certificate = label in CERTIFICATE_LABELS
+        text = _body_base64(body, "certificate" if certificate else label, opened,
+                            headers=not certificate)
+        if certificate:
+            out.append(_certificate_der(text, opened))
         label = None
     if label is not None:
         raise ValueError(f"the block opened at line {opened} has no END line")
@@ -136,19 +145,39 @@ def _base64(text: bytes, label: str, opened: int) -> bytes:
     return binascii.a2b_base64(text)
 
 
-def _certificate_der(body: list[bytes], opened: int) -> bytes:
-    """The strict DER certificate of the certificate block opened at line `opened`."""
+def _body_base64(body: list[bytes], label: str, opened: int, headers: bool) -> bytes:
+    """The decoded base64 of a block's body lines (`label` names it in messages): "Name: value"
+    headers first where `headers` allows them, ended by one blank line; then base64 lines,
+    with no blank line among them."""
+    block = f"the {label} block at line {opened}"
     if any(b":" in line for line in body):
-        raise ValueError(f"the certificate block at line {opened} has PEM headers (an encrypted "
-                         "or annotated block), which a certificate never has")
-    der = _base64(b"".join(b"".join(line.split()) for line in body), "certificate", opened)
+        if not headers:
+            raise ValueError(f"{block} has PEM headers (an encrypted or annotated block), "
+                             "which a certificate never has")
+        if b"" not in body:
+            raise ValueError(f"{block} has headers with no blank line after them")
+        blank = body.index(b"")
+        if not all(b":" in line for line in body[:blank]) \
+                or any(b":" in line for line in body[blank + 1:]):
+            raise ValueError(f"{block} has text with ':' outside its headers")
+        body = body[blank + 1:]
+    if b"" in body:
+        raise ValueError(f"{block} has a blank line inside its base64")
+    return _base64(b"".join(b"".join(line.split()) for line in body), label, opened)
+
+
+def _certificate_der(der: bytes, opened: int) -> bytes:
+    """`der` (the certificate block at line `opened`) if it is one X.509 certificate in strict
+    DER."""
     try:
         from cryptography import x509
         from cryptography.hazmat.primitives.serialization import Encoding
     except ImportError:
         return der
     try:
-        same = x509.load_der_x509_certificate(der).public_bytes(Encoding.DER) == der
+        with warnings.catch_warnings():  # a serial number of 0 or below: taken, as OpenSSL does
+            warnings.simplefilter("ignore")
+            same = x509.load_der_x509_certificate(der).public_bytes(Encoding.DER) == der
     except Exception as err:  # noqa: BLE001 - cryptography's parse errors, Rust-side ones
         reason = " ".join(str(err).split())[:160] or type(err).__name__
         raise ValueError(f"the certificate block at line {opened} is not an X.509 certificate "

@@ -783,7 +783,9 @@ def certificate_problem(cert: bytes, now=None) -> str | None:
     certificate first), or None (also None without the `cryptography` package to tell): any
     certificate of the chain not yet valid or expired (at `now`, a UTC datetime, default the
     present) or marking critical an extension TLS verifiers do not handle
-    (`TLS_CRITICAL_EXTENSIONS`); the server's own certificate with a key usage that allows no
+    (`TLS_CRITICAL_EXTENSIONS`), any after the first that may not sign certificates (a
+    version 3 certificate without basicConstraints CA:TRUE, a key usage without
+    keyCertSign); the server's own certificate with a key usage that allows no
     signature (every TLS key exchange here is signed: ECDHE) or an extended key usage without
     serverAuth, an RSA key under MIN_RSA_BITS or one for RSA-PSS only, an ECDSA key on a curve
     other than TLS_CURVES or given by explicit parameters, another key type (DSA, EdDSA)."""
@@ -818,6 +820,15 @@ def certificate_problem(cert: bytes, now=None) -> str | None:
         if unknown:
             return (f"{which or 'it '}marks critical an extension TLS clients do not handle "
                     f"({', '.join(unknown)[:120]}), so they refuse it")
+        if number > 1:  # it signs the one before it: a CA's
+            limits = _extension(one, x509.BasicConstraints)
+            if one.version == x509.Version.v3 and (limits is None or not limits.ca):
+                return (f"{which}may not sign certificates (its basicConstraints do not say "
+                        "CA:TRUE), so clients refuse the chain")
+            usage = _extension(one, x509.KeyUsage)
+            if usage is not None and not usage.key_cert_sign:
+                return (f"{which}may not sign certificates (its key usage does not allow "
+                        "keyCertSign), so clients refuse the chain")
     usage = _extension(leaf, x509.KeyUsage)
     if usage is not None and not usage.digital_signature:
         return ("its key usage (keyUsage) does not allow digitalSignature, which every TLS "

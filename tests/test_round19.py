@@ -1,0 +1,175 @@
+"""Issue 43, attack round 19 (service side): certificate files whose signed part is not strict
+DER (the C++ client's OpenSSL keeps that part as received, so encoding it again proved
+nothing), PEM text gRPC's own reader stops at (a NUL, a blank line inside base64, a ':' line
+outside a block's headers), and chains whose intermediate may not sign certificates."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from slamreloc.io.pem import pem_problem
+from slamreloc.service.server import certificate_problem
+from tests.test_round18 import der, make_certificate, pem
+
+pytest.importorskip("cryptography")
+
+
+# ---- a DER tree, to write a certificate's elements in forms DER forbids -------------------------
+def parse_der(data: bytes) -> list:
+    """DER bytes -> [(tag, children or value bytes)], constructed elements read through."""
+    out, at = [], 0
+    while at < len(data):
+        tag, size = data[at], data[at + 1]
+        at += 2
+        if size & 0x80:
+            n = size & 0x7F
+            size = int.from_bytes(data[at:at + n], "big")
+            at += n
+        value = data[at:at + size]
+        at += size
+        out.append((tag, parse_der(value) if tag & 0x20 else value))
+    return out
+
+
+def write_der(tree: list, long_at: int | None = None, _count: list | None = None) -> bytes:
+    """The tree as DER; the element numbered `long_at` (depth first, from 0) with its length
+    in a long form DER forbids (BER)."""
+    count = [0] if _count is None else _count
+    out = b""
+    for tag, body in tree:
+        index = count[0]
+        count[0] += 1
+        value = write_der(body, long_at, count) if isinstance(body, list) else body
+        n = len(value)
+        if index == long_at:
+            length = b"\x84" + n.to_bytes(4, "big")
+        elif n < 0x80:
+            length = bytes([n])
+        else:
+            raw = n.to_bytes((n.bit_length() + 7) // 8, "big")
+            length = bytes([0x80 | len(raw)]) + raw
+        out += bytes([tag]) + length + value
+    return out
+
+
+def count_elements(tree: list) -> int:
+    return sum(1 + (count_elements(b) if isinstance(b, list) else 0) for _, b in tree)
+
+
+def walk(tree: list):
+    """Every (list holding it, index) of the tree's elements, depth first."""
+    for i, (_, body) in enumerate(tree):
+        yield tree, i
+        if isinstance(body, list):
+            yield from walk(body)
+
+
+def non_der(certificate_der: bytes, form: str) -> bytes:
+    """The certificate with one element written in a form DER forbids (the signature no longer
+    matches: no reader here checks it)."""
+    tree = parse_der(certificate_der)
+    for holder, i in walk(tree):
+        tag, body = holder[i]
+        if form == "boolean 01" and tag == 0x01:
+            holder[i] = (tag, b"\x01")
+            break
+        if form == "false written" and tag == 0x30 and isinstance(body, list) \
+                and len(body) == 2 and body[0][0] == 0x06 and body[1][0] == 0x04:
+            holder[i] = (tag, [body[0], (0x01, b"\x00"), body[1]])  # an extension, critical FALSE
+            break
+        if form == "integer padded" and tag == 0x02:
+            holder[i] = (tag, b"\x00" + body)  # the version, then the serial number
+            if body[0] & 0x80 == 0:
+                break
+        if form == "time without seconds" and tag == 0x17:
+            holder[i] = (tag, body[:10] + b"Z")
+            break
+    else:
+        raise AssertionError(f"no element for {form}")
+    return write_der(tree)
+
+
+@pytest.fixture(scope="module")
+def certificate() -> bytes:
+    from cryptography import x509
+
+    return der(make_certificate(extensions=[
+        (x509.BasicConstraints(ca=False, path_length=None), True),  # critical: a BOOLEAN
+        (x509.SubjectKeyIdentifier(b"\x01" * 20), False)])[0])
+
+
+@settings(max_examples=30, deadline=None)
+@given(data=st.data())
+def test_a_length_in_a_long_form_anywhere_is_refused(certificate, data):
+    """W1: a long-form length inside the signed part (the issuer's, say) was taken by the C++
+    client; by the one rule it is refused wherever it is."""
+    n = count_elements(parse_der(certificate))
+    at = data.draw(st.integers(0, n - 1))
+    assert write_der(parse_der(certificate)) == certificate  # the codec itself is exact
+    problem = pem_problem(pem(write_der(parse_der(certificate), long_at=at)), "certificate")
+    assert problem is not None and "the certificate block at line 1" in problem, problem
+
+
+@pytest.mark.parametrize("form", ["boolean 01", "false written", "integer padded",
+                                  "time without seconds"])
+def test_other_forms_der_forbids_are_refused(certificate, form):
+    """W1: a BOOLEAN TRUE written 0x01, an explicit `critical FALSE`, a padded INTEGER and a
+    UTCTime without seconds were taken by the C++ client (the last then failed every
+    handshake)."""
+    problem = pem_problem(pem(non_der(certificate, form)), "certificate")
+    assert problem is not None and "the certificate block at line 1" in problem, problem
+
+
+@pytest.mark.parametrize("text,words", [
+    ("{a:blank}", "has a blank line inside its base64"),
+    ("# note\x00 here\n{a}", "line 1 holds a control character (0x00)"),
+    ("-----BEGIN FOO-----\nAAAA\nx:y\nAAAA\n-----END FOO-----\n{a}", "has headers with no"),
+    ("-----BEGIN FOO-----\nA: b\nAAAA\n-----END FOO-----\n{a}", "has headers with no blank"),
+    ("-----BEGIN FOO-----\nA: b\n\nAAAA\nx:y\n-----END FOO-----\n{a}", "':' outside"),
+])
+def test_text_grpc_stops_reading_at_is_refused(certificate, text, words):
+    """W2: a blank line inside base64, a NUL (gRPC reads the file as a C string), a ':' line
+    in another block's base64 and headers with no blank line after them: gRPC's reader stops
+    there and keeps only the certificates before, so a CA file loaded no root and a chain
+    lost its intermediate. The rule refuses them, naming the line or block."""
+    good = pem(certificate).decode()
+    lines = good.splitlines(keepends=True)
+    blank = "".join(lines[:3] + ["\n"] + lines[3:])  # a blank line after 2 lines of base64
+    problem = pem_problem(text.replace("{a:blank}", blank).replace("{a}", good).encode(),
+                          "certificate")
+    assert problem is not None and words in problem, problem
+    fine = "-----BEGIN FOO-----\nA: b\n\nAAAA\n-----END FOO-----\n" + good
+    assert pem_problem(fine.encode(), "certificate") is None
+
+
+@pytest.mark.parametrize("which", ["CA:FALSE", "no basicConstraints", "no keyCertSign"])
+def test_a_chain_whose_intermediate_may_not_sign_is_refused(which):
+    """W3: an intermediate with CA:FALSE, or a key usage without keyCertSign, started the
+    server with TLS; every handshake then failed ("invalid CA certificate")."""
+    from cryptography import x509
+
+    flags = dict.fromkeys(("digital_signature", "content_commitment", "key_encipherment",
+                           "data_encipherment", "key_agreement", "key_cert_sign", "crl_sign",
+                           "encipher_only", "decipher_only"), False)
+    root = make_certificate("root", ca=True, days=(-30, 30))
+    extensions = {"CA:FALSE": [(x509.BasicConstraints(ca=False, path_length=None), True)],
+                  "no basicConstraints": [],
+                  "no keyCertSign": [(x509.BasicConstraints(ca=True, path_length=None), True),
+                                     (x509.KeyUsage(**{**flags, "crl_sign": True}), True)]}
+    intermediate = make_certificate("int", issuer=root, extensions=extensions[which])
+    leaf, _ = make_certificate("localhost", issuer=intermediate)
+    problem = certificate_problem(pem(der(leaf)) + pem(der(intermediate[0])))
+    assert problem is not None and problem.startswith(
+        "certificate 2 of its chain may not sign certificates"), problem
+
+
+def test_a_ca_given_as_bytes_is_bounded_as_a_file_is():
+    """Round 19 (minor): `Client(tls_ca=bytes)` took any size; a file of the same bytes was
+    refused over 1 MiB."""
+    from slamreloc.client import Client
+    from slamreloc.errors import InputError
+
+    with pytest.raises(InputError, match="over the 1048576 a PEM certificate may hold"):
+        Client("127.0.0.1:1", tls_ca=b"#" * (2 << 20))
