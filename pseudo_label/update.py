@@ -38,6 +38,7 @@ from slamreloc.pseudo_label.write import PseudoLabels, base_provenance, write_up
 
 from slamreloc.datasets import Dataset
 from slamreloc.errors import InputError
+from slamreloc.io.fileio import resolved
 from slamreloc.features.extract import extract_frames
 from slamreloc.features import make_extractor
 from slamreloc.map.labels import LabelConfig
@@ -78,7 +79,7 @@ def _refuse_own_frames(old: SceneMap, dataset: Dataset, split: str, frames: list
     built = old.info.dataset_root
     if built is None or record is None or not isinstance(record.split, str):
         return
-    if Path(built).resolve() != Path(dataset.root).resolve():
+    if resolved(built) != resolved(dataset.root):  # a recorded path may be a link loop
         return
     try:
         own = {f.name for f in dataset.frames(record.split)}

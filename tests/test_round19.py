@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from slamreloc.io.pem import pem_problem
 from slamreloc.service.server import certificate_problem
+from tests.fuzzing import run_cli
 from tests.test_round18 import der, make_certificate, pem
 
 pytest.importorskip("cryptography")
@@ -173,3 +174,75 @@ def test_a_ca_given_as_bytes_is_bounded_as_a_file_is():
 
     with pytest.raises(InputError, match="over the 1048576 a PEM certificate may hold"):
         Client("127.0.0.1:1", tls_ca=b"#" * (2 << 20))
+
+
+# ---- CLI side ----------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny_map(tmp_path_factory):
+    from tests.test_fuzz_inputs import _tiny_map
+
+    return _tiny_map(tmp_path_factory.mktemp("round19") / "map")
+
+
+def test_the_demo_viewer_reads_only_what_the_demo_wrote(tmp_path):
+    """V1: the demo's viewer took every report*.json, poses_*.txt and traj*.txt of the
+    workdir: a named pipe `report_zz.json` hung the demo at its end, a folder of that name
+    failed it after every stage. It reads the demo's own outputs, by name."""
+    import os
+
+    from slamreloc.cli.demo import DEMO_REPORTS, DEMO_TRAJECTORIES, demo_viewer_inputs
+
+    os.mkfifo(tmp_path / "report_zz.json")
+    (tmp_path / "report_dir.json").mkdir()
+    (tmp_path / "trajectory_notes.txt").write_text("mine\n")
+    inputs = demo_viewer_inputs(tmp_path, tmp_path / "map", tmp_path / "scene")
+    assert {p.name for p in inputs.reports} == set(DEMO_REPORTS) - {"report.json"}
+    assert {p.name for p in inputs.trajectories} == set(DEMO_TRAJECTORIES)
+    assert all(p.parent == tmp_path for p in [*inputs.reports, *inputs.trajectories])
+
+
+def test_a_busy_last_port_is_one_line_not_a_viewer_that_never_starts(tiny_map):
+    """V2: `view --port 65535` with that port busy: viser moved on to 65536, its thread died
+    with OverflowError and the process waited for ever."""
+    import socket
+
+    with socket.socket() as held:
+        try:
+            held.bind(("127.0.0.1", 65535))
+            held.listen()
+        except OSError:  # in use already: the same case
+            pass
+        code, err = run_cli(["view", str(tiny_map), "--port", "65535"], hang_s=60)
+    assert code == 2 and err.strip().splitlines()[-1] == (
+        "error: --port 65535: in use, and so is every port above it up to 65535: give another "
+        "(0: any free one)"), err
+
+
+def test_a_reference_that_is_a_link_loop_is_one_line(tiny_map, scene_dir, tmp_path):
+    """V3: `evaluate --reference LOOP` ended in `RuntimeError: Symlink loop` (round 18's fix
+    missed the labels of the references)."""
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop.name)
+    code, err = run_cli(["evaluate", str(tiny_map), str(scene_dir), "--split", "seq-02",
+                         "--method", "matching", "--reference", str(loop), "--report",
+                         str(tmp_path / "r.json")])
+    assert code == 2 and "Traceback" not in err and str(loop) in err.strip().splitlines()[-1]
+
+
+def test_a_mount_point_as_a_folder_output_is_refused_before_the_work(tiny_map, tmp_path):
+    """V4: a folder output that is a mount point (a container's volume) ran the whole job, then
+    failed its rename with "Device or resource busy", naming no option."""
+    import subprocess
+
+    mount = tmp_path / "mnt"
+    mount.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mount)],
+                      capture_output=True).returncode:
+        pytest.skip("cannot mount a tmpfs here (needs root and a mount namespace)")
+    try:
+        code, err = run_cli(["export", str(tiny_map), "--colmap", str(mount)])
+        assert code == 2 and err.strip().splitlines()[-1].startswith(
+            f"error: {mount}: --colmap is a mount point"), err
+        assert not any(mount.iterdir())
+    finally:
+        subprocess.run(["umount", str(mount)], check=True)

@@ -52,12 +52,32 @@ def check_address(host: str, port: int) -> None:
         raise refusal
 
 
+def first_free_port(host: str, port: int) -> int:
+    """`port`, or the first port above it that `host` can bind where it is busy (what viser
+    would move to; past 65535 viser's own search fails in its thread and the viewer never
+    starts); 0 stays 0 (any free port). InputError where none is free up to 65535."""
+    import socket
+
+    if port == 0:
+        return 0
+    family = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)[0][0]
+    for candidate in range(port, 65536):
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            try:
+                probe.bind((host, candidate))
+            except OSError:
+                continue
+        return candidate
+    raise InputError(f"`port` {port}: in use, and so is every port above it up to 65535: give "
+                     "another (0: any free one)")
+
+
 def start(inputs: ViewerInputs, data: SceneData | None = None) -> tuple[object, SceneHandles]:
     """Read the inputs (InputError before any port is bound), start the server, build the
     scene. Returns (server, handles); stop with `handles.stop(); server.stop()`."""
     check_address(inputs.host, inputs.port)
     data = data if data is not None else load_scene_data(inputs)
-    server = make_server(inputs.host, inputs.port)
+    server = make_server(inputs.host, first_free_port(inputs.host, inputs.port))
     if not server.get_port():  # a viser that reports the 0 it was given, not the port it took
         server.stop()
         raise InputError("`port` 0: this viser cannot say which port it took; give a port")

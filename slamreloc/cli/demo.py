@@ -15,7 +15,6 @@ from rich.table import Table
 from slamreloc.errors import Interrupted
 from slamreloc.datasets import load_dataset
 from slamreloc.io.outputs import check_outputs, write_json
-from slamreloc.geometry import NAMES_SUFFIX
 from slamreloc.map.build import MapConfig, build_map
 from slamreloc.cli import jobs
 from slamreloc.runtime.progress import console, make_progress, shown
@@ -241,18 +240,14 @@ def next_steps(workdir: Path, query_image: Path, viewer: bool = True) -> list[st
 
 
 def demo_viewer_inputs(workdir: Path, map_dir: Path, scene_dir: Path, port: int = 8080):
-    """ViewerInputs for everything the demo wrote in `workdir`: its reports (each once) and
-    trajectories (the `evaluate --trajectory` files and the SLAM trajectory)."""
+    """ViewerInputs for everything the demo wrote in `workdir`: its reports and trajectories
+    (the `evaluate --trajectory` files and the SLAM trajectory), by their names (a user's file
+    beside them is never read). report.json repeats report_regressor.json: left out."""
     from slamreloc.viewer import ViewerInputs
 
     workdir = Path(workdir)
-    reports, seen = [], set()
-    for path in sorted(workdir.glob("report*.json")):  # report.json repeats report_regressor
-        if path.read_bytes() not in seen:
-            seen.add(path.read_bytes())
-            reports.append(path)
-    trajectories = sorted(p for p in [*workdir.glob("poses_*.txt"), *workdir.glob("traj*.txt")]
-                          if not p.name.endswith(NAMES_SUFFIX))
+    reports = [workdir / name for name in DEMO_REPORTS if name != "report.json"]
+    trajectories = [workdir / name for name in DEMO_TRAJECTORIES]
     return ViewerInputs(map_dir, trajectories, reports, scene_dir, port=port)
 
 

@@ -20,6 +20,7 @@ from rich.table import Table
 from slamreloc.datasets import Dataset, load_dataset, read_image
 from slamreloc.datasets.poses import NAMES_FILE, TUM_FILE, check_names_sidecar_free
 from slamreloc.errors import InputError, OutOfMemory
+from slamreloc.io.fileio import resolved
 from slamreloc.geometry import (
     Rigid3,
     distinct_stamps,
@@ -147,7 +148,7 @@ def reference_labels(paths: list[Path]) -> list[str]:
     """Short distinct labels of the --reference paths: the file name, with as many parent
     folders as tell two apart (and a COLMAP model's `sparse/0` its project folder's name).
     InputError for a path given twice."""
-    parts = [Path(p).resolve().parts for p in paths]
+    parts = [resolved(p).parts for p in paths]  # a link loop too
     depth = [1] * len(paths)
     for i, p in enumerate(parts):  # `.../redkitchen/sparse/0` -> `redkitchen/sparse/0`
         while depth[i] < len(p) and (p[-depth[i]].isdigit() or p[-depth[i]] == "sparse"):

@@ -303,6 +303,10 @@ def check_outputs(outputs: dict[str, str | Path | None],
                 kind = file_kind(st.st_mode)
                 kind = kind if kind in ("a folder", "a file") else f"not a regular file ({kind})"
                 raise InputError(f"{out}: {option} exists and is {kind}; refusing to replace it")
+            if os.path.ismount(out):  # a container's volume: the rename would fail (EBUSY)
+                raise InputError(f"{out}: {option} is a mount point; its writer puts the new "
+                                 f"{'folder' if want_dir else 'file'} in by a rename over it, "
+                                 "which a mount point does not allow: give a path inside it")
             is_own, own_kind = _own_test(own.get(option, ...))
             if want_dir and is_own is not ... and any(target.iterdir()) and (
                     is_own is None or not is_own(target)):

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import sha256_of
+from slamreloc.io.fileio import resolved, sha256_of
 from slamreloc.io.outputs import (Undo, atomic_file, commit_output, exchange_paths,
                                   make_temp_dir, marked_file, naming_output, outputs_together,
                                   temp_dir_path, temp_in_the_way)
@@ -84,7 +84,7 @@ def check_dataset_of_map(scene_map: SceneMap, dataset_dir: Path, dataset) -> Non
     meta = scene_map.info
     recorded = [Path(p) for key, p in meta.recorded_inputs().items()
                 if p is not None and "pose file" not in key]
-    if any(r.resolve() == Path(dataset_dir).resolve() for r in recorded):
+    if any(resolved(r) == resolved(dataset_dir) for r in recorded):  # loops too
         return
     db = scene_map.database
     index = {name: i for i, name in enumerate(db.frame_names)}

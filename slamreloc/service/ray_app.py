@@ -53,6 +53,7 @@ from ray.serve.grpc_util import RayServegRPCContext
 
 from slamreloc import __version__
 from slamreloc.errors import InputError
+from slamreloc.io.fileio import resolved
 from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
@@ -252,7 +253,7 @@ def check_maps(maps: dict[str, Path]) -> dict[str, Path]:
             raise InputError(f"map name {name!r}: letters, digits and _ . : - only on Ray Serve")
         if "\0" in str(path):
             raise InputError(f"map {quoted(name)}: its folder's path holds a NUL byte")
-        path = Path(path).resolve()
+        path = resolved(path)  # a link loop stays as given: not a map folder
         if not path.is_dir():
             raise InputError(f"{path}: not a map folder")
         out[name] = path
