@@ -43,6 +43,7 @@ from slamreloc.camera_models import MODELS, PARAMS, colmap_head
 from slamreloc.errors import InputError
 from slamreloc.io.outputs import (check_outputs, is_file_debris_name, make_temp_dir,
                                   naming_output, temp_dir_path, write_json)
+from slamreloc.io.fileio import is_link_loop
 from slamreloc.io.folder_lock import Debris, folder_write_lock
 from slamreloc.io.video import is_video, video_frames
 from slamreloc.runtime.progress import console, make_progress, shown
@@ -392,8 +393,8 @@ def _is_image_file(path: Path, root: Path) -> bool:
     if path.suffix.lower() not in IMAGE_SUFFIXES:
         return False
     if not path.is_file():
-        kind = ("a folder" if path.is_dir() else "a broken link" if not path.exists()
-                else "a pipe, device or socket")
+        kind = ("a folder" if path.is_dir() else "a symbolic link loop" if is_link_loop(path)
+                else "a broken link" if not path.exists() else "a pipe, device or socket")
         raise InputError(f"{path}: named as a photo but not a file ({kind})")
     problem = frame_name_problem(path.relative_to(root).as_posix())
     if problem:

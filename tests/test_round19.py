@@ -246,3 +246,19 @@ def test_a_mount_point_as_a_folder_output_is_refused_before_the_work(tiny_map, t
         assert not any(mount.iterdir())
     finally:
         subprocess.run(["umount", str(mount)], check=True)
+
+
+def test_a_users_file_at_a_trajectorys_names_file_is_not_replaced(tiny_map, tmp_path):
+    """Round 19 (minor): the names file beside a TUM output (a second name the user never
+    typed) was replaced whenever its text read as 'stamp name' lines: a numbered to-do list,
+    or a TUM trajectory named X.names.txt. Only a names file as slamreloc writes it is."""
+    todo = tmp_path / "todo.names.txt"
+    todo.write_text("1 buy milk\n2 call bob\n")
+    code, err = run_cli(["export", str(tiny_map), "--tum", str(tmp_path / "todo.txt")])
+    assert code == 2 and str(todo) in err.strip().splitlines()[-1], err
+    assert todo.read_text() == "1 buy milk\n2 call bob\n"
+    assert not (tmp_path / "todo.txt").exists()
+    own = tmp_path / "own.txt"
+    for _ in range(2):  # its own output, names file included, is replaced
+        code, err = run_cli(["export", str(tiny_map), "--tum", str(own)])
+        assert code == 0, err

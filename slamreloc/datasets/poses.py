@@ -107,7 +107,7 @@ def read_own_trajectory(path: Path) -> None:
     if not sidecar.is_file():
         raise InputError(f"{path}: no {sidecar.name} beside it, so not a trajectory slamreloc "
                          "wrote")
-    read_names_sidecar(sidecar)
+    read_written_names(sidecar)
     read_tum_trajectory(path)
 
 
@@ -133,9 +133,30 @@ def check_names_sidecar_free(trajectory: Path, option: str) -> None:
                          "output another name (every X.* trajectory shares X.names.txt)")
 
 
+WRITTEN_STAMP = re.compile(r"-?[0-9]+\.[0-9]{6}")  # a stamp as `write_tum_trajectory` writes it
+
+
+def read_written_names(path: Path) -> None:
+    """A frame-names sidecar as slamreloc writes it: `read_names_sidecar`'s lines, each stamp
+    written with six decimals, each name not a row of three or more numbers (a TUM
+    trajectory's): what an output may replace as its own names file (a user's `1 buy milk`
+    list is not one). InputError otherwise."""
+    read_names_sidecar(path)  # bounded, a regular file, 'stamp name' lines
+    text = read_text(path, "frame names file", "max_text_bytes")
+    for number, line in enumerate(text.splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        stamp, _, name = line.strip().partition(" ")
+        words = name.split()
+        if not WRITTEN_STAMP.fullmatch(stamp) or len(words) >= 3 and all(
+                written_as_number(word) for word in words):
+            raise InputError(f"{path}:{number}: not a line slamreloc writes ('%.6f NAME')")
+
+
 # `check_outputs`' `files` entries: a TUM trajectory output (`--trajectory`, `export --tum`)
 # and the frame-names sidecar written beside it (`names_sidecar`) may replace only their kind
-NAMES_FILE = reads_as(read_names_sidecar, "a frame-names file ('stamp name' lines)")
+NAMES_FILE = reads_as(read_written_names, "a frame-names file slamreloc wrote ('stamp name' "
+                                          "lines)")
 TUM_FILE = reads_as(read_own_trajectory,
                     "a TUM trajectory slamreloc wrote (its frame names in the .names.txt file "
                     "beside it)")
