@@ -29,7 +29,13 @@ from hypothesis import strategies as st
 
 from slamreloc.datasets.base import Dataset
 from slamreloc.errors import InputError
-from slamreloc.io.limits import InputLimits, parse_limits, pixels_text
+from slamreloc.io.limits import (
+    LIMIT_MAXIMA,
+    MAX_LIMIT,
+    InputLimits,
+    parse_limits,
+    pixels_text,
+)
 from slamreloc.io.numbers import number_problem
 from slamreloc.map.format import META
 from tests.test_cli_hardening import cli
@@ -156,7 +162,8 @@ LIMIT_TEXT = st.one_of(
 @given(text=LIMIT_TEXT, name=st.sampled_from(LIMIT_NAMES))
 def test_a_limit_is_a_positive_whole_number_by_the_number_rule(text, name):
     whole = number_problem(text, integer=True) is None
-    if whole and int(text) > 0:
+    top = LIMIT_MAXIMA.get(name, (MAX_LIMIT,))[0]  # a bound the parser caps lower (json depth)
+    if whole and 0 < int(text) <= top:
         assert parse_limits([f"{name}={text}"]) == {name: int(text)}
     else:
         with pytest.raises(InputError, match=f"^`limit` '{name}="):
@@ -169,6 +176,8 @@ def test_a_limit_is_a_positive_whole_number_by_the_number_rule(text, name):
 def test_a_limit_given_twice_is_refused(name, a, b, dashes):
     """Twice, with the same value or another, and spelled with dashes or underscores."""
     again = name.replace("_", "-") if dashes else name
+    top = LIMIT_MAXIMA.get(name, (MAX_LIMIT,))[0]  # within the bound's own maximum
+    a, b = min(a, top), min(b, top)
     with pytest.raises(InputError, match=f"`limit` {name} is given twice"):
         parse_limits([f"{name}={a}", f"{again}={b}"])
 

@@ -302,7 +302,7 @@ def test_files_tokens_and_cameras_follow_the_python_rules(client_binary, server,
     zeros.write_bytes(bytes(4096))
     bom.write_bytes(b"\xef\xbb\xbf-----BEGIN CERTIFICATE-----\nAAAA\n-----END CERTIFICATE-----\n")
     for ca, words in ((fifo, "a named pipe"), (Path("/dev/zero"), "a device"),
-                      (tmp_path, "a folder"), (zeros, "no 'BEGIN CERTIFICATE' block"),
+                      (tmp_path, "a folder"), (zeros, "line 1 holds a control character (0x00)"),
                       (bom, "byte-order mark"), (tmp_path / "none.pem", "not found")):
         line = _error_line(run_client(client_binary, "--server", address, "--tls-ca", str(ca),
                                       str(sequence)))
