@@ -67,15 +67,15 @@ def two() -> list[bytes]:
 
 
 @settings(max_examples=40, deadline=None)
-@given(width=st.integers(4, 200).map(lambda w: w * 4), crlf=st.booleans(),
+@given(width=st.integers(1, 18).map(lambda w: w * 4), crlf=st.booleans(),
        blanks=st.sampled_from(["", " ", "\t", " \t "]),
        comment=st.sampled_from(["", "# a comment\n", "subject=CN = c0\n", "Certificate:\n"]),
        other=st.sampled_from([None, "PRIVATE KEY", "X509 CRL"]),
        label=st.sampled_from(["CERTIFICATE", "X509 CERTIFICATE"]))
 def test_a_certificate_file_in_any_layout_the_rule_allows_reads_as_its_certificates(
         two, width, crlf, blanks, comment, other, label):
-    """Any line width, CRLF line ends, trailing blanks, text between blocks and blocks of
-    other labels: the certificates come back, byte for byte, in order."""
+    """Any line width up to 72 (76 with blanks), CRLF line ends, trailing blanks, text between
+    blocks and blocks of other labels: the certificates come back, byte for byte, in order."""
     parts = [comment.encode(), pem(two[0], label, width)]
     if other is not None:
         parts.append(pem(b"\x30\x03\x02\x01\x00", other, width))
@@ -137,7 +137,8 @@ def test_the_files_the_two_clients_read_differently_are_refused_by_both(two, lay
 def test_a_chain_with_a_certificate_no_client_can_verify_is_refused():
     """U3: a chain whose intermediate had expired, and a certificate marking critical an
     extension verifiers do not know, started the server "listening (TLS)"; every client's
-    handshake then failed (the C++ client's OpenSSL: "unhandled critical extension")."""
+    handshake then failed (the C++ client's OpenSSL: "unhandled critical extension"). The last
+    certificate of a chain is only warned of (round 20, Y8)."""
     from cryptography import x509
     from cryptography.x509.oid import ObjectIdentifier
 
@@ -146,11 +147,19 @@ def test_a_chain_with_a_certificate_no_client_can_verify_is_refused():
     valid = make_certificate("int", issuer=root, ca=True, days=(-30, 30))
     for intermediate, fine in ((expired, False), (valid, True)):
         leaf, _ = make_certificate("localhost", issuer=intermediate)
-        chain = pem(der(leaf)) + pem(der(intermediate[0]))
+        chain = pem(der(leaf)) + pem(der(intermediate[0])) + pem(der(root[0]))
         problem = certificate_problem(chain)
         assert (problem is None) == fine, problem
         if not fine:
             assert problem.startswith("certificate 2 of its chain expired on"), problem
+    # round 20 (Y8): the last certificate expired may be a cross-signed root (AddTrust's
+    # shape) that clients trusting the root never use: warned of, not refused
+    other = make_certificate("other root", ca=True, days=(-90, 90))
+    cross = make_certificate("root", issuer=other, ca=True, days=(-60, -10))
+    leaf, _ = make_certificate("localhost", issuer=valid)
+    with pytest.warns(UserWarning, match="certificate 3 of its chain expired on .* trusts its"):
+        assert certificate_problem(pem(der(leaf)) + pem(der(valid[0]))
+                                   + pem(der(cross[0]))) is None
     unknown = x509.UnrecognizedExtension(ObjectIdentifier("1.2.3.4.5.6.7"), b"\x05\x00")
     critical, _ = make_certificate(extensions=[(unknown, True)])
     assert "marks critical an extension TLS clients do not handle (1.2.3.4.5.6.7)" in \

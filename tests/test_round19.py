@@ -126,22 +126,27 @@ def test_other_forms_der_forbids_are_refused(certificate, form):
 @pytest.mark.parametrize("text,words", [
     ("{a:blank}", "has a blank line inside its base64"),
     ("# note\x00 here\n{a}", "line 1 holds a control character (0x00)"),
-    ("-----BEGIN FOO-----\nAAAA\nx:y\nAAAA\n-----END FOO-----\n{a}", "has headers with no"),
-    ("-----BEGIN FOO-----\nA: b\nAAAA\n-----END FOO-----\n{a}", "has headers with no blank"),
-    ("-----BEGIN FOO-----\nA: b\n\nAAAA\nx:y\n-----END FOO-----\n{a}", "':' outside"),
+    ("-----BEGIN FOO-----\nAAAA\nx:y\nAAAA\n-----END FOO-----\n{a}", "has PEM headers"),
+    ("-----BEGIN FOO-----\nA: b\nAAAA\n-----END FOO-----\n{a}", "has PEM headers"),
+    # round 20 (Y2): headers in another block, even well formed: OpenSSL then wants 64-column
+    # base64 and loads no certificate after a block without it
+    ("-----BEGIN FOO-----\nA: b\n\nAAAA\n-----END FOO-----\n{a}", "has PEM headers"),
+    # round 20 (Y1): a line of 253 characters (BoringSSL reads 253 at a time: no root loaded)
+    ("-----BEGIN FOO-----\n" + "A" * 252 + "=\n-----END FOO-----\n{a}", "253 characters long"),
 ])
 def test_text_grpc_stops_reading_at_is_refused(certificate, text, words):
     """W2: a blank line inside base64, a NUL (gRPC reads the file as a C string), a ':' line
     in another block's base64 and headers with no blank line after them: gRPC's reader stops
     there and keeps only the certificates before, so a CA file loaded no root and a chain
-    lost its intermediate. The rule refuses them, naming the line or block."""
+    lost its intermediate. The rule refuses them, naming the line or block; since round 20
+    any headers and any line over 76 characters too (Y1, Y2)."""
     good = pem(certificate).decode()
     lines = good.splitlines(keepends=True)
     blank = "".join(lines[:3] + ["\n"] + lines[3:])  # a blank line after 2 lines of base64
     problem = pem_problem(text.replace("{a:blank}", blank).replace("{a}", good).encode(),
                           "certificate")
     assert problem is not None and words in problem, problem
-    fine = "-----BEGIN FOO-----\nA: b\n\nAAAA\n-----END FOO-----\n" + good
+    fine = "-----BEGIN FOO-----\nAAAA\n-----END FOO-----\n" + good
     assert pem_problem(fine.encode(), "certificate") is None
 
 

@@ -55,6 +55,7 @@
 #include <openssl/err.h>
 #include <openssl/pem.h>
 #include <openssl/x509.h>
+#include <openssl/x509v3.h>
 #include <grpcpp/grpcpp.h>
 
 #include "relocalizer.grpc.pb.h"
@@ -490,10 +491,10 @@ std::vector<fs::path> sequence_images(const fs::path& dir) {
 // both clients refuse the same files: lines end at "\n" (then "\r" and trailing blanks are
 // dropped); no control character but a tab; text outside blocks is skipped;
 // "-----BEGIN LABEL-----" opens a block that "-----END LABEL-----" must close; a marker after
-// other text is refused; a body is base64 lines with no blank line among them, after (other
-// labels only) "Name: value" headers ended by one blank line; a TRUSTED CERTIFICATE is
-// refused; a certificate block decodes to one X.509 certificate (version 1 or 3) in strict
-// DER; the file holds at least one.
+// other text is refused; a body is base64 lines of at most 76 characters, no blank line, no
+// "Name: value" headers; blocks of other labels are otherwise skipped; a TRUSTED CERTIFICATE
+// is refused; a certificate block decodes to one X.509 certificate (version 1 or 3) in
+// strict DER, its extensions readable and each given once; the file holds at least one.
 bool ascii_space(char c) {
   return c == ' ' || c == '\t' || c == '\n' || c == '\r' || c == '\v' || c == '\f';
 }
@@ -549,6 +550,23 @@ std::optional<std::string> marker_label(const std::string& line, const std::stri
   return label;
 }
 
+// Whether a UTCTime (YYMMDDHHMMSSZ) or GeneralizedTime (YYYYMMDDHHMMSSZ) is a real instant
+// written as DER writes it.
+bool der_time(const unsigned char* v, size_t size, bool generalized) {
+  const size_t digits = generalized ? 14 : 12;
+  if (size != digits + 1 || v[digits] != 'Z') return false;
+  for (size_t i = 0; i < digits; ++i)
+    if (v[i] < '0' || v[i] > '9') return false;
+  auto at = [&](size_t i) { return (v[i] - '0') * 10 + (v[i + 1] - '0'); };
+  const size_t o = generalized ? 2 : 0;
+  int year = generalized ? at(0) * 100 + at(2) : at(0) + (at(0) < 50 ? 2000 : 1900);
+  const int month = at(2 + o), day = at(4 + o);
+  const bool leap = (year % 4 == 0 && year % 100 != 0) || year % 400 == 0;
+  const int days[] = {31, leap ? 29 : 28, 31, 30, 31, 30, 31, 31, 30, 31, 30, 31};
+  return month >= 1 && month <= 12 && day >= 1 && day <= days[month - 1] && at(6 + o) <= 23 &&
+         at(8 + o) <= 59 && at(10 + o) <= 59;
+}
+
 // Why the DER elements in [p, end) break a rule of DER that OpenSSL's reader lets through
 // (it keeps a certificate's signed part as received), or "": a length not in its shortest
 // form (or indefinite), a BOOLEAN other than 0xFF (a FALSE is a DEFAULT, which DER leaves
@@ -573,18 +591,22 @@ std::string der_problem(const unsigned char* p, const unsigned char* end, int de
     if (size > static_cast<size_t>(end - p)) return "an element cut short";
     const unsigned char* value = p;
     p += size;
-    if (tag & 0x20) {
+    if ((tag & 0x20) && (tag & 0xC0) == 0 && tag != 0x30 && tag != 0x31) {
+      return "a string written in constructed form";
+    } else if (tag & 0x20) {
       const std::string inner = der_problem(value, p, depth - 1);
       if (!inner.empty()) return inner;
+    } else if (tag == 0x03 && (size == 0 || value[0] > 7 || (size == 1 && value[0] != 0) ||
+                               (size > 1 && (value[size - 1] & ((1u << value[0]) - 1))))) {
+      return "a BIT STRING whose unused bits are not 0";
+    } else if ((tag == 0x17 || tag == 0x18) && !der_time(value, size, tag == 0x18)) {
+      return "a time not a real instant written with its seconds and Z";
     } else if (tag == 0x01 && (size != 1 || value[0] != 0xFF)) {
       return size == 1 && value[0] == 0 ? "a BOOLEAN FALSE written out, which DER leaves out"
                                         : "a BOOLEAN TRUE not written as 0xFF";
     } else if (tag == 0x02 && (size == 0 || (size > 1 && ((value[0] == 0 && !(value[1] & 0x80)) ||
                                                          (value[0] == 0xFF && (value[1] & 0x80)))))) {
       return "an INTEGER not in its shortest form";
-    } else if ((tag == 0x17 && size != 13) || (tag == 0x18 && size != 15) ||
-               ((tag == 0x17 || tag == 0x18) && value[size - 1] != 'Z')) {
-      return "a time not written with its seconds and Z";
     }
   }
   return "";
@@ -604,6 +626,8 @@ std::string strict_der_certificate_problem(const std::string& der) {
            " bytes after it)";
   const std::string problem = der_problem(start, start + der.size(), 32);
   if (!problem.empty()) return "is not in strict DER (" + problem + ")";
+  if (X509_get_extension_flags(cert.get()) & EXFLAG_INVALID)
+    return "is not an X.509 certificate (an extension given twice or unreadable)";
   const long version = X509_get_version(cert.get());
   // the signed part's first element ([0], 0xA0, where a version is written out); the
   // lengths are in their shortest form here
@@ -637,6 +661,7 @@ std::string read_tls_ca(const fs::path& path) {
     ++number;
     const std::string at = "line " + std::to_string(number);
     while (!line.empty() && line.back() == '\r') line.pop_back();
+    const size_t width = line.size();  // BoringSSL reads a line 253 bytes at a time
     while (!line.empty() && (line.back() == ' ' || line.back() == '\t')) line.pop_back();
     for (unsigned char c : line)
       if ((c < 0x20 && c != '\t') || c == 0x7F) {
@@ -665,6 +690,9 @@ std::string read_tls_ca(const fs::path& path) {
     const std::string block = "block at line " + std::to_string(opened);
     if (begin) refuse(at + " opens a block inside the one opened at line " + std::to_string(opened));
     if (!end) {
+      if (width > 76)
+        refuse(at + " is " + std::to_string(width) + " characters long; a PEM line holds at "
+                    "most 76 (rewrite the file with `openssl x509 -in FILE -out NEW`)");
       const size_t first = line.find_first_not_of(" \t");
       body.push_back(first == std::string::npos ? std::string() : line.substr(first));
       continue;
@@ -677,23 +705,13 @@ std::string read_tls_ca(const fs::path& path) {
     const bool certificate = *label == "CERTIFICATE" || *label == "X509 CERTIFICATE";
     const std::string what = "the " + (certificate ? std::string("certificate") : *label) + " " +
                              block;
-    // "Name: value" headers first (other blocks only), ended by one blank line; then base64
-    // lines with no blank line among them
-    auto has_colon = [](const std::string& l) { return l.find(':') != std::string::npos; };
-    size_t from = 0;
-    if (std::any_of(body.begin(), body.end(), has_colon)) {
-      if (certificate)
-        refuse(what + " has PEM headers (an encrypted or annotated block), which a certificate "
-                      "never has");
-      const auto blank = std::find(body.begin(), body.end(), std::string());
-      if (blank == body.end()) refuse(what + " has headers with no blank line after them");
-      if (!std::all_of(body.begin(), blank, has_colon) ||
-          std::any_of(blank + 1, body.end(), has_colon))
-        refuse(what + " has text with ':' outside its headers");
-      from = static_cast<size_t>(blank - body.begin()) + 1;
-    }
+    // base64 lines only: no "Name: value" headers (an encrypted block), no blank line
+    if (std::any_of(body.begin(), body.end(),
+                    [](const std::string& l) { return l.find(':') != std::string::npos; }))
+      refuse(what + " has PEM headers (an encrypted or annotated block), which a certificate "
+                    "file does not hold");
     std::string text;
-    for (size_t i = from; i < body.size(); ++i) {
+    for (size_t i = 0; i < body.size(); ++i) {
       if (body[i].empty()) refuse(what + " has a blank line inside its base64");
       text += without_blanks(body[i]);
     }

@@ -63,6 +63,7 @@ def pem_problem(data: bytes, what: str) -> str | None:
 # The labels of a certificate's PEM block (OpenSSL reads both as one); a TRUSTED CERTIFICATE
 # (OpenSSL's certificate with trust settings) is refused by name: TLS here does not read it.
 CERTIFICATE_LABELS = ("CERTIFICATE", "X509 CERTIFICATE")
+MAX_PEM_LINE = 76  # characters of a line inside a block (RFC 7468 writes 64, MIME 76)
 _BASE64 = frozenset(b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/=")
 
 
@@ -75,11 +76,12 @@ def certificates_der(data: bytes) -> list[bytes]:
       text outside blocks (comments, `openssl x509 -text` output) is skipped;
     - a line starting "-----BEGIN LABEL-----" opens a block that a line "-----END LABEL-----"
       of the same label must close; a PEM marker after other text on a line is refused;
-    - a block's body is base64 lines with no blank line among them, after (in blocks of other
-      labels only: a private key, a CRL, which are otherwise skipped) "Name: value" header
-      lines ended by one blank line; a TRUSTED CERTIFICATE is refused;
+    - a block's body is base64 lines of at most MAX_PEM_LINE characters with no blank line
+      among them and no "Name: value" headers (an encrypted block); blocks of other labels (a
+      private key, a CRL) are otherwise skipped; a TRUSTED CERTIFICATE is refused;
     - a certificate block decodes to one X.509 certificate (version 1 or 3) in strict DER (no
-      bytes after it, no long-form lengths or other BER forms, times with their seconds);
+      bytes after it, no long-form lengths or other BER forms, times with their seconds),
+      each of its extensions readable and given once;
     - the file holds at least one certificate."""
     out: list[bytes] = []
     label, opened, body = None, 0, []
@@ -105,6 +107,11 @@ def certificates_der(data: bytes) -> list[bytes]:
             raise ValueError(f"line {number} opens a block inside the one opened at line "
                              f"{opened}")
         if not end:
+            width = len(raw.rstrip(b"\r"))
+            if width > MAX_PEM_LINE:  # BoringSSL reads a line 253 bytes at a time
+                raise ValueError(f"line {number} is {width} characters long; "
+                                 f"a PEM line holds at most {MAX_PEM_LINE} (rewrite the file "
+                                 "with `openssl x509 -in FILE -out NEW`)")
             body.append(line.strip())
             continue
         closing = _marker_label(line, b"-----END ", number)
@@ -112,8 +119,7 @@ def certificates_der(data: bytes) -> list[bytes]:
             raise ValueError(f"line {number} ends '{closing}', but line {opened} opened "
                              f"'{label}'")
         certificate = label in CERTIFICATE_LABELS
-        text = _body_base64(body, "certificate" if certificate else label, opened,
-                            headers=not certificate)
+        text = _body_base64(body, "certificate" if certificate else label, opened)
         if certificate:
             out.append(_certificate_der(text, opened))
         label = None
@@ -145,22 +151,14 @@ def _base64(text: bytes, label: str, opened: int) -> bytes:
     return binascii.a2b_base64(text)
 
 
-def _body_base64(body: list[bytes], label: str, opened: int, headers: bool) -> bytes:
-    """The decoded base64 of a block's body lines (`label` names it in messages): "Name: value"
-    headers first where `headers` allows them, ended by one blank line; then base64 lines,
-    with no blank line among them."""
+def _body_base64(body: list[bytes], label: str, opened: int) -> bytes:
+    """The decoded base64 of a block's body lines (`label` names it in messages): base64 lines
+    only, no blank line among them, no "Name: value" headers (an encrypted or annotated block:
+    OpenSSL then reads its base64 only in 64-character lines, BoringSSL otherwise)."""
     block = f"the {label} block at line {opened}"
     if any(b":" in line for line in body):
-        if not headers:
-            raise ValueError(f"{block} has PEM headers (an encrypted or annotated block), "
-                             "which a certificate never has")
-        if b"" not in body:
-            raise ValueError(f"{block} has headers with no blank line after them")
-        blank = body.index(b"")
-        if not all(b":" in line for line in body[:blank]) \
-                or any(b":" in line for line in body[blank + 1:]):
-            raise ValueError(f"{block} has text with ':' outside its headers")
-        body = body[blank + 1:]
+        raise ValueError(f"{block} has PEM headers (an encrypted or annotated block), which "
+                         "a certificate file does not hold")
     if b"" in body:
         raise ValueError(f"{block} has a blank line inside its base64")
     return _base64(b"".join(b"".join(line.split()) for line in body), label, opened)
@@ -177,7 +175,9 @@ def _certificate_der(der: bytes, opened: int) -> bytes:
     try:
         with warnings.catch_warnings():  # a serial number of 0 or below: taken, as OpenSSL does
             warnings.simplefilter("ignore")
-            same = x509.load_der_x509_certificate(der).public_bytes(Encoding.DER) == der
+            certificate = x509.load_der_x509_certificate(der)
+            same = certificate.public_bytes(Encoding.DER) == der
+            list(certificate.extensions)  # each parsed: a duplicate or malformed one refused
     except Exception as err:  # noqa: BLE001 - cryptography's parse errors, Rust-side ones
         reason = " ".join(str(err).split())[:160] or type(err).__name__
         raise ValueError(f"the certificate block at line {opened} is not an X.509 certificate "

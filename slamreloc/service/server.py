@@ -30,6 +30,7 @@ import sys
 import threading
 import time
 import traceback
+import warnings
 from collections.abc import Iterator
 from concurrent import futures
 from contextlib import contextmanager
@@ -782,7 +783,8 @@ def certificate_problem(cert: bytes, now=None) -> str | None:
     """Why no client could complete a TLS handshake with the PEM certificate chain (the server's
     certificate first), or None (also None without the `cryptography` package to tell): any
     certificate of the chain not yet valid or expired (at `now`, a UTC datetime, default the
-    present) or marking critical an extension TLS verifiers do not handle
+    present; the last of several only warned of: it may be a cross-signed root that clients
+    trusting the root never use) or marking critical an extension TLS verifiers do not handle
     (`TLS_CRITICAL_EXTENSIONS`), any after the first that may not sign certificates (a
     version 3 certificate without basicConstraints CA:TRUE, a key usage without
     keyCertSign); the server's own certificate with a key usage that allows no
@@ -807,11 +809,16 @@ def certificate_problem(cert: bytes, now=None) -> str | None:
     now = now or datetime.now(timezone.utc)
     for number, one in enumerate(chain, 1):
         which = "" if number == 1 else f"certificate {number} of its chain "
-        if now < one.not_valid_before_utc:
-            return (f"{which and which + 'is '}not valid before "
-                    f"{one.not_valid_before_utc:%Y-%m-%d %H:%M} UTC")
-        if now > one.not_valid_after_utc:
-            return f"{which}expired on {one.not_valid_after_utc:%Y-%m-%d %H:%M} UTC"
+        dates = (f"{which and which + 'is '}not valid before "
+                 f"{one.not_valid_before_utc:%Y-%m-%d %H:%M} UTC"
+                 if now < one.not_valid_before_utc else
+                 f"{which}expired on {one.not_valid_after_utc:%Y-%m-%d %H:%M} UTC"
+                 if now > one.not_valid_after_utc else None)
+        if dates and 1 < number == len(chain):  # perhaps a cross-signed root (AddTrust)
+            warnings.warn(f"`tls_cert`: {dates}; a client that trusts its subject as a root "
+                          "stops before it, any other refuses the chain", stacklevel=2)
+        elif dates:
+            return dates
         try:
             unknown = [e.oid.dotted_string for e in one.extensions
                        if e.critical and e.oid.dotted_string not in TLS_CRITICAL_EXTENSIONS]
