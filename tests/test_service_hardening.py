@@ -469,7 +469,7 @@ def test_client_tls_ca_is_read_as_the_server_reads_its_pem_files(tmp_path):
     os.mkfifo(fifo)
     (tmp_path / "zeros.pem").write_bytes(bytes(100))
     for ca, words in ((fifo, "a named pipe"), (Path("/dev/zero"), "a device"),
-                      (tmp_path / "zeros.pem", "no 'BEGIN CERTIFICATE' block"),
+                      (tmp_path / "zeros.pem", r"line 1 holds a control character \(0x00\)"),
                       (b"\xef\xbb\xbf-----BEGIN CERTIFICATE-----\n", "byte-order mark")):
         with no_hang(10), pytest.raises(InputError, match=words) as err:
             Client("127.0.0.1:1", token="t" * 16, tls_ca=ca)

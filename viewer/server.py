@@ -63,6 +63,8 @@ def first_free_port(host: str, port: int) -> int:
     family = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)[0][0]
     for candidate in range(port, 65536):
         with socket.socket(family, socket.SOCK_STREAM) as probe:
+            # as a server binds: a port whose last connection waits out TIME_WAIT is free
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             try:
                 probe.bind((host, candidate))
             except OSError:

@@ -271,7 +271,7 @@ def load_colmap(root: Path) -> Dataset:
 def _sfm_metric(root: Path) -> bool:
     """False where `slamreloc sfm` wrote the project without a metric scale (sfm.json)."""
     path = root / "sfm.json"
-    if not path.is_file():
+    if not optional_file(path, "SfM summary"):  # a folder or pipe there: refused
         return True  # a COLMAP project from elsewhere: its units are the user's to know
     metric = read_json(path, "SfM summary").get("metric", True)
     if not isinstance(metric, bool):

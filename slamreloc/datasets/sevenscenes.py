@@ -72,7 +72,7 @@ def load_sevenscenes(root: Path) -> Dataset:
 
 def _read_scene_json(root: Path) -> dict:
     path = root / "scene.json"
-    if not path.is_file():
+    if not optional_file(path, "scene description"):  # a folder or pipe there: refused
         return {}
     scene = parse_json(read_bytes(path, "scene description", 1 << 24), path)
     if not isinstance(scene, dict):
@@ -145,7 +145,8 @@ def _sequence(seq_dir: Path, camera: Camera, registered: bool) -> list[Frame]:
         frames.append(Frame(
             name=f"{seq_dir.name}/{stem}", image_path=color, camera=camera,
             depth_path=depth if has_depth else None,
-            world_from_cam=read_pose(pose_path) if pose_path.is_file() else None,
+            world_from_cam=(read_pose(pose_path) if optional_file(pose_path, "pose")
+                            else None),
             sequence=seq_dir.name, timestamp=float(len(frames)) / 30.0,
             depth_camera=SEVENSCENES_DEPTH_CAMERA if unregistered else None,
             rgb_from_depth=rgb_from_depth if unregistered else None))
