@@ -53,3 +53,24 @@ def test_a_port_waiting_out_time_wait_is_free_for_the_viewer():
     client.close()
     server.close()
     assert first_free_port("127.0.0.1", port) == port
+
+
+@pytest.fixture(scope="module")
+def tiny_map(tmp_path_factory):
+    from tests.test_fuzz_inputs import _tiny_map
+
+    return _tiny_map(tmp_path_factory.mktemp("round20") / "map")
+
+
+@pytest.mark.parametrize("host,words", [
+    ("[::1]", "write an IPv6 address without brackets"),
+    ("::ffff:127.0.0.1", "an IPv4 address written as IPv6, which the viewer cannot bind; give "
+                         "127.0.0.1"),
+])
+def test_a_host_viser_cannot_bind_is_refused_before_anything_is_read(tiny_map, host, words):
+    """X1: `view --host ::ffff:127.0.0.1` hung silently, and `--host '[::1]'` ended after the
+    map was read with `[Errno -2] Name or service not known`, naming no option."""
+    from tests.fuzzing import run_cli
+
+    code, err = run_cli(["view", str(tiny_map), "--host", host, "--port", "0"], hang_s=60)
+    assert code == 2 and words in err.strip().splitlines()[-1], err

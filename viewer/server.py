@@ -45,6 +45,7 @@ def check_address(host: str, port: int) -> None:
     from slamreloc.io.address import bind_problem, check_host
 
     check_host(host)
+    _viser_binds(host)
     if not 0 <= port <= 65535:  # serve's rule (`ServeConfig.check`): 0 takes any free port
         raise InputError(f"`port` {port}: not a TCP port")
     refusal = bind_problem(host, 0)
@@ -72,6 +73,23 @@ def first_free_port(host: str, port: int) -> int:
         return candidate
     raise InputError(f"`port` {port}: in use, and so is every port above it up to 65535: give "
                      "another (0: any free one)")
+
+
+def _viser_binds(host: str) -> None:
+    """InputError for an address the address rule takes but viser's server cannot bind (it
+    would hang, or fail after the map is read): an IPv6 address in brackets, an IPv4 address
+    written as IPv6 (::ffff:a.b.c.d)."""
+    import ipaddress
+
+    if host.startswith("["):
+        raise InputError(f"`host` {host}: write an IPv6 address without brackets (--host ::1)")
+    try:
+        ip = ipaddress.ip_address(host)
+    except ValueError:
+        return
+    if ip.version == 6 and ip.ipv4_mapped is not None:
+        raise InputError(f"`host` {host}: an IPv4 address written as IPv6, which the viewer "
+                         f"cannot bind; give {ip.ipv4_mapped}")
 
 
 def start(inputs: ViewerInputs, data: SceneData | None = None) -> tuple[object, SceneHandles]:
