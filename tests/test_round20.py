@@ -74,3 +74,26 @@ def test_a_host_viser_cannot_bind_is_refused_before_anything_is_read(tiny_map, h
 
     code, err = run_cli(["view", str(tiny_map), "--host", host, "--port", "0"], hang_s=60)
     assert code == 2 and words in err.strip().splitlines()[-1], err
+
+
+def test_a_bind_mount_as_an_output_is_refused_before_the_work(tiny_map, tmp_path):
+    """X3: a bind mount from the same file system is no mount point to `os.path.ismount`, so
+    `export --colmap` onto one ran the whole job, then failed with "Device or resource busy".
+    The mount table tells it."""
+    import subprocess
+
+    source, mount = tmp_path / "source", tmp_path / "mnt"
+    source.mkdir()
+    mount.mkdir()
+    if subprocess.run(["mount", "--bind", str(source), str(mount)],
+                      capture_output=True).returncode:
+        pytest.skip("cannot bind-mount here (needs root and a mount namespace)")
+    try:
+        from tests.fuzzing import run_cli
+
+        code, err = run_cli(["export", str(tiny_map), "--colmap", str(mount)])
+        assert code == 2 and err.strip().splitlines()[-1].startswith(
+            f"error: {mount}: --colmap is a mount point"), err
+        assert not any(mount.iterdir())
+    finally:
+        subprocess.run(["umount", str(mount)], check=True)

@@ -119,6 +119,22 @@ def lock_record_or_empty(fd: int) -> bool:
             and what.endswith(b"\n") and what[:-1].decode("ascii", "replace") in LOCK_HOLDERS)
 
 
+def is_mount_point(path: str | Path) -> bool:
+    """Whether `path` is a mount point: another file system (`os.path.ismount`) or a bind
+    mount of the same one, which only the mount table (/proc/self/mountinfo) tells."""
+    if os.path.ismount(path):
+        return True
+    try:
+        with open("/proc/self/mountinfo", encoding="utf-8", errors="replace") as table:
+            points = {line.split()[4] for line in table if len(line.split()) > 4}
+    except OSError:  # no /proc: what ismount said
+        return False
+    where = os.path.realpath(path)
+    # the table writes a blank, a tab, a line break and a backslash as octal escapes
+    escaped = "".join(f"\\{ord(c):03o}" if c in " \t\n\\" else c for c in where)
+    return escaped in points
+
+
 def lock_file_refusal(out: str | Path, info: os.stat_result, fd: int | None = None
                       ) -> str | None:
     """Why the file at `out`'s lock path (`write_lock_path`; `info` its lstat or fstat, `fd`
@@ -303,7 +319,7 @@ def check_outputs(outputs: dict[str, str | Path | None],
                 kind = file_kind(st.st_mode)
                 kind = kind if kind in ("a folder", "a file") else f"not a regular file ({kind})"
                 raise InputError(f"{out}: {option} exists and is {kind}; refusing to replace it")
-            if os.path.ismount(out):  # a container's volume: the rename would fail (EBUSY)
+            if is_mount_point(out):  # a container's volume: the rename would fail (EBUSY)
                 raise InputError(f"{out}: {option} is a mount point; its writer puts the new "
                                  f"{'folder' if want_dir else 'file'} in by a rename over it, "
                                  "which a mount point does not allow: give a path inside it")
