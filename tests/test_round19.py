@@ -234,25 +234,6 @@ def test_a_reference_that_is_a_link_loop_is_one_line(tiny_map, scene_dir, tmp_pa
     assert code == 2 and "Traceback" not in err and str(loop) in err.strip().splitlines()[-1]
 
 
-def test_a_mount_point_as_a_folder_output_is_refused_before_the_work(tiny_map, tmp_path):
-    """V4: a folder output that is a mount point (a container's volume) ran the whole job, then
-    failed its rename with "Device or resource busy", naming no option."""
-    import subprocess
-
-    mount = tmp_path / "mnt"
-    mount.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mount)],
-                      capture_output=True).returncode:
-        pytest.skip("cannot mount a tmpfs here (needs root and a mount namespace)")
-    try:
-        code, err = run_cli(["export", str(tiny_map), "--colmap", str(mount)])
-        assert code == 2 and err.strip().splitlines()[-1].startswith(
-            f"error: {mount}: --colmap is a mount point"), err
-        assert not any(mount.iterdir())
-    finally:
-        subprocess.run(["umount", str(mount)], check=True)
-
-
 def test_a_users_file_at_a_trajectorys_names_file_is_not_replaced(tiny_map, tmp_path):
     """Round 19 (minor): the names file beside a TUM output (a second name the user never
     typed) was replaced whenever its text read as 'stamp name' lines: a numbered to-do list,

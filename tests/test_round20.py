@@ -76,21 +76,24 @@ def test_a_host_viser_cannot_bind_is_refused_before_anything_is_read(tiny_map, h
     assert code == 2 and words in err.strip().splitlines()[-1], err
 
 
-def test_a_bind_mount_as_an_output_is_refused_before_the_work(tiny_map, tmp_path):
-    """X3: a bind mount from the same file system is no mount point to `os.path.ismount`, so
-    `export --colmap` onto one ran the whole job, then failed with "Device or resource busy".
-    The mount table tells it."""
+@pytest.mark.parametrize("kind", ["tmpfs", "bind"])
+def test_a_mount_point_as_a_folder_output_is_refused_before_the_work(tiny_map, tmp_path, kind):
+    """Round 19, V4: a folder output that is a mount point (a container's volume) ran the whole
+    job, then failed its rename with "Device or resource busy", naming no option. X3: a bind
+    mount from the same file system is no mount point to `os.path.ismount`; the mount table
+    tells it."""
     import subprocess
+
+    from tests.fuzzing import run_cli
 
     source, mount = tmp_path / "source", tmp_path / "mnt"
     source.mkdir()
     mount.mkdir()
-    if subprocess.run(["mount", "--bind", str(source), str(mount)],
-                      capture_output=True).returncode:
-        pytest.skip("cannot bind-mount here (needs root and a mount namespace)")
+    command = (["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mount)] if kind == "tmpfs"
+               else ["mount", "--bind", str(source), str(mount)])
+    if subprocess.run(command, capture_output=True).returncode:
+        pytest.skip(f"cannot {' '.join(command[:2])} here (needs root and a mount namespace)")
     try:
-        from tests.fuzzing import run_cli
-
         code, err = run_cli(["export", str(tiny_map), "--colmap", str(mount)])
         assert code == 2 and err.strip().splitlines()[-1].startswith(
             f"error: {mount}: --colmap is a mount point"), err
