@@ -133,10 +133,10 @@ def certificates_der(data: bytes) -> list[bytes]:
 def _marker_label(line: bytes, prefix: bytes, number: int) -> str:
     """The LABEL of a marker line "PREFIX LABEL-----"; ValueError where it is not one."""
     label = line[len(prefix):]
-    if not label.endswith(b"-----") or len(label) <= 5 or b"-" * 5 in label[:-5] \
-            or not label[:-5].isascii() or not label[:-5].replace(b" ", b"").isalnum():
+    name = label[:-5]  # bytes.isalnum: ASCII letters and digits only, False when empty
+    if not label.endswith(b"-----") or not name.replace(b" ", b"").isalnum():
         raise ValueError(f"line {number} is not a PEM marker line ('{prefix.decode()}LABEL-----')")
-    return label[:-5].decode("ascii")
+    return name.decode("ascii")
 
 
 def _base64(text: bytes, label: str, opened: int) -> bytes:
