@@ -82,7 +82,7 @@ def _viser_binds(host: str) -> None:
     import ipaddress
 
     if host.startswith("["):
-        raise InputError(f"`host` {host}: write an IPv6 address without brackets (--host ::1)")
+        raise InputError(f"`host` {host}: write an IPv6 address without brackets (::1)")
     try:
         ip = ipaddress.ip_address(host)
     except ValueError:
