@@ -30,7 +30,7 @@ import numpy as np
 from slamreloc.errors import InputError, quoted
 from slamreloc.geometry import Rigid3
 from slamreloc.io.address import target_problem
-from slamreloc.io.pem import check_pem, read_pem
+from slamreloc.io.pem import check_pem, read_pem, trusted_certificates_problem
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
     CLIENT_TIMEOUT_S,
@@ -195,6 +195,10 @@ class Client:
             ca = (check_pem(bytes(tls_ca), "certificate", "tls_ca")
                   if isinstance(tls_ca, (bytes, bytearray, memoryview))
                   else read_pem(tls_ca, "certificate", "tls_ca"))
+            problem = trusted_certificates_problem(ca)
+            if problem:
+                where = "" if isinstance(tls_ca, (bytes, bytearray, memoryview)) else f"{tls_ca}: "
+                raise InputError(f"{where}`tls_ca` cannot be trusted: {problem}")
             self.channel = grpc.secure_channel(address, grpc.ssl_channel_credentials(ca),
                                                options)
         else:

@@ -415,8 +415,8 @@ def test_the_two_clients_read_ca_files_by_one_rule(client_binary, tmp_path_facto
     from hypothesis import given, settings
     from hypothesis import strategies as st
 
-    from slamreloc.io.pem import pem_problem
-    from tests.test_round18 import der, make_certificate
+    from slamreloc.io.pem import pem_problem, trusted_certificates_problem
+    from tests.test_round18 import der, make_certificate, pem
 
     from cryptography import x509
 
@@ -424,6 +424,16 @@ def test_the_two_clients_read_ca_files_by_one_rule(client_binary, tmp_path_facto
                   (x509.SubjectKeyIdentifier(b"\x01" * 20), False)]
     pieces = _ca_pieces(der(make_certificate("c0", extensions=extensions)[0]),
                         der(make_certificate("c1")[0]))
+    # round 20 (Y6): certificates signed by another, trusted as anchors: a CA's taken, any
+    # other refused by both (`trusted_certificates_problem`)
+    root = make_certificate("root", ca=True)
+    signing = x509.KeyUsage(False, False, False, False, False, True, False, False, False)
+    signed = {"leaf signed": {}, "ca signed": {"ca": True},
+              "key usage signs": {"extensions": [(signing, True)]},
+              "ca whose usage does not sign": {"ca": True, "extensions": [
+                  (x509.KeyUsage(True, *[False] * 8), True)]}}
+    for name, kwargs in signed.items():
+        pieces[name] = pem(der(make_certificate(name.split()[0], issuer=root, **kwargs)[0]))
     folder = tmp_path_factory.mktemp("ca_rule")
     (folder / "seq").mkdir()
     port = _closed_port()
@@ -435,9 +445,32 @@ def test_the_two_clients_read_ca_files_by_one_rule(client_binary, tmp_path_facto
         (folder / "ca.pem").write_bytes(data)
         done = run_client(client_binary, "--server", f"127.0.0.1:{port}", "--timeout", "2",
                           "--tls-ca", str(folder / "ca.pem"), str(folder / "seq"))
-        refused = "--tls-ca is not a PEM certificate" in done.stderr
-        problem = pem_problem(data, "certificate")
+        refused = ("--tls-ca is not a PEM certificate" in done.stderr
+                   or "--tls-ca cannot be trusted" in done.stderr)
+        problem = pem_problem(data, "certificate") or trusted_certificates_problem(data)
         assert refused == (problem is not None), (names, problem, done.stderr)
         assert "pass phrase" not in done.stderr
 
     check()
+
+
+def test_the_two_clients_read_the_same_der_inside_certificates(client_binary, tmp_path):
+    """Round 20's open DER cases (tests/test_round21.py): a constructed string in a name, a
+    unique ID's padding bits, BER inside an extension's value; each refused by both clients
+    with the same words, or taken by both."""
+    pytest.importorskip("cryptography")
+    from slamreloc.io.pem import pem_problem
+    from tests.test_round18 import pem
+    from tests.test_round21 import crafted_certificates
+
+    (tmp_path / "seq").mkdir()
+    port = _closed_port()
+    for name, (data, words) in crafted_certificates().items():
+        (tmp_path / "ca.pem").write_bytes(pem(data))
+        done = run_client(client_binary, "--server", f"127.0.0.1:{port}", "--timeout", "2",
+                          "--tls-ca", str(tmp_path / "ca.pem"), str(tmp_path / "seq"))
+        problem = pem_problem(pem(data), "certificate")
+        if words is None:
+            assert problem is None and "--tls-ca" not in done.stderr, (name, done.stderr)
+        else:
+            assert words in problem and words in done.stderr, (name, problem, done.stderr)

@@ -54,6 +54,7 @@
 #include <grpc/support/log.h>
 #include <openssl/err.h>
 #include <openssl/pem.h>
+#include <openssl/x509v3.h>
 #include <openssl/x509.h>
 #include <openssl/x509v3.h>
 #include <grpcpp/grpcpp.h>
@@ -567,6 +568,12 @@ bool der_time(const unsigned char* v, size_t size, bool generalized) {
          at(8 + o) <= 59 && at(10 + o) <= 59;
 }
 
+// Whether a BIT STRING's value breaks DER: unused bits over 7, or not 0.
+bool bit_string_problem(const unsigned char* value, size_t size) {
+  return size == 0 || value[0] > 7 || (size == 1 && value[0] != 0) ||
+         (size > 1 && (value[size - 1] & ((1u << value[0]) - 1)));
+}
+
 // Why the DER elements in [p, end) break a rule of DER that OpenSSL's reader lets through
 // (it keeps a certificate's signed part as received), or "": a length not in its shortest
 // form (or indefinite), a BOOLEAN other than 0xFF (a FALSE is a DEFAULT, which DER leaves
@@ -596,8 +603,7 @@ std::string der_problem(const unsigned char* p, const unsigned char* end, int de
     } else if (tag & 0x20) {
       const std::string inner = der_problem(value, p, depth - 1);
       if (!inner.empty()) return inner;
-    } else if (tag == 0x03 && (size == 0 || value[0] > 7 || (size == 1 && value[0] != 0) ||
-                               (size > 1 && (value[size - 1] & ((1u << value[0]) - 1))))) {
+    } else if (tag == 0x03 && bit_string_problem(value, size)) {
       return "a BIT STRING whose unused bits are not 0";
     } else if ((tag == 0x17 || tag == 0x18) && !der_time(value, size, tag == 0x18)) {
       return "a time not a real instant written with its seconds and Z";
@@ -607,6 +613,56 @@ std::string der_problem(const unsigned char* p, const unsigned char* end, int de
     } else if (tag == 0x02 && (size == 0 || (size > 1 && ((value[0] == 0 && !(value[1] & 0x80)) ||
                                                          (value[0] == 0xFF && (value[1] & 0x80)))))) {
       return "an INTEGER not in its shortest form";
+    }
+  }
+  return "";
+}
+
+// One DER element in [p, end) whose lengths der_problem has checked: its tag and value.
+struct Element {
+  unsigned char tag;
+  const unsigned char* value;
+  const unsigned char* end;
+};
+std::optional<Element> element_at(const unsigned char* p, const unsigned char* end) {
+  if (end - p < 2) return std::nullopt;
+  const unsigned char tag = p[0];
+  size_t size = p[1];
+  p += 2;
+  if (size & 0x80) {
+    const size_t bytes = size & 0x7F;
+    if (bytes > 4 || static_cast<size_t>(end - p) < bytes) return std::nullopt;
+    size = 0;
+    for (size_t i = 0; i < bytes; ++i) size = (size << 8) | *p++;
+  }
+  if (size > static_cast<size_t>(end - p)) return std::nullopt;
+  return Element{tag, p, p + size};
+}
+
+// Why parts of a certificate that der_problem reads as plain bytes break DER, or "": the
+// unique IDs ([1] and [2] of the signed part: BIT STRINGs) and each extension's value (DER
+// inside its OCTET STRING). slamreloc.io.pem.certificate_parts_problem's rule.
+std::string certificate_parts_problem(const unsigned char* start, const unsigned char* end) {
+  const auto whole = element_at(start, end);
+  if (!whole) return "";
+  const auto tbs = element_at(whole->value, whole->end);
+  if (!tbs) return "";
+  for (auto part = element_at(tbs->value, tbs->end); part; part = element_at(part->end, tbs->end)) {
+    if ((part->tag == 0x81 || part->tag == 0x82) &&
+        bit_string_problem(part->value, part->end - part->value))
+      return "a unique ID whose unused bits are not 0";
+    if (part->tag != 0xA3) continue;
+    const auto listed = element_at(part->value, part->end);
+    if (!listed) return "";
+    for (auto one = element_at(listed->value, listed->end); one;
+         one = element_at(one->end, listed->end)) {
+      std::optional<Element> last;
+      for (auto field = element_at(one->value, one->end); field;
+           field = element_at(field->end, one->end))
+        last = field;
+      if (!last || last->tag != 0x04) continue;
+      const std::string problem = der_problem(last->value, last->end, 32);
+      if (!problem.empty()) return "an extension's value holds " + problem;
     }
   }
   return "";
@@ -624,10 +680,23 @@ std::string strict_der_certificate_problem(const std::string& der) {
   if (p != start + der.size())
     return "is not an X.509 certificate (" + std::to_string(start + der.size() - p) +
            " bytes after it)";
-  const std::string problem = der_problem(start, start + der.size(), 32);
+  std::string problem = der_problem(start, start + der.size(), 32);
+  if (problem.empty()) problem = certificate_parts_problem(start, start + der.size());
   if (!problem.empty()) return "is not in strict DER (" + problem + ")";
   if (X509_get_extension_flags(cert.get()) & EXFLAG_INVALID)
     return "is not an X.509 certificate (an extension given twice or unreadable)";
+  for (int i = 0; i < X509_get_ext_count(cert.get()); ++i) {  // each one OpenSSL knows, read
+    X509_EXTENSION* ext = X509_get_ext(cert.get(), i);
+    const X509V3_EXT_METHOD* method = X509V3_EXT_get(ext);
+    if (!method) continue;
+    void* value = X509V3_EXT_d2i(ext);
+    ERR_clear_error();
+    if (!value) return "is not an X.509 certificate (an extension given twice or unreadable)";
+    if (method->it)
+      ASN1_item_free(static_cast<ASN1_VALUE*>(value), ASN1_ITEM_ptr(method->it));
+    else if (method->ext_free)
+      method->ext_free(value);
+  }
   const long version = X509_get_version(cert.get());
   // the signed part's first element ([0], 0xA0, where a version is written out); the
   // lengths are in their shortest form here
@@ -641,6 +710,30 @@ std::string strict_der_certificate_problem(const std::string& der) {
   return "";
 }
 
+// Why a trusted certificate (strict DER, checked above) can anchor no chain, or "": not a CA
+// (basicConstraints CA:TRUE and no key usage without keyCertSign; or, without
+// basicConstraints, a key usage allowing keyCertSign) and not self-issued (issuer = subject).
+// slamreloc.io.pem.trusted_certificates_problem's rule.
+std::string anchor_problem(const std::string& der) {
+  const auto* p = reinterpret_cast<const unsigned char*>(der.data());
+  std::unique_ptr<X509, decltype(&X509_free)> cert(
+      d2i_X509(nullptr, &p, static_cast<long>(der.size())), &X509_free);
+  ERR_clear_error();
+  if (!cert || X509_NAME_cmp(X509_get_subject_name(cert.get()),
+                             X509_get_issuer_name(cert.get())) == 0)
+    return "";
+  const uint32_t flags = X509_get_extension_flags(cert.get());
+  const bool signs = !(flags & EXFLAG_KUSAGE) || (X509_get_key_usage(cert.get()) & KU_KEY_CERT_SIGN);
+  const bool ca = (flags & EXFLAG_BCONS) ? (flags & EXFLAG_CA) && signs
+                                         : (flags & EXFLAG_KUSAGE) && signs;
+  if (ca) return "";
+  char subject[256] = {0};
+  X509_NAME_oneline(X509_get_subject_name(cert.get()), subject, sizeof subject - 1);
+  return std::string("(") + std::string(subject).substr(0, 80) +
+         ") is neither a CA nor self-signed, so no client can anchor a chain in it: give the "
+         "CA certificate that signed it";
+}
+
 // The trusted certificate(s) of --tls-ca, checked by the rule above (never by OpenSSL's PEM
 // reader, which would prompt for a pass phrase on an encrypted-looking block).
 std::string read_tls_ca(const fs::path& path) {
@@ -652,7 +745,7 @@ std::string read_tls_ca(const fs::path& path) {
            "without");
   std::optional<std::string> label;
   size_t opened = 0, number = 0, certificates = 0;
-  std::vector<std::string> body;
+  std::vector<std::string> body, anchors;
   for (size_t pos = 0; pos <= pem.size();) {
     size_t nl = pem.find('\n', pos);
     if (nl == std::string::npos) nl = pem.size();
@@ -721,11 +814,18 @@ std::string read_tls_ca(const fs::path& path) {
       const std::string why = strict_der_certificate_problem(*der);
       if (!why.empty()) refuse(what + " " + why);
       ++certificates;
+      anchors.push_back(*der);
     }
     label.reset();
   }
   if (label) refuse("the block opened at line " + std::to_string(opened) + " has no END line");
   if (certificates == 0) refuse("no 'BEGIN CERTIFICATE' block");
+  for (size_t i = 0; i < anchors.size(); ++i) {
+    const std::string why = anchor_problem(anchors[i]);
+    if (!why.empty())
+      throw Error(path.string() + ": --tls-ca cannot be trusted: certificate " +
+                  std::to_string(i + 1) + " " + why);
+  }
   return pem;
 }
 

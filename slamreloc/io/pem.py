@@ -167,6 +167,10 @@ def _body_base64(body: list[bytes], label: str, opened: int) -> bytes:
 def _certificate_der(der: bytes, opened: int) -> bytes:
     """`der` (the certificate block at line `opened`) if it is one X.509 certificate in strict
     DER."""
+    problem = der_problem(der) or certificate_parts_problem(der)
+    if problem:
+        raise ValueError(f"the certificate block at line {opened} is not in strict DER "
+                         f"({problem})")
     try:
         from cryptography import x509
         from cryptography.hazmat.primitives.serialization import Encoding
@@ -186,3 +190,143 @@ def _certificate_der(der: bytes, opened: int) -> bytes:
         raise ValueError(f"the certificate block at line {opened} is not in strict DER (it "
                          "does not encode back to the same bytes)")
     return der
+
+
+def _elements(data: bytes, start: int = 0, end: int | None = None):
+    """(tag, where its value starts, where it ends) of each DER element in data[start:end];
+    ValueError saying which length rule an element breaks (long-form tags, indefinite or
+    non-shortest lengths, lengths over 4 bytes or past the end)."""
+    at, end = start, len(data) if end is None else end
+    while at < end:
+        tag = data[at]
+        if tag & 0x1F == 0x1F:
+            raise ValueError("a tag in the long form")
+        if at + 1 >= end:
+            raise ValueError("an element cut short")
+        size, at = data[at + 1], at + 2
+        if size == 0x80:
+            raise ValueError("an indefinite length")
+        if size > 0x80:
+            count = size & 0x7F
+            if count > 4 or end - at < count:
+                raise ValueError("a length cut short")
+            if data[at] == 0:
+                raise ValueError("a length not in its shortest form")
+            size, at = int.from_bytes(data[at:at + count], "big"), at + count
+            if size < 0x80:
+                raise ValueError("a length not in its shortest form")
+        if size > end - at:
+            raise ValueError("an element cut short")
+        yield tag, at, at + size
+        at += size
+
+
+def _time_problem(value: bytes, generalized: bool) -> bool:
+    """Whether a UTCTime (YYMMDDHHMMSSZ) or GeneralizedTime (YYYYMMDDHHMMSSZ) is not a real
+    instant written as DER writes it."""
+    import calendar
+
+    digits = 14 if generalized else 12
+    if len(value) != digits + 1 or value[-1:] != b"Z" or not value[:-1].isdigit():
+        return True
+    two = [int(value[i:i + 2]) for i in range(0, digits, 2)]
+    year = two[0] * 100 + two[1] if generalized else two[0] + (2000 if two[0] < 50 else 1900)
+    month, day, hour, minute, second = two[-5:]
+    return not (1 <= month <= 12 and 1 <= day <= calendar.monthrange(year, month)[1]
+                and hour <= 23 and minute <= 59 and second <= 59)
+
+
+def _bit_string_problem(value: bytes) -> bool:
+    """Whether a BIT STRING's value breaks DER: unused bits over 7, or not 0."""
+    return (not value or value[0] > 7 or len(value) == 1 and value[0] != 0
+            or len(value) > 1 and value[-1] & ((1 << value[0]) - 1) != 0)
+
+
+def der_problem(data: bytes, start: int = 0, end: int | None = None, depth: int = 32) -> str:
+    """Why the DER elements in data[start:end] break a rule of DER that OpenSSL's reader lets
+    through, or "": `_elements`' length rules, a string in constructed form, a BIT STRING
+    whose unused bits are not 0, a time not a real instant with its seconds and Z, a BOOLEAN
+    other than 0xFF (a FALSE is a DEFAULT, which DER leaves out), an INTEGER with a redundant
+    leading byte. Constructed elements are read through, at most `depth` levels. The C++
+    client's `der_problem` states the same rule."""
+    if depth <= 0:
+        return "nested too deeply"
+    try:
+        for tag, at, stop in _elements(data, start, end):
+            value = data[at:stop]
+            if tag & 0x20 and tag & 0xC0 == 0 and tag not in (0x30, 0x31):
+                return "a string written in constructed form"
+            if tag & 0x20:
+                inner = der_problem(data, at, stop, depth - 1)
+                if inner:
+                    return inner
+            elif tag == 0x03 and _bit_string_problem(value):
+                return "a BIT STRING whose unused bits are not 0"
+            elif tag in (0x17, 0x18) and _time_problem(value, tag == 0x18):
+                return "a time not a real instant written with its seconds and Z"
+            elif tag == 0x01 and value != b"\xff":
+                return ("a BOOLEAN FALSE written out, which DER leaves out" if value == b"\x00"
+                        else "a BOOLEAN TRUE not written as 0xFF")
+            elif tag == 0x02 and (not value or len(value) > 1 and (
+                    value[0] == 0 and not value[1] & 0x80 or value[0] == 0xFF and value[1] & 0x80)):
+                return "an INTEGER not in its shortest form"
+    except ValueError as err:
+        return str(err)
+    return ""
+
+
+def certificate_parts_problem(der: bytes) -> str:
+    """Why parts of a certificate that `der_problem` reads as plain bytes break DER, or "":
+    the issuer's and subject's unique IDs ([1] and [2] of the signed part: BIT STRINGs) and
+    each extension's value (DER inside its OCTET STRING). The C++ client reads the same."""
+    try:
+        _, body, end = next(_elements(der))
+        _, tbs, tbs_end = next(_elements(der, body, end))
+        for tag, at, stop in _elements(der, tbs, tbs_end):
+            if tag in (0x81, 0x82) and _bit_string_problem(der[at:stop]):
+                return "a unique ID whose unused bits are not 0"
+            if tag != 0xA3:
+                continue
+            _, listed, listed_end = next(_elements(der, at, stop))
+            for _, one, one_end in _elements(der, listed, listed_end):
+                *_, (kind, value, value_end) = _elements(der, one, one_end)
+                problem = kind == 0x04 and der_problem(der, value, value_end)
+                if problem:
+                    return f"an extension's value holds {problem}"
+    except (ValueError, StopIteration):
+        return ""  # the whole was checked by der_problem; a shape cryptography has read
+    return ""
+
+
+def trusted_certificates_problem(data: bytes) -> str | None:
+    """Why a PEM file of certificates to trust (a client's `tls_ca`) holds one that no TLS
+    verifier can anchor a chain in, or None: a certificate that is not a CA by OpenSSL's rule
+    (basicConstraints CA:TRUE and no key usage without keyCertSign; or, without
+    basicConstraints, a key usage allowing keyCertSign) and not self-issued (issuer =
+    subject), so it can neither sign the server's certificate nor be the server's own
+    self-signed one. The C++ client applies the same rule. (A self-signed certificate that is
+    not a CA authenticates a server presenting it in both clients, and one it signed only in
+    the Python client: BoringSSL takes such an issuer, OpenSSL does not.)"""
+    try:
+        from cryptography import x509
+    except ImportError:
+        return None
+    for number, der in enumerate(certificates_der(data), 1):
+        try:
+            one = x509.load_der_x509_certificate(der)
+            if one.issuer == one.subject:
+                continue
+            extensions = {e.oid: e.value for e in one.extensions}
+        except Exception:  # noqa: BLE001 - parsed by certificates_der already
+            continue
+        limits = extensions.get(x509.oid.ExtensionOID.BASIC_CONSTRAINTS)
+        usage = extensions.get(x509.oid.ExtensionOID.KEY_USAGE)
+        if limits is not None:
+            ca = limits.ca and (usage is None or usage.key_cert_sign)
+        else:
+            ca = usage is not None and usage.key_cert_sign
+        if not ca:
+            return (f"certificate {number} ({one.subject.rfc4514_string()[:80]}) is neither a "
+                    "CA nor self-signed, so no client can anchor a chain in it: give the CA "
+                    "certificate that signed it")
+    return None

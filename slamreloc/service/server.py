@@ -769,10 +769,85 @@ def read_tls_pair(cert: Path, key: Path) -> tuple[bytes, bytes]:
     if problem:
         raise InputError(f"{key}: `tls_key` does not belong to the certificate in {cert} "
                          f"(`tls_cert`): {problem}")
-    problem = certificate_problem(out[1])
+    problem = certificate_problem(out[1]) or handshake_problem(out[0], out[1])
     if problem:
         raise InputError(f"{cert}: `tls_cert` cannot serve TLS: {problem}")
     return out[0], out[1]
+
+
+def handshake_problem(key: bytes, cert: bytes) -> str | None:
+    """Why a client trusting the top of the PEM chain (its last certificate, or the server's
+    own certificate where that signed itself) refuses the chain, found by a TLS handshake
+    in memory through OpenSSL's verifier (what the C++ client runs; its path rules are those
+    of RFC 5280: every issuer a CA, path lengths, name constraints, extended key usage along
+    the chain), or None (also None where no such top is at hand: one certificate that another
+    signed, the last of several out of its dates, or no memfd to hold the key). The host name
+    is not checked: clients may reach the server under any of its names."""
+    import ssl
+    from datetime import datetime, timezone
+
+    try:
+        from cryptography import x509
+        from cryptography.hazmat.primitives.serialization import Encoding
+
+        chain = [x509.load_der_x509_certificate(der) for der in certificates_der(cert)]
+    except Exception:  # noqa: BLE001 - no cryptography; or parsed by pem_problem already
+        return None
+    now = datetime.now(timezone.utc)
+    top = chain[-1] if len(chain) > 1 or chain[0].issuer == chain[0].subject else None
+    if len(chain) > 1 and not top.not_valid_before_utc <= now <= top.not_valid_after_utc:
+        top = chain[-2] if len(chain) > 2 else None  # a cross-signed root, warned of
+    if top is None or not hasattr(os, "memfd_create"):
+        return None
+    server = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    client = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    for context in (server, client):
+        context.set_ciphers("DEFAULT:@SECLEVEL=0")  # key sizes are certificate_problem's
+    client.check_hostname = False
+    client.verify_flags |= ssl.VERIFY_X509_PARTIAL_CHAIN  # the top need not sign itself
+    client.load_verify_locations(cadata=top.public_bytes(Encoding.DER))
+    files = [os.memfd_create(name) for name in ("tls_cert", "tls_key")]  # never on a disk
+    try:
+        for descriptor, data in zip(files, (cert, key)):
+            os.write(descriptor, data)
+        try:
+            server.load_cert_chain(*(f"/proc/self/fd/{d}" for d in files))
+        except (ssl.SSLError, OSError):
+            return None  # gRPC reads it (pair_problem has compared the keys): let it say
+        return _memory_handshake(server, client)
+    finally:
+        for descriptor in files:
+            os.close(descriptor)
+
+
+def _memory_handshake(server, client) -> str | None:
+    """Run a TLS handshake between two ssl contexts over memory buffers; why the client
+    refused the server's certificate chain, or None."""
+    import ssl
+
+    pipes = [ssl.MemoryBIO() for _ in range(4)]  # client -> server, server -> client
+    ends = [client.wrap_bio(pipes[1], pipes[0], server_side=False),
+            server.wrap_bio(pipes[0], pipes[1], server_side=True)]
+    done = [False, False]
+    for _ in range(20):  # TLS 1.3 takes 1.5 round trips; a bound all the same
+        for i, end in enumerate(ends):
+            if done[i]:
+                continue
+            try:
+                end.do_handshake()
+                done[i] = True
+            except ssl.SSLWantReadError:
+                pass
+            except ssl.SSLCertVerificationError as err:
+                return (f"clients refuse its chain ({err.verify_message}; OpenSSL's "
+                        "verifier, trusting the chain's last certificate)")
+            except ssl.SSLError as err:
+                if i == 1:  # the server saw the client's alert: the client's reason came first
+                    continue
+                return f"a TLS handshake with it fails ({err.reason or err})"
+        if all(done):
+            return None
+    return None
 
 
 TLS_CURVES = ("secp256r1", "secp384r1")  # the ECDSA curves gRPC's TLS (BoringSSL) signs with
