@@ -456,20 +456,24 @@ def test_the_two_clients_read_ca_files_by_one_rule(client_binary, tmp_path_facto
 
 def test_the_two_clients_read_the_same_der_inside_certificates(client_binary, tmp_path):
     """Round 20's open DER cases (tests/test_round21.py): a constructed string in a name, a
-    unique ID's padding bits, BER inside an extension's value; each refused by both clients
-    with the same words, or taken by both."""
+    unique ID's padding bits, BER inside an extension's value; and round 21's weak anchors
+    (an RSA-1024 root, a SHA-1-signed intermediate): each refused by both clients with the
+    same words, or taken by both."""
     pytest.importorskip("cryptography")
-    from slamreloc.io.pem import pem_problem
+    from slamreloc.io.pem import pem_problem, trusted_certificates_problem
     from tests.test_round18 import pem
-    from tests.test_round21 import crafted_certificates
+    from tests.test_round21 import crafted_certificates, weak_trusted_certificates
 
     (tmp_path / "seq").mkdir()
     port = _closed_port()
-    for name, (data, words) in crafted_certificates().items():
-        (tmp_path / "ca.pem").write_bytes(pem(data))
+    cases = {name: (pem(data), words) for name, (data, words) in crafted_certificates().items()}
+    for name, (data, words) in weak_trusted_certificates().items():  # round 21's Z4
+        cases[name] = (data, words)
+    for name, (data, words) in cases.items():
+        (tmp_path / "ca.pem").write_bytes(data)
         done = run_client(client_binary, "--server", f"127.0.0.1:{port}", "--timeout", "2",
                           "--tls-ca", str(tmp_path / "ca.pem"), str(tmp_path / "seq"))
-        problem = pem_problem(pem(data), "certificate")
+        problem = pem_problem(data, "certificate") or trusted_certificates_problem(data)
         if words is None:
             assert problem is None and "--tls-ca" not in done.stderr, (name, done.stderr)
         else:

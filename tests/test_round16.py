@@ -191,7 +191,8 @@ def test_sfm_never_removes_a_file_put_into_its_output_while_it_ran(scene_dir, tm
 
     photos = tmp_path / "photos"
     photos.mkdir()
-    for frame in load_dataset(scene_dir).frames("seq-01")[:12]:
+    # 20 frames, as tests/test_sfm.py: 12 registered on an EPYC but only 3 on an AMX Xeon
+    for frame in load_dataset(scene_dir).frames("seq-01")[:20]:
         shutil.copyfile(frame.image_path, photos / f"{frame.name.split('/')[-1]}.png")
     out = tmp_path / "o"
     out.mkdir()

@@ -187,3 +187,96 @@ def test_a_trusted_certificate_that_can_anchor_nothing_is_refused_by_the_client(
         with pytest.raises(InputError, match=r"ca\.pem: `tls_ca` cannot be trusted: certif"
                                              r"icate 2 \(CN=.*\) is neither a CA nor self-s"):
             Client("127.0.0.1:1", tls_ca=tmp_path / "ca.pem")
+
+
+def rsa_certificate(subject: str, bits: int = 2048, issuer=None, ca: bool = True):
+    """(certificate, key): an RSA certificate signed (SHA-256) by `issuer` or itself."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes
+    from cryptography.hazmat.primitives.asymmetric import rsa
+    from cryptography.x509.oid import NameOID
+
+    key = rsa.generate_private_key(65537, bits)
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, subject)])
+    signer_name, signer_key = (name, key) if issuer is None else (issuer[0].subject, issuer[1])
+    now = datetime.now(timezone.utc)
+    builder = (x509.CertificateBuilder().subject_name(name).issuer_name(signer_name)
+               .public_key(key.public_key()).serial_number(5)
+               .not_valid_before(now - timedelta(days=1)).not_valid_after(now + timedelta(days=1)))
+    if ca:
+        builder = builder.add_extension(x509.BasicConstraints(ca=True, path_length=None), True)
+    return builder.sign(signer_key, hashes.SHA256()), key
+
+
+SHA256_RSA = bytes.fromhex("06092a864886f70d01010b")  # the OID sha256WithRSAEncryption
+
+
+def sha1_signed(certificate_der: bytes) -> bytes:
+    """The RSA-signed certificate with its signature algorithm named sha1WithRSAEncryption
+    (both places; the signature no longer verifies, which no CA-file reader checks):
+    cryptography signs no SHA-1."""
+    assert certificate_der.count(SHA256_RSA) == 2
+    return certificate_der.replace(SHA256_RSA, SHA256_RSA[:-1] + b"\x05")
+
+
+def weak_trusted_certificates() -> dict[str, tuple[bytes, str | None]]:
+    """name -> (PEM CA file, words of the refusal or None): round 21's Z4 anchors."""
+    root = rsa_certificate("root")
+    intermediate = rsa_certificate("int", issuer=root)[0]
+    return {
+        "RSA-1024 root": (pem(der(rsa_certificate("r1024", 1024)[0])),
+                          "80 security bits, under the 112"),
+        "SHA-1 intermediate": (pem(der(root[0])) + pem(sha1_signed(der(intermediate))),
+                               "is signed with SHA1"),
+        "SHA-1 self-signed root": (pem(sha1_signed(der(root[0]))), None),
+        "RSA-2048 root and intermediate": (pem(der(root[0])) + pem(der(intermediate)), None),
+    }
+
+
+def test_trusted_certificates_below_openssl_level_2_are_refused():
+    """Z4 (round 21): a CA file with an RSA-1024 root, or an intermediate signed with SHA-1,
+    was taken by both clients; the Python client (BoringSSL) then connected and the C++
+    client (OpenSSL) refused every chain through it. Both refuse such a file now (the C++
+    side: tests/test_cpp_client.py); a self-signed root's own SHA-1 signature is never
+    checked by OpenSSL, so it stays taken."""
+    from slamreloc.io.pem import trusted_certificates_problem
+
+    for name, (data, words) in weak_trusted_certificates().items():
+        problem = trusted_certificates_problem(data)
+        assert (problem is None) if words is None else (words in problem), (name, problem)
+
+
+def test_the_start_up_handshake_refuses_what_openssl_clients_refuse(tmp_path):
+    """Z3, Z4 (round 21): the start-up handshake ran at OpenSSL's security level 0, so a chain
+    signed with MD5 or SHA-1 or through an RSA-1024 CA started the server; every client (MD5)
+    or the C++ client (the others) then failed. Z2: it handed the user's key file to OpenSSL,
+    which asked for a pass phrase on the terminal; it now hands OpenSSL the key as written
+    by `cryptography`, and key files follow the certificate files' form."""
+    from slamreloc.errors import InputError
+    from slamreloc.io.pem import pem_problem
+
+    weak_ca = rsa_certificate("ca1024", 1024)
+    leaf, key = make_certificate("localhost", issuer=weak_ca)
+    assert "CA certificate key too weak" in handshake_problem(
+        _key_pem(key), pem(der(leaf)) + pem(der(weak_ca[0])))
+    ca = rsa_certificate("ca")
+    leaf, key = make_certificate("localhost", issuer=ca)
+    assert handshake_problem(_key_pem(key), pem(der(leaf)) + pem(der(ca[0]))) is None
+    # a key file whose first marker follows other text, then an encrypted key: refused by
+    # the form rule before anything reads it (it once prompted for a pass phrase)
+    from cryptography.hazmat.primitives import serialization
+
+    encrypted = key.private_bytes(serialization.Encoding.PEM,
+                                  serialization.PrivateFormat.PKCS8,
+                                  serialization.BestAvailableEncryption(b"secret"))
+    forms = {"marker after text": b"x" + _key_pem(key) + encrypted,
+             "nul line": b"\0\n" + _key_pem(key),
+             "header": _key_pem(key).replace(b"KEY-----\n", b"KEY-----\nComment: hi\n\n", 1),
+             "cr only": _key_pem(key).replace(b"\n", b"\r"),
+             "indented": b"".join(b"  " + line for line in _key_pem(key).splitlines(True))}
+    (tmp_path / "c.pem").write_bytes(pem(der(leaf)) + pem(der(ca[0])))
+    for name, data in forms.items():
+        assert pem_problem(data, "private key") is not None, name
+        (tmp_path / "k.pem").write_bytes(data)
+        with pytest.raises(InputError, match=r"k\.pem: `tls_key` is not a PEM private key"):
+            read_tls_pair(tmp_path / "c.pem", tmp_path / "k.pem")

@@ -710,28 +710,46 @@ std::string strict_der_certificate_problem(const std::string& der) {
   return "";
 }
 
-// Why a trusted certificate (strict DER, checked above) can anchor no chain, or "": not a CA
-// (basicConstraints CA:TRUE and no key usage without keyCertSign; or, without
-// basicConstraints, a key usage allowing keyCertSign) and not self-issued (issuer = subject).
-// slamreloc.io.pem.trusted_certificates_problem's rule.
+// Why a trusted certificate (strict DER, checked above) can anchor no chain in OpenSSL, or "":
+// a key under kMinSecurityBits (RSA under 2048 bits); on a certificate not self-issued
+// (issuer = subject), a signature under them (MD5, SHA-1), or not a CA (basicConstraints
+// CA:TRUE and no key usage without keyCertSign; or, without basicConstraints, a key usage
+// allowing keyCertSign). slamreloc.io.pem.trusted_certificates_problem's rule.
+constexpr int kMinSecurityBits = 112;  // OpenSSL's level 2 (`MIN_SECURITY_BITS`)
+
 std::string anchor_problem(const std::string& der) {
   const auto* p = reinterpret_cast<const unsigned char*>(der.data());
   std::unique_ptr<X509, decltype(&X509_free)> cert(
       d2i_X509(nullptr, &p, static_cast<long>(der.size())), &X509_free);
   ERR_clear_error();
-  if (!cert || X509_NAME_cmp(X509_get_subject_name(cert.get()),
-                             X509_get_issuer_name(cert.get())) == 0)
+  if (!cert) return "";
+  char subject[256] = {0};
+  X509_NAME_oneline(X509_get_subject_name(cert.get()), subject, sizeof subject - 1);
+  const std::string which = std::string("(") + std::string(subject).substr(0, 80) + ")";
+  EVP_PKEY* key = X509_get0_pubkey(cert.get());
+  ERR_clear_error();
+  const int bits = key ? EVP_PKEY_get_security_bits(key) : 0;
+  if (key && bits > 0 && bits < kMinSecurityBits)
+    return which + " has a key of " + std::to_string(bits) + " security bits, under the " +
+           std::to_string(kMinSecurityBits) + " that OpenSSL clients hold a chain to (RSA: " +
+           "2048 bits)";
+  if (X509_NAME_cmp(X509_get_subject_name(cert.get()), X509_get_issuer_name(cert.get())) == 0)
     return "";
+  int digest = 0, signature_bits = 0;
+  if (!X509_get_signature_info(cert.get(), &digest, nullptr, &signature_bits, nullptr) ||
+      signature_bits < kMinSecurityBits) {
+    ERR_clear_error();
+    const std::string name = digest == NID_md5 ? "MD5" : digest == NID_sha1 ? "SHA1"
+                                                 : "a digest OpenSSL does not take";
+    return which + " is signed with " + name + ", which OpenSSL clients refuse in a chain";
+  }
   const uint32_t flags = X509_get_extension_flags(cert.get());
   const bool signs = !(flags & EXFLAG_KUSAGE) || (X509_get_key_usage(cert.get()) & KU_KEY_CERT_SIGN);
   const bool ca = (flags & EXFLAG_BCONS) ? (flags & EXFLAG_CA) && signs
                                          : (flags & EXFLAG_KUSAGE) && signs;
   if (ca) return "";
-  char subject[256] = {0};
-  X509_NAME_oneline(X509_get_subject_name(cert.get()), subject, sizeof subject - 1);
-  return std::string("(") + std::string(subject).substr(0, 80) +
-         ") is neither a CA nor self-signed, so no client can anchor a chain in it: give the "
-         "CA certificate that signed it";
+  return which + " is neither a CA nor self-signed, so no client can anchor a chain in it: "
+                 "give the CA certificate that signed it";
 }
 
 // The trusted certificate(s) of --tls-ca, checked by the rule above (never by OpenSSL's PEM

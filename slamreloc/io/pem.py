@@ -45,7 +45,11 @@ def pem_problem(data: bytes, what: str) -> str | None:
         except ValueError as err:
             return str(err)
         return None
-    if b"PRIVATE KEY-----" not in data:
+    try:  # the certificate files' form: gRPC reads both with one PEM reader
+        blocks = pem_blocks(data)
+    except ValueError as err:
+        return str(err)
+    if not any(label.endswith("PRIVATE KEY") for label, _, _ in blocks):
         return "no 'PRIVATE KEY' block"
     try:
         from cryptography.hazmat.primitives.serialization import load_pem_private_key
@@ -70,20 +74,31 @@ _BASE64 = frozenset(b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz012345
 def certificates_der(data: bytes) -> list[bytes]:
     """The DER bytes of every certificate block of a PEM certificate file, by one rule that
     the C++ client mirrors (`read_tls_ca`), so that both clients and the server refuse the same
-    files; ValueError saying why (with its line number) otherwise:
+    files; ValueError saying why (with its line number) otherwise: the file's form is
+    `pem_blocks`'; a certificate block (CERTIFICATE_LABELS) decodes to one X.509 certificate
+    (version 1 or 3) in strict DER (no bytes after it, no long-form lengths or other BER
+    forms, times with their seconds: `der_problem`, `certificate_parts_problem`), each of its
+    extensions readable and given once; the file holds at least one certificate."""
+    out = [_certificate_der(der, opened) for label, der, opened in pem_blocks(data)
+           if label in CERTIFICATE_LABELS]
+    if not out:
+        raise ValueError("no 'BEGIN CERTIFICATE' block")
+    return out
+
+
+def pem_blocks(data: bytes) -> list[tuple[str, bytes, int]]:
+    """(label, decoded bytes, line number of its BEGIN) of each block of a PEM file (a
+    certificate chain, trusted certificates or a private key), by the rule gRPC's TLS reads
+    them with; ValueError saying why (with its line number) otherwise:
     - lines end at "\n" (a "\r" before it and trailing blanks are dropped); no control
       character but a tab anywhere (gRPC reads the file as a C string: a NUL ends it);
       text outside blocks (comments, `openssl x509 -text` output) is skipped;
     - a line starting "-----BEGIN LABEL-----" opens a block that a line "-----END LABEL-----"
       of the same label must close; a PEM marker after other text on a line is refused;
     - a block's body is base64 lines of at most MAX_PEM_LINE characters with no blank line
-      among them and no "Name: value" headers (an encrypted block); blocks of other labels (a
-      private key, a CRL) are otherwise skipped; a TRUSTED CERTIFICATE is refused;
-    - a certificate block decodes to one X.509 certificate (version 1 or 3) in strict DER (no
-      bytes after it, no long-form lengths or other BER forms, times with their seconds),
-      each of its extensions readable and given once;
-    - the file holds at least one certificate."""
-    out: list[bytes] = []
+      among them and no "Name: value" headers (an encrypted block); a TRUSTED CERTIFICATE is
+      refused."""
+    out: list[tuple[str, bytes, int]] = []
     label, opened, body = None, 0, []
     for number, raw in enumerate(data.split(b"\n"), 1):
         line = raw.rstrip(b"\r").rstrip(b" \t")
@@ -118,15 +133,11 @@ def certificates_der(data: bytes) -> list[bytes]:
         if closing != label:
             raise ValueError(f"line {number} ends '{closing}', but line {opened} opened "
                              f"'{label}'")
-        certificate = label in CERTIFICATE_LABELS
-        text = _body_base64(body, "certificate" if certificate else label, opened)
-        if certificate:
-            out.append(_certificate_der(text, opened))
+        named = "certificate" if label in CERTIFICATE_LABELS else label
+        out.append((label, _body_base64(body, named, opened), opened))
         label = None
     if label is not None:
         raise ValueError(f"the block opened at line {opened} has no END line")
-    if not out:
-        raise ValueError("no 'BEGIN CERTIFICATE' block")
     return out
 
 
@@ -298,27 +309,64 @@ def certificate_parts_problem(der: bytes) -> str:
     return ""
 
 
+# OpenSSL's security bits a trusted certificate's key, and the signature of one not
+# self-issued, must reach: its level 2, which the C++ client's OpenSSL holds chains to (RSA and
+# DSA keys of 2048 bits, ECDSA curves of 224; no MD5 or SHA-1 signatures)
+MIN_SECURITY_BITS = 112
+
+
+def security_bits(key) -> int | None:
+    """OpenSSL's security bits of a public key (EVP_PKEY_security_bits), None where unknown."""
+    from cryptography.hazmat.primitives.asymmetric import dsa, ec, rsa
+
+    if isinstance(key, (rsa.RSAPublicKey, dsa.DSAPublicKey)):
+        size = key.key_size  # NIST SP 800-57's table, as OpenSSL reads it
+        return next((bits for floor, bits in ((15360, 256), (7680, 192), (3072, 128),
+                                              (2048, 112), (1024, 80)) if size >= floor), 0)
+    if isinstance(key, ec.EllipticCurvePublicKey):
+        return key.curve.key_size // 2
+    return None
+
+
 def trusted_certificates_problem(data: bytes) -> str | None:
-    """Why a PEM file of certificates to trust (a client's `tls_ca`) holds one that no TLS
-    verifier can anchor a chain in, or None: a certificate that is not a CA by OpenSSL's rule
-    (basicConstraints CA:TRUE and no key usage without keyCertSign; or, without
-    basicConstraints, a key usage allowing keyCertSign) and not self-issued (issuer =
-    subject), so it can neither sign the server's certificate nor be the server's own
-    self-signed one. The C++ client applies the same rule. (A self-signed certificate that is
-    not a CA authenticates a server presenting it in both clients, and one it signed only in
-    the Python client: BoringSSL takes such an issuer, OpenSSL does not.)"""
+    """Why a PEM file of certificates to trust (a client's `tls_ca`) holds one that the C++
+    client's OpenSSL cannot anchor a chain in, or None; the C++ client applies the same rule:
+    - a certificate that is not a CA by OpenSSL's rule (basicConstraints CA:TRUE and no key
+      usage without keyCertSign; or, without basicConstraints, a key usage allowing
+      keyCertSign) and not self-issued (issuer = subject): it can neither sign the server's
+      certificate nor be the server's own self-signed one;
+    - a key under MIN_SECURITY_BITS (RSA under 2048 bits), or, on a certificate not
+      self-issued, a signature under them (MD5, SHA-1): gRPC's BoringSSL in the Python client
+      takes such a chain, the C++ client's OpenSSL does not.
+    (A self-signed certificate that is not a CA authenticates a server presenting it in both
+    clients, and one it signed only in the Python client: BoringSSL takes such an issuer.)"""
     try:
         from cryptography import x509
+        from cryptography.hazmat.primitives import hashes
     except ImportError:
         return None
     for number, der in enumerate(certificates_der(data), 1):
         try:
             one = x509.load_der_x509_certificate(der)
-            if one.issuer == one.subject:
-                continue
+            bits = security_bits(one.public_key())
             extensions = {e.oid: e.value for e in one.extensions}
         except Exception:  # noqa: BLE001 - parsed by certificates_der already
             continue
+        which = f"certificate {number} ({one.subject.rfc4514_string()[:80]})"
+        if bits is not None and bits < MIN_SECURITY_BITS:
+            return (f"{which} has a key of {bits} security bits, under the "
+                    f"{MIN_SECURITY_BITS} that OpenSSL clients hold a chain to (RSA: 2048 bits)")
+        if one.issuer == one.subject:
+            continue
+        try:
+            digest = one.signature_hash_algorithm
+            digest = digest.name.upper() if isinstance(digest, (hashes.MD5, hashes.SHA1)) \
+                else None
+        except Exception:  # noqa: BLE001 - a digest cryptography does not know (MD2, MD4)
+            digest = "a digest OpenSSL does not take"
+        if digest:
+            return (f"{which} is signed with {digest}, which OpenSSL clients refuse in a "
+                    "chain")
         limits = extensions.get(x509.oid.ExtensionOID.BASIC_CONSTRAINTS)
         usage = extensions.get(x509.oid.ExtensionOID.KEY_USAGE)
         if limits is not None:
@@ -326,7 +374,6 @@ def trusted_certificates_problem(data: bytes) -> str | None:
         else:
             ca = usage is not None and usage.key_cert_sign
         if not ca:
-            return (f"certificate {number} ({one.subject.rfc4514_string()[:80]}) is neither a "
-                    "CA nor self-signed, so no client can anchor a chain in it: give the CA "
-                    "certificate that signed it")
+            return (f"{which} is neither a CA nor self-signed, so no client can anchor a chain "
+                    "in it: give the CA certificate that signed it")
     return None

@@ -799,19 +799,27 @@ def handshake_problem(key: bytes, cert: bytes) -> str | None:
         top = chain[-2] if len(chain) > 2 else None  # a cross-signed root, warned of
     if top is None or not hasattr(os, "memfd_create"):
         return None
+    try:  # OpenSSL reads them as written here: never the user's bytes, never a pass phrase
+        from cryptography.hazmat.primitives import serialization
+
+        clean_key = serialization.load_pem_private_key(key, password=None).private_bytes(
+            Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
+    except Exception:  # noqa: BLE001 - parsed by pem_problem already
+        return None
+    clean_chain = b"".join(one.public_bytes(Encoding.PEM) for one in chain)
     server = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
     client = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-    for context in (server, client):
-        context.set_ciphers("DEFAULT:@SECLEVEL=0")  # key sizes are certificate_problem's
+    server.set_ciphers("DEFAULT:@SECLEVEL=0")  # it presents whatever it has; the client judges
+    client.set_ciphers(f"DEFAULT:@SECLEVEL={TLS_SECURITY_LEVEL}")
     client.check_hostname = False
     client.verify_flags |= ssl.VERIFY_X509_PARTIAL_CHAIN  # the top need not sign itself
     client.load_verify_locations(cadata=top.public_bytes(Encoding.DER))
     files = [os.memfd_create(name) for name in ("tls_cert", "tls_key")]  # never on a disk
     try:
-        for descriptor, data in zip(files, (cert, key)):
+        for descriptor, data in zip(files, (clean_chain, clean_key)):
             os.write(descriptor, data)
         try:
-            server.load_cert_chain(*(f"/proc/self/fd/{d}" for d in files))
+            server.load_cert_chain(*(f"/proc/self/fd/{d}" for d in files), password=b"")
         except (ssl.SSLError, OSError):
             return None  # gRPC reads it (pair_problem has compared the keys): let it say
         return _memory_handshake(server, client)
@@ -850,6 +858,10 @@ def _memory_handshake(server, client) -> str | None:
     return None
 
 
+# OpenSSL's security level the start-up handshake verifies the chain at (`handshake_problem`):
+# level 2 refuses MD5 and SHA-1 signatures and RSA keys under 2048 bits anywhere in the chain,
+# as the C++ client's OpenSSL does (gRPC's BoringSSL in the Python client takes them)
+TLS_SECURITY_LEVEL = 2
 TLS_CURVES = ("secp256r1", "secp384r1")  # the ECDSA curves gRPC's TLS (BoringSSL) signs with
 MIN_RSA_BITS = 2048
 
