@@ -53,12 +53,15 @@ def read_evaluate(path: Path, data: dict, dataset, trajectories: list[Trajectory
                                                                             Json.int)
     if n_queries is not None and n_localized is not None and n_localized > n_queries:
         raise InputError(f"{path}: n_localized {n_localized} is more than n_queries {n_queries}")
-    queries, missing = [], 0
+    queries, missing, seen = [], 0, set()
     for q in [] if per_query is None else per_query.list():
         name = q.child("name").str()
         problem = frame_name_problem(name)
         if problem:
             raise InputError(f"{path}: {q.where}.name {name[:80]!r} {problem}")
+        if name in seen:
+            raise InputError(f"{path}: {q.where}.name: frame {name[:80]!r} is listed twice")
+        seen.add(name)
         frame = by_name.get(name)
         t_err = q.opt("translation_error_m", Json.number)
         r_err = q.opt("rotation_error_deg", Json.number)
@@ -76,6 +79,6 @@ def read_pseudo_label(path: Path, data: dict) -> PseudoLabelReport:
     frames = []
     for name, matrix in [] if poses is None else poses.items():
         m = matrix.array((4, 4))
-        frames.append(FrameView(name, Rigid3.from_matrix(
-            m, tol=1e-2, source=f"{path}: {matrix.where}")))
+        frames.append(FrameView(name, Rigid3.from_matrix(  # the pose files' rule (RIGID_TOL)
+            m, source=f"{path}: {matrix.where}")))
     return PseudoLabelReport(path, data, frames)

@@ -78,7 +78,7 @@ def _position(e: Json) -> np.ndarray | None:
         field = e.child("world_from_cam")
         rows = 3 if isinstance(field.value, list) and len(field.value) == 3 else 4
         # a pose by every pose reader's rule (rigid, within the coordinate bound)
-        return Rigid3.from_matrix(field.array((rows, 4)), tol=1e-2,
+        return Rigid3.from_matrix(field.array((rows, 4)),
                                   source=f"{field.source}: {field.where}").translation.copy()
     for key in ("position", "pose", "tum"):
         if e.has(key):

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slamreloc.datasets.poses import poses_by_name
 from slamreloc.errors import InputError
 from slamreloc.geometry import nearest_stamps, read_named_trajectory
 from slamreloc.io.fileio import open_regular
@@ -28,6 +29,7 @@ def read_trajectory(path: str | Path, kind: str | None = None,
     # naming its kind, checked without blocking (`open_regular`)
     open_regular(path, "trajectory").close()
     tum = read_named_trajectory(path)
+    poses_by_name(path, tum.names, tum.poses)  # one pose per frame, as every pose reader
     if not tum.poses and not allow_empty:
         raise InputError(f"{path}: no poses in the trajectory file")
     if kind is None:

@@ -162,6 +162,20 @@ TUM_FILE = reads_as(read_own_trajectory,
                     "beside it)")
 
 
+def poses_by_name(path, names, poses) -> dict:
+    """{frame name: its pose} of a trajectory read from `path` (unnamed rows left out);
+    InputError `PATH: frame NAME has more than one pose` where a name repeats: the rule of
+    every reader of named poses (`--poses`, `--reference`, `view --trajectory`)."""
+    named: dict = {}
+    for name, pose in zip(names, poses):
+        if name is None:
+            continue
+        if name in named:
+            raise InputError(f"{path}: frame {name!r} has more than one pose")
+        named[name] = pose
+    return named
+
+
 def _refuse_repeated_names(path: Path) -> None:
     """InputError `FILE:LINE: frame NAME has more than one pose` at the first frame name given
     twice in a pose file, found by a pass over the lines' first words before the lines are
@@ -204,13 +218,7 @@ def read_poses(path: str | Path) -> ReferencePoses:
     if not traj.poses:
         raise InputError(f"{path}: no poses (expected lines 'name tx ty tz qx qy qz qw' or "
                          "'timestamp tx ty tz qx qy qz qw', or a COLMAP model folder)")
-    named: dict[str, Rigid3] = {}
-    for name, world_from_cam in zip(traj.names, traj.poses):
-        if name is None:
-            continue
-        if name in named:
-            raise InputError(f"{path}: frame {name!r} has more than one pose")
-        named[name] = world_from_cam
+    named = poses_by_name(path, traj.names, traj.poses)
     unnamed = [i for i, name in enumerate(traj.names) if name is None]
     return ReferencePoses(path.resolve(), "tum" if traj.numeric else "named", named,
                           traj.stamps[unnamed], [traj.poses[i] for i in unnamed])

@@ -98,6 +98,14 @@ def _camera(root: Path) -> Camera:
         if (camera.width, camera.height) != (width, height):
             raise InputError(f"{path}: camera is {camera.width}x{camera.height} but {first} is "
                              f"{width}x{height}")
+        if optional_file(root / "intrinsics.txt", "intrinsics"):  # both: they must agree
+            k = read_intrinsics(root / "intrinsics.txt")
+            given = np.array([k[0, 0], k[1, 1], k[0, 2], k[1, 2]], np.float64)
+            if not np.allclose(camera.pinhole.params(), given, rtol=1e-6, atol=1e-6):
+                raise InputError(f"{path}: camera (fx fy cx cy "
+                                 f"{' '.join(f'{v:g}' for v in camera.pinhole.params())}) and "
+                                 f"{root / 'intrinsics.txt'} ({' '.join(f'{v:g}' for v in given)})"
+                                 " disagree; keep one")
         return camera
     if optional_file(root / "intrinsics.txt", "intrinsics"):
         k = read_intrinsics(root / "intrinsics.txt")
@@ -128,7 +136,8 @@ def _sequence(seq_dir: Path, camera: Camera, registered: bool) -> list[Frame]:
     frames = []
     rgb_from_depth = None if registered else sevenscenes_rgb_from_depth()
     first: dict[str, Path] = {}  # frame stem -> its colour image
-    for color in sorted(p for p in seq_dir.glob("frame-*.color.*") if _is_image(p)):
+    for color in sorted((p for p in seq_dir.glob("frame-*.color.*") if _is_image(p)),
+                        key=_frame_order):
         stem = color.name.split(".")[0]
         if stem in first:  # frame-000000.color.png and .color.jpg: which is the frame?
             raise InputError(f"{color}: frame {seq_dir.name}/{stem} has two colour images "
@@ -164,14 +173,23 @@ def sevenscenes_rgb_from_depth() -> Rigid3:
     return Rigid3.from_matrix(np.array(SEVENSCENES_RGB_FROM_DEPTH), source="7-Scenes rig")
 
 
+def _frame_order(color: Path) -> tuple:
+    """Frames in the order of their numbers (frame-2 before frame-10 where they are written
+    without zeros in front), then by name."""
+    number = re.fullmatch(r"frame-([0-9]+)", color.name.split(".")[0])
+    return (0, int(number.group(1)), color.name) if number else (1, 0, color.name)
+
+
 def _read_split(path: Path) -> list[str]:
     """Sequence names of a split file; whether they exist is checked when the split is used."""
     names = []
     for word in read_text(path, "split", 1 << 20).split():
-        m = re.match(r"^sequence(\d{1,6})$", word)
+        m = re.fullmatch(r"sequence([0-9]{1,6})", word)  # ASCII digits, as every number
         if not m:
             raise InputError(f"{path}: expected lines like 'sequence1', got {word[:40]!r}")
         name = f"seq-{int(m.group(1)):02d}"
-        if name not in names:
-            names.append(name)
+        if name in names:  # as `--split seq-01,seq-01`: its frames would be used twice
+            raise InputError(f"{path}: names {name} twice ({word[:40]!r}): its frames would be "
+                             "used twice")
+        names.append(name)
     return names

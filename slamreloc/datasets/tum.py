@@ -77,12 +77,15 @@ def load_tum(root: Path) -> Dataset:
           if optional_file(root / "groundtruth.txt", "ground truth") else [])
     depth_t = np.array([float(r[0]) for r in depth])
     gt_t = np.array([float(stamp) for stamp, _ in gt])
-    names = [Path(rel).stem for _, rel in rgb]
-    seen: set[str] = set()
-    for name in names:  # linear: a list of a million lines is checked in a second
-        if name in seen:
-            raise InputError(f"{root / 'rgb.txt'}: image {name!r} is listed more than once")
-        seen.add(name)
+    for listing, rows, key in (("rgb.txt", rgb, lambda rel: Path(rel).stem),
+                               ("depth.txt", depth, lambda rel: rel)):
+        seen: set[str] = set()
+        for _, rel in rows:  # linear: a list of a million lines is checked in a second
+            name = key(rel)
+            if name in seen:  # one image at two instants: at most one of them is right
+                raise InputError(f"{root / listing}: image {name[:80]!r} is listed more than "
+                                 "once")
+            seen.add(name)
     width, height = image_size(root / rgb[0][1])
     own = optional_file(root / "intrinsics.txt", "intrinsics")
     k = read_intrinsics(root / "intrinsics.txt") if own else None  # its errors name it

@@ -181,11 +181,35 @@ def resolved(path: str | Path) -> Path:
 
 def relation(a: Path, b: Path) -> str | None:
     """How the resolved path `a` stands to the resolved path `b`, in the words of a refusal:
-    "is", "lies inside", "would hold" (b lies inside a), or None where they are apart."""
+    "is", "lies inside", "would hold" (b lies inside a), or None where they are apart. Told
+    by their names and by what they are on disk (device and inode of each existing folder on
+    the way), so a second name for the same folder (a bind mount) is no way around it."""
     if a == b:
         return "is"
     if a.is_relative_to(b):
         return "lies inside"
     if b.is_relative_to(a):
         return "would hold"
+    ids_a, ids_b = _identities(a), _identities(b)
+    if not ids_a or not ids_b:
+        return None
+    if ids_a[0][0] == 0 and ids_b[0][0] == 0 and ids_a[0][1] == ids_b[0][1]:
+        return "is"
+    if ids_b[0][0] == 0 and ids_b[0][1] in {i for _, i in ids_a}:
+        return "lies inside"
+    if ids_a[0][0] == 0 and ids_a[0][1] in {i for _, i in ids_b}:
+        return "would hold"
     return None
+
+
+def _identities(path: Path) -> list[tuple[int, tuple[int, int]]]:
+    """(how many names up from `path`, (device, inode)) of `path` and of each of its existing
+    parents, nearest first; [] where none can be read."""
+    out = []
+    for up, one in enumerate((path, *path.parents)):
+        try:
+            st = os.stat(one)
+        except (OSError, ValueError):
+            continue
+        out.append((up, (st.st_dev, st.st_ino)))
+    return out

@@ -181,6 +181,7 @@ def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
             warnings.simplefilter("ignore")  # DecompressionBombWarning: we check sizes below
             with Image.open(io.BytesIO(data)) as img:  # parses the header, decodes nothing
                 fmt, (width, height), mode = img.format, img.size, img.mode
+                pages = bool(getattr(img, "is_animated", False))  # a next page: one look
     except Exception as err:  # noqa: BLE001 - Pillow's parsers raise many kinds on bad bytes
         kind = "unknown format" if "cannot identify" in str(err) else type(err).__name__
         raise InputError(f"{source}: not a readable {what} ({kind}; PNG, JPEG, BMP, TIFF, "
@@ -188,6 +189,9 @@ def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
     if fmt not in OTHER_FORMATS:
         raise InputError(f"{source}: {fmt} is not a supported {what} format (PNG, JPEG, BMP, "
                          "TIFF, WebP and PNM are read)")
+    if pages:  # which page was meant? (an animated GIF is refused by its format)
+        raise InputError(f"{source}: a {OTHER_FORMATS[fmt]} {what} of more than one page or "
+                         "frame; give one image per file")
     channels, bits = PILLOW_MODES.get(mode, (4, 8))
     return ImageHeader(width, height, channels, bits, OTHER_FORMATS[fmt])
 

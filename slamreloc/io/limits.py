@@ -44,6 +44,12 @@ class InputLimits:
 
 
 def _from_environment() -> InputLimits:
+    known = {ENV_PREFIX + f.name.upper() for f in fields(InputLimits)}
+    stray = sorted(n for n in os.environ if n.startswith((ENV_PREFIX + "MAX_",
+                                                          ENV_PREFIX + "MIN_")) and n not in known)
+    if stray:  # a misspelt bound would be ignored: the user believes it holds
+        raise InputError(f"environment variable {stray[0][:80]} names no bound (one of "
+                         f"{', '.join(sorted(known))})")
     overrides = {}
     for f in fields(InputLimits):
         name = ENV_PREFIX + f.name.upper()
@@ -133,7 +139,7 @@ def parse_limits(items: list[str]) -> dict[str, int]:
     out: dict[str, int] = {}
     for item in items:
         name, sep, text = item.partition("=")
-        name = name.strip().replace("-", "_")
+        name = name.replace("-", "_")  # no blanks around it, as around the value
         if not sep or name not in names:
             raise InputError(f"`limit` {item[:80]!r}: expected NAME=VALUE with NAME one of "
                              f"{', '.join(names)}")
