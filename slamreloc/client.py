@@ -40,6 +40,7 @@ from slamreloc.proto.messages import (
     rigid_from_msg,
     map_name_problem,
     saved_map_name_problem,
+    TOKEN_BLANKS,
     token_problem,
     transform_msg,
 )
@@ -187,7 +188,7 @@ class Client:
         options = [("grpc.max_send_message_length", max_message_bytes),
                    ("grpc.max_receive_message_length", max_message_bytes)]
         if token is not None:  # the blanks around it dropped, as the server reads its own
-            token = token.strip()
+            token = token.strip(TOKEN_BLANKS)
             problem = token_problem(token) if token else "is empty (give one, or None for none)"
             if problem:
                 raise InputError(f"the token {problem}")

@@ -6,6 +6,7 @@ Python reader and the C++ client (strings in constructed form, extension values,
 
 from __future__ import annotations
 
+import os
 from datetime import datetime, timedelta, timezone
 
 import pytest
@@ -280,3 +281,51 @@ def test_the_start_up_handshake_refuses_what_openssl_clients_refuse(tmp_path):
         (tmp_path / "k.pem").write_bytes(data)
         with pytest.raises(InputError, match=r"k\.pem: `tls_key` is not a PEM private key"):
             read_tls_pair(tmp_path / "c.pem", tmp_path / "k.pem")
+
+
+def test_a_token_keeps_the_unicode_blanks_around_it_and_is_refused(tmp_path, monkeypatch):
+    """V1 (round 22): a token with a no-break space (or U+2028, U+0085, \\x1c) at its ends was
+    trimmed and taken by the server and the Python client (`str.strip` drops all Unicode
+    whitespace) while the C++ client refused it. ASCII blanks are dropped by all three; any
+    other character stays and `token_problem` refuses it."""
+    from slamreloc.client import Client
+    from slamreloc.errors import InputError
+    from slamreloc.service.server import read_token
+
+    good = "a-token-of-24-characters"
+    (tmp_path / "t").write_text(f" \t{good}\r\n")
+    assert read_token(tmp_path / "t") == good
+    for blank in ("\u00a0", "\u2028", "\u0085", "\x1c"):
+        (tmp_path / "t").write_text(f"{good}{blank}\n", encoding="utf-8")
+        with pytest.raises(InputError, match="must be printable ASCII"):
+            read_token(tmp_path / "t")
+        monkeypatch.setenv("SLAMRELOC_TOKEN", blank + good)
+        with pytest.raises(InputError, match="must be printable ASCII"):
+            read_token(None)
+        with pytest.raises(InputError, match="must be printable ASCII"):
+            Client("127.0.0.1:1", token=good + blank)
+
+
+def test_stopping_cancels_a_load_inside_a_file_s_checksum(tmp_path):
+    """V2 (round 22): SIGTERM during a reload of a map whose database.npz was a 15 GiB
+    sparse file waited until the whole file was hashed (30-72 s): the cancel was checked
+    between files only. It is now checked every MiB of a checksum read."""
+    import threading
+    import time
+
+    from slamreloc.io.fileio import CANCEL_READS
+    from slamreloc.service.maps import LoadCancelled, ServedMap
+    from tests.test_fuzz_inputs import _tiny_map
+
+    root = _tiny_map(tmp_path / "map")
+    os.truncate(root / "database.npz", 8 << 30)  # sparse: no disk used, seconds to hash
+    stop = threading.Event()
+    token = CANCEL_READS.set(stop)
+    try:
+        threading.Timer(0.5, stop.set).start()
+        t0 = time.perf_counter()
+        with pytest.raises(LoadCancelled, match="load cancelled"):
+            ServedMap.load("m", root)
+        assert time.perf_counter() - t0 < 5.0  # not the whole file
+    finally:
+        CANCEL_READS.reset(token)

@@ -7,10 +7,21 @@ import errno
 import hashlib
 import os
 import stat
+import threading
+from contextvars import ContextVar
 from pathlib import Path
 from typing import BinaryIO
 
 from slamreloc.errors import InputError
+
+# the event that cancels the long reads running in this context (a server stopping during a
+# map load sets it): `sha256_of` checks it between its 1 MiB reads
+CANCEL_READS: ContextVar[threading.Event | None] = ContextVar("slamreloc_cancel_reads",
+                                                              default=None)
+
+
+class ReadCancelled(Exception):
+    """A read given up because CANCEL_READS's event was set."""
 
 
 def open_regular(path: str | Path, what: str) -> BinaryIO:
@@ -106,9 +117,13 @@ def read_text(path: str | Path, what: str, limit: int | str) -> str:
 
 
 def sha256_of(f: BinaryIO) -> str:
-    """SHA-256 of an open file from its current position to its end."""
+    """SHA-256 of an open file from its current position to its end; ReadCancelled as soon
+    as this context's CANCEL_READS event is set (a 15 GiB file takes a minute)."""
     h = hashlib.sha256()
+    cancelled = CANCEL_READS.get()
     for chunk in iter(lambda: f.read(1 << 20), b""):
+        if cancelled is not None and cancelled.is_set():
+            raise ReadCancelled(f"{getattr(f, 'name', 'a file')}: read cancelled")
         h.update(chunk)
     return h.hexdigest()
 

@@ -119,6 +119,12 @@ MIN_TOKEN = 16  # characters of an access token
 CLIENT_TIMEOUT_S = (0.001, 1e6)
 
 
+# the blanks dropped around a token where it is read (a file, $SLAMRELOC_TOKEN, a client's
+# argument): ASCII's, as clients/cpp drops them; other whitespace (a no-break space, U+2028)
+# stays and is refused by `token_problem`
+TOKEN_BLANKS = " \t\r\n\v\f"
+
+
 def token_problem(token: str) -> str | None:
     """Why `token` cannot be a server's or a client's token (None when it can): at least
     MIN_TOKEN characters of printable ASCII without spaces - what gRPC metadata carries, so a

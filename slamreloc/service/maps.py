@@ -17,13 +17,12 @@ import time
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
-from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import relation, resolved
+from slamreloc.io.fileio import CANCEL_READS, ReadCancelled, relation, resolved
 from slamreloc.localize.localizer import RegressorLocalizer
 from slamreloc.map.format import DATABASE, META, PROVENANCE
 from slamreloc.proto import relocalizer_pb2 as pb
@@ -53,13 +52,9 @@ def _folder_now(path: Path) -> tuple[bool, Path]:
     return Path(path).is_symlink(), resolved(path)
 
 
-class LoadCancelled(Exception):
-    """A map load given up because the server stops."""
-
-
-# the event that cancels the map load running in this context (set by `_Load` on its thread)
-CANCEL_LOAD: ContextVar[threading.Event | None] = ContextVar("slamreloc_cancel_load",
-                                                             default=None)
+class LoadCancelled(ReadCancelled):
+    """A map load given up because the server stops (between its files, or inside one:
+    CANCEL_READS, which `_Load` sets on its thread, is checked by every checksum read)."""
 
 
 @dataclass(frozen=True)
@@ -83,8 +78,9 @@ class ServedMap:
         computed from the contents actually read, so a folder replaced by one with the same
         metadata but other files has another version (or fails its checks). A folder replaced
         while it is read fails its digests: read again, twice. The registry's stop event set
-        (`CANCEL_LOAD`, the server stopping): `LoadCancelled` between files."""
-        cancelled = CANCEL_LOAD.get()
+        (`CANCEL_READS`, the server stopping): `LoadCancelled` between files, and within a
+        file's checksum read."""
+        cancelled = CANCEL_READS.get()
 
         def step() -> None:
             if cancelled is not None and cancelled.is_set():
@@ -110,6 +106,9 @@ class ServedMap:
                                   f"{META}: served without checking its checksum (rewrite the "
                                   "map to list it)", stacklevel=1)
                 _ = scene_map.provenance
+            except ReadCancelled:  # inside a file's checksum read
+                raise LoadCancelled(f"map {quoted(name)}: load cancelled (the server "
+                                    "stops)") from None
             except InputError:
                 if attempt == 2 or folder_stamp(path) == stamp:
                     raise
@@ -180,7 +179,7 @@ class _Load:
         self.thread.start()
 
     def _run(self, name: str, path: Path, cancelled: threading.Event) -> None:
-        CANCEL_LOAD.set(cancelled)  # this thread's own context
+        CANCEL_READS.set(cancelled)  # this thread's own context
         try:
             self.result = ServedMap.load(name, path)
         except BaseException as err:  # noqa: BLE001 - handed to the waiting request
@@ -286,7 +285,7 @@ class MapRegistry:
                                       linked=new.linked)
                     self._maps = {**self._maps, old.name: new}  # one assignment: readers see
                     # the old map or the new one
-        if isinstance(load.error, LoadCancelled):
+        if isinstance(load.error, ReadCancelled):
             raise ServiceError(pb.OVERLOADED, str(load.error)) from None
         if isinstance(load.error, InputError):
             raise ServiceError(pb.INTERNAL, f"map {quoted(old.name)} not reloaded, still "

@@ -55,6 +55,7 @@ from slamreloc.proto.messages import (
     bearer_matches,
     quoted,
     saved_map_name_problem,
+    TOKEN_BLANKS,
     token_problem,
 )
 from slamreloc.service import TOKEN_ENV
@@ -179,7 +180,7 @@ def read_token(token_file: Path | None, environment: bool = True) -> str | None:
         source = f"the token in ${TOKEN_ENV}"
     if text is None:
         return None
-    token = text.strip()
+    token = text.strip(TOKEN_BLANKS)
     if not token:
         raise InputError(f"{source} is empty (give a token, or leave it out to run "
                          "without one on a loopback address)")
