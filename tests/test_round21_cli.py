@@ -26,8 +26,10 @@ def test_a_second_name_for_an_input_is_the_input(tmp_path):
     """W1, W2: outputs were compared with inputs by their resolved names only, so an output
     named through a bind mount of the input's folder replaced the input map (`pseudo-label
     --out`, `slam --out`) or wrote inside the dataset (`evaluate --report`, `map --out`).
-    `relation` now also compares what the names are on disk (a hard link here: no root)."""
-    from slamreloc.io.fileio import relation, resolved
+    `relation_on_disk` (outputs against inputs) also compares what the names are on disk
+    (a hard link here: no root)."""
+    from slamreloc.io.fileio import relation_on_disk as relation
+    from slamreloc.io.fileio import resolved
 
     folder = tmp_path / "data"
     folder.mkdir()

@@ -196,15 +196,23 @@ def resolved(path: str | Path) -> Path:
 
 def relation(a: Path, b: Path) -> str | None:
     """How the resolved path `a` stands to the resolved path `b`, in the words of a refusal:
-    "is", "lies inside", "would hold" (b lies inside a), or None where they are apart. Told
-    by their names and by what they are on disk (device and inode of each existing folder on
-    the way), so a second name for the same folder (a bind mount) is no way around it."""
+    "is", "lies inside", "would hold" (b lies inside a), or None where they are apart."""
     if a == b:
         return "is"
     if a.is_relative_to(b):
         return "lies inside"
     if b.is_relative_to(a):
         return "would hold"
+    return None
+
+
+def relation_on_disk(a: Path, b: Path) -> str | None:
+    """`relation`, told by the names and by what they are on disk now (device and inode of
+    each existing folder on the way), so a second name for the same folder (a bind mount, a
+    hard link) is no way around it: an output aimed at an input."""
+    how = relation(a, b)
+    if how is not None:
+        return how
     ids_a, ids_b = _identities(a), _identities(b)
     if not ids_a or not ids_b:
         return None

@@ -18,7 +18,8 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import file_kind, is_link_loop, relation, resolved, stat_or_none
+from slamreloc.io.fileio import (file_kind, is_link_loop, relation_on_disk, resolved,
+                                 stat_or_none)
 
 
 def _own_test(value) -> tuple:
@@ -300,7 +301,7 @@ def check_outputs(outputs: dict[str, str | Path | None],
         if busy is not None:  # a map (or sfm dataset) being written there right now, or a
             raise InputError(busy)  # lock path its writer would refuse
         for what, src in ins.items():
-            how = relation(target, src)
+            how = relation_on_disk(target, src)
             if how is None or how == "lies inside" and not src.is_dir():
                 continue
             where = what if how == "is" else f"{what} ({src})"

@@ -310,11 +310,8 @@ class MapRegistry:
         if linked and not current.linked:
             problem = "its folder was replaced by a symbolic link"
         elif current.folder is None or folder != current.folder:
-            others = [m for m in self._maps.values() if m.name != name]
-            # the map whose folder is this one by name first, then by what it is on disk
-            others.sort(key=lambda m: (m.folder or resolved(m.path)) != folder)
-            for m in others:
-                how = relation(folder, m.folder or resolved(m.path))
+            for m in self._maps.values():
+                how = None if m.name == name else relation(folder, m.folder or resolved(m.path))
                 if how:
                     problem = (f"its folder now {how} the folder of the map "
                                f"{quoted(m.name)} this server serves")
