@@ -36,11 +36,11 @@ from slamreloc.proto.messages import (
     CLIENT_TIMEOUT_S,
     ERROR_METADATA_KEY,
     GRPC_CODES,
+    TOKEN_BLANKS,
     camera_msg,
     rigid_from_msg,
     map_name_problem,
     saved_map_name_problem,
-    TOKEN_BLANKS,
     token_problem,
     transform_msg,
 )
@@ -193,12 +193,12 @@ class Client:
             if problem:
                 raise InputError(f"the token {problem}")
         if tls_ca is not None:
-            ca = (check_pem(bytes(tls_ca), "certificate", "tls_ca")
-                  if isinstance(tls_ca, (bytes, bytearray, memoryview))
+            given = isinstance(tls_ca, (bytes, bytearray, memoryview))  # else a path
+            ca = (check_pem(bytes(tls_ca), "certificate", "tls_ca") if given
                   else read_pem(tls_ca, "certificate", "tls_ca"))
             problem = trusted_certificates_problem(ca)
             if problem:
-                where = "" if isinstance(tls_ca, (bytes, bytearray, memoryview)) else f"{tls_ca}: "
+                where = "" if given else f"{tls_ca}: "
                 raise InputError(f"{where}`tls_ca` cannot be trusted: {problem}")
             self.channel = grpc.secure_channel(address, grpc.ssl_channel_credentials(ca),
                                                options)

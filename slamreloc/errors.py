@@ -50,13 +50,20 @@ def quoted(text, limit: int = QUOTE_LIMIT) -> str:
 WORD_LIMIT = 300  # characters of one space-free run an error line shows
 
 
+def escaped(text: str) -> str:
+    """`text` with each character that is not printable (a line break, an ESC, a surrogate
+    standing for a byte that is not UTF-8) written as its escape (\\n, \\x1b, \\udcfe): one
+    line, writable as UTF-8."""
+    return "".join(c if c.isprintable() else ascii(c)[1:-1] for c in text)
+
+
 def terminal_line(text: str, limit: int = WORD_LIMIT) -> str:
     """`text` as one error line a terminal may show: characters that are not printable
     (an ESC sequence in a file name listed in a dataset, a line break) as their escapes, and
     any run without spaces over `limit` characters cut in its middle, so a 2 MB name makes a
     line that still ends with the problem."""
     def shown(word: str) -> str:
-        word = "".join(c if c.isprintable() else ascii(c)[1:-1] for c in word)
+        word = escaped(word)
         if len(word) <= limit:
             return word
         half = limit // 2

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slamreloc.errors import InputError
+from slamreloc.errors import InputError, escaped
 from slamreloc.io.outputs import atomic_file, outputs_together
 from slamreloc.io.numbers import number_problem, written_as_number
 
@@ -418,18 +418,11 @@ def write_tum_trajectory(path, stamps, world_from_cam: list[Rigid3], comments=()
     rows = [f"{float(t):.6f}" for t in stamps]
     with outputs_together():  # both new, or both as they were
         with atomic_file(Path(path)) as tmp:
-            tmp.write_text("".join(f"# {comment_text(c)}\n" for c in comments)
+            tmp.write_text("".join(f"# {escaped(str(c))}\n" for c in comments)  # one line each
                            + "".join(tum_line(t, p) + "\n" for t, p in zip(rows, world_from_cam)))
         if names is not None:
             with atomic_file(names_sidecar(path)) as tmp:
                 tmp.write_text("".join(f"{t} {n}\n" for t, n in zip(rows, names)))
-
-
-def comment_text(text: str) -> str:
-    """`text` (a path or name put into a file's `# comment` line) with what is not printable
-    written as its escape: a line break would end the comment (and could add a row), a name
-    that is not UTF-8 could not be written at all."""
-    return "".join(c if c.isprintable() else ascii(c)[1:-1] for c in str(text))
 
 
 def distinct_stamps(stamps) -> list[float]:

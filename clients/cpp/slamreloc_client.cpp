@@ -54,7 +54,6 @@
 #include <grpc/support/log.h>
 #include <openssl/err.h>
 #include <openssl/pem.h>
-#include <openssl/x509v3.h>
 #include <openssl/x509.h>
 #include <openssl/x509v3.h>
 #include <grpcpp/grpcpp.h>

@@ -101,9 +101,10 @@ def _camera(root: Path) -> Camera:
         if optional_file(root / "intrinsics.txt", "intrinsics"):  # both: they must agree
             k = read_intrinsics(root / "intrinsics.txt")
             given = np.array([k[0, 0], k[1, 1], k[0, 2], k[1, 2]], np.float64)
-            if not np.allclose(camera.pinhole.params(), given, rtol=1e-6, atol=1e-6):
+            own = camera.pinhole.params()
+            if not np.allclose(own, given, rtol=1e-6, atol=1e-6):
                 raise InputError(f"{path}: camera (fx fy cx cy "
-                                 f"{' '.join(f'{v:g}' for v in camera.pinhole.params())}) and "
+                                 f"{' '.join(f'{v:g}' for v in own)}) and "
                                  f"{root / 'intrinsics.txt'} ({' '.join(f'{v:g}' for v in given)})"
                                  " disagree; keep one")
         return camera

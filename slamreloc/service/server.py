@@ -51,11 +51,11 @@ from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
     ERROR_METADATA_KEY,
+    TOKEN_BLANKS,
     ServiceError,
     bearer_matches,
     quoted,
     saved_map_name_problem,
-    TOKEN_BLANKS,
     token_problem,
 )
 from slamreloc.service import TOKEN_ENV
@@ -834,9 +834,9 @@ def _memory_handshake(server, client) -> str | None:
     refused the server's certificate chain, or None."""
     import ssl
 
-    pipes = [ssl.MemoryBIO() for _ in range(4)]  # client -> server, server -> client
-    ends = [client.wrap_bio(pipes[1], pipes[0], server_side=False),
-            server.wrap_bio(pipes[0], pipes[1], server_side=True)]
+    to_server, to_client = ssl.MemoryBIO(), ssl.MemoryBIO()
+    ends = [client.wrap_bio(to_client, to_server, server_side=False),
+            server.wrap_bio(to_server, to_client, server_side=True)]
     done = [False, False]
     for _ in range(20):  # TLS 1.3 takes 1.5 round trips; a bound all the same
         for i, end in enumerate(ends):
