@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slamreloc.datasets import Dataset, read_depth
+from slamreloc.datasets import Dataset, read_frame_depth
 from slamreloc.geometry import Rigid3, project
 from slamreloc.types import Camera, Frame
 
@@ -78,7 +78,7 @@ def frame_depth(frame: Frame, dataset: Dataset) -> np.ndarray:
     cam = frame.camera
     if frame.depth_path is None:
         return np.zeros((cam.height, cam.width), np.float32)
-    depth = read_depth(frame.depth_path, dataset.depth_units_per_metre)
+    depth = read_frame_depth(frame, dataset.depth_units_per_metre)
     return depth_in_image(depth, cam, frame.depth_camera, frame.rgb_from_depth)
 
 

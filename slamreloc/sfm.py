@@ -505,10 +505,10 @@ def _collect_dataset(dataset, images_dir: Path, config: SfmConfig,
                          f"'{config.split}' has none (give `scale` M instead)")
     selector = _selector(config, "dataset", frames[0].camera)
     if selector is not None:
-        from slamreloc.io.images import read_image
+        from slamreloc.datasets.io import read_frame_image
 
         listed = _tracked(frames, "selecting images", progress)
-        frames = [f for f, _ in selector.select((f, read_image(f.image_path)) for f in listed)]
+        frames = [f for f, _ in selector.select((f, read_frame_image(f)) for f in listed)]
     by_name, sizes = {}, {}
     for frame in _tracked(frames, "copying images", progress):
         named = PurePosixPath(frame.name).suffix.lower() in IMAGE_SUFFIXES

@@ -440,13 +440,13 @@ def test_fuzz_view_trajectory_ran():
 IN_DIM = 128
 
 
-def _tiny_map(out: Path) -> Path:
-    """A valid map of today's format, small enough to copy per case (SIFT-sized input)."""
+def _tiny_map(out: Path, n: int = 64) -> Path:
+    """A valid map of today's format with `n` database rows, small enough to copy per case
+    (SIFT-sized input)."""
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     cfg = RegressorConfig(in_dim=IN_DIM, hidden=(16, 8), head="clusters", n_clusters=4)
     model = SceneCoordinateRegressor(cfg)
-    n = 64
     poses = np.stack([look_at(np.array([0.1 * i, 0, 1.0]), np.array([0, 2.0, 1])).matrix()
                       for i in range(2)])
     db = MapDatabase(rng.random((n, IN_DIM)).astype(np.float32), rng.random((n, 3)),

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from rich.table import Table
 
-from slamreloc.datasets import Dataset, load_dataset, read_image
+from slamreloc.datasets import Dataset, load_dataset, read_frame_depth, read_image
 from slamreloc.datasets.poses import NAMES_FILE, TUM_FILE, check_names_sidecar_free
 from slamreloc.errors import InputError, OutOfMemory
 from slamreloc.io.fileio import resolved
@@ -41,7 +41,7 @@ from slamreloc.localize.plots import PLOT_FILE
 from slamreloc.map.format import check_is_map, is_map
 from slamreloc.map.lock import map_write_lock
 from slamreloc.map.scene_map import SceneMap
-from slamreloc.map.surface import IcpConfig, read_frame_depth, refine_with_depth
+from slamreloc.map.surface import IcpConfig, refine_with_depth
 from slamreloc.runtime.progress import console, shown
 from slamreloc.types import Camera, Frame, camera_problem, lens_camera_problem
 
@@ -138,8 +138,9 @@ def depth_refiner(scene_map: SceneMap, dataset: Dataset, config: IcpConfig = Icp
                          "--depth needs one")
 
     def refine(frame: Frame, world_from_cam: Rigid3) -> Rigid3:
-        return refine_with_depth(surface, read_frame_depth(frame, dataset), frame.camera,
-                                 frame.depth_camera, world_from_cam, config).chosen()
+        depth = read_frame_depth(frame, dataset.depth_units_per_metre)
+        return refine_with_depth(surface, depth, frame.camera, frame.depth_camera,
+                                 world_from_cam, config).chosen()
 
     return refine
 

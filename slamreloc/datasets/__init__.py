@@ -6,7 +6,8 @@ from pathlib import Path
 
 from slamreloc.datasets.base import Dataset
 from slamreloc.datasets.colmap import is_colmap, load_colmap
-from slamreloc.datasets.io import read_depth, read_image, read_intrinsics, read_pose, write_pose
+from slamreloc.datasets.io import (read_depth, read_frame_depth, read_frame_image, read_image,
+                                   read_intrinsics, read_pose, write_pose)
 from slamreloc.datasets.poses import ReferencePoses, apply_poses, read_poses
 from slamreloc.datasets.rosbag import BagTopics, default_topics, is_rosbag, load_rosbag
 from slamreloc.datasets.sevenscenes import is_sevenscenes, load_sevenscenes
@@ -15,7 +16,8 @@ from slamreloc.errors import InputError
 from slamreloc.io.fileio import check_folder
 
 __all__ = ["Dataset", "ReferencePoses", "apply_poses", "load_dataset", "read_depth",
-           "read_image", "read_intrinsics", "read_pose", "read_poses", "read_reference",
+           "read_frame_depth", "read_frame_image", "read_image", "read_intrinsics", "read_pose",
+           "read_poses", "read_reference",
            "write_pose"]
 
 

@@ -6,7 +6,8 @@
     ROOT/TrainSplit.txt, TestSplit.txt   optional: sequence names, one a line
 
 The model is read with pycolmap (which also composes rig and frame poses of COLMAP >= 3.12
-models); points3D is not needed (slamreloc triangulates its own labels) and is not read.
+models); points3D is not needed (slamreloc triangulates its own labels) and is not read, nor
+are the images' 2D points (checked, then left out of what pycolmap is given).
 A folder holding the model both as .bin and as .txt is read when the two describe the same
 model (the same image names, each with the same camera and pose, within `geometry.AGREE_REL`:
 `geometry.same_pose`), and refused when they disagree; a folder holding cameras or images of
@@ -33,11 +34,11 @@ import numpy as np
 
 from slamreloc.camera_models import MODELS
 from slamreloc.datasets.base import Dataset
-from slamreloc.datasets.colmap_check import check_model
-from slamreloc.datasets.io import check_frame_files, read_text
+from slamreloc.datasets.colmap_check import ModelIndex, check_model
+from slamreloc.datasets.io import check_frame_files
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3, pose_gap, same_pose, unit_quaternion, values_agree
-from slamreloc.io.fileio import open_regular, optional_file
+from slamreloc.io.fileio import open_regular, optional_file, read_text
 from slamreloc.io.jsonio import read_json
 from slamreloc.types import Camera, Frame
 
@@ -91,15 +92,20 @@ def other_format(folder: Path, ext: str) -> str | None:
     return other if all((folder / f"{n}.{other}").is_file() for n in FILES) else None
 
 
-def read_reconstruction(folder: Path, ext: str):
-    """pycolmap's reading of the model files (points3D left out: an empty one stands in);
-    call `check_model` on them first."""
+def read_reconstruction(folder: Path, ext: str, index: ModelIndex):
+    """pycolmap's reading of the model files that `check_model` checked (`index`): points3D
+    left out (an empty one stands in), and a text model's images.txt as the check read it,
+    without its POINTS2D (`ModelIndex.images_text`), so that pycolmap's copy of the model
+    does not grow with its 2D points (its reader would hold a POINTS2D line twice, and ~50
+    bytes a point: ~7 times the line's size)."""
     import pycolmap
 
     with tempfile.TemporaryDirectory(prefix="slamreloc-colmap-") as tmp:
         for name in (*FILES, *OPTIONAL_FILES):
             src = folder / f"{name}.{ext}"
-            if src.is_file():
+            if name == "images" and index.images_text is not None:
+                (Path(tmp) / src.name).write_bytes(index.images_text)
+            elif src.is_file():
                 (Path(tmp) / src.name).symlink_to(src.resolve())
         empty = Path(tmp) / f"points3D.{ext}"
         empty.write_bytes(struct.pack("<Q", 0) if ext == "bin" else b"")
@@ -135,8 +141,11 @@ def _image_path(images_dir: Path, name: str, source: Path) -> Path:
     if rel.is_absolute() or ".." in rel.parts or not rel.parts:
         raise InputError(f"{source}: image name {name!r} points outside {images_dir}")
     path = images_dir.joinpath(*rel.parts)
-    if not path.is_file():
-        raise InputError(f"{path}: image file not found (listed in {source})")
+    try:  # what is there, said so: not found, a named pipe, a device, a name too long
+        with open_regular(path, "image"):
+            pass
+    except InputError as err:
+        raise InputError(f"{err} (listed in {source})") from None
     return path
 
 
@@ -161,11 +170,11 @@ def read_checked(folder: Path, ext: str):
     format too, that one is checked and read as well: InputError naming the folder unless both
     describe the same model (`models_disagree`)."""
     index = check_model(folder, ext)
-    rec = read_reconstruction(folder, ext)
+    rec = read_reconstruction(folder, ext, index)
     other = other_format(folder, ext)
     if other is not None:
-        check_model(folder, other)
-        problem = models_disagree(rec, read_reconstruction(folder, other),
+        problem = models_disagree(rec, read_reconstruction(folder, other,
+                                                           check_model(folder, other)),
                                   (folder / f"images.{ext}", folder / f"images.{other}"))
         if problem:
             raise InputError(f"{folder}: the .{ext} and .{other} models disagree ({problem}); "
@@ -222,7 +231,7 @@ def _sequence_of(name: str, root: Path) -> str:
 
 def _read_split(path: Path) -> list[str]:
     names = []
-    for line in read_text(path, "split", 1 << 20).splitlines():
+    for line in read_text(path, "split", "max_text_bytes").splitlines():
         name = line.strip()
         if name and not name.startswith("#") and name not in names:
             names.append(name)

@@ -12,14 +12,32 @@ from slamreloc.geometry import Rigid3
 from slamreloc.io import fileio
 from slamreloc.io.images import check_frame_files, image_header, image_size, read_depth, read_image
 from slamreloc.io.numbers import number_problem
-from slamreloc.types import camera_problem, k_matrix_problem
+from slamreloc.types import Frame, camera_problem, k_matrix_problem
 
-__all__ = ["check_frame_files", "image_header", "image_size", "read_depth", "read_image",
-           "read_intrinsics", "read_pose", "read_text", "write_pose"]
+__all__ = ["check_frame_files", "image_header", "image_size", "read_depth", "read_frame_depth",
+           "read_frame_image", "read_image", "read_intrinsics", "read_pose", "read_text",
+           "write_pose"]
 MAX_TEXT_BYTES = 1 << 20  # a pose or an intrinsics matrix
 
 
-def read_text(path: Path, what: str, limit: int = 1 << 30) -> str:
+def read_frame_image(frame: Frame) -> np.ndarray:
+    """A dataset frame's image, RGB uint8 (H, W, 3), held to the rule of the dataset's load
+    (`check_frame_files`): a file replaced since by one of another size is refused."""
+    return read_image(frame.image_path, size=(frame.camera.width, frame.camera.height))
+
+
+def read_frame_depth(frame: Frame, units_per_metre: float) -> np.ndarray:
+    """A dataset frame's depth map as stored: float32 metres in its depth camera's pixels
+    (`frame.depth_camera`, or the image's where registered, whose size is then held to the
+    rule of the dataset's load); InputError without one."""
+    if frame.depth_path is None:
+        raise InputError(f"{frame.image_path}: no depth image")
+    registered = frame.depth_camera is None
+    return read_depth(frame.depth_path, units_per_metre,
+                      (frame.camera.width, frame.camera.height) if registered else None)
+
+
+def read_text(path: Path, what: str, limit: int | str = "max_text_bytes") -> str:
     """A text file's contents (`slamreloc.io.fileio.read_text`); a binary or oversized file
     is an InputError naming it."""
     return fileio.read_text(path, what, limit)

@@ -184,7 +184,7 @@ def _frame_order(color: Path) -> tuple:
 def _read_split(path: Path) -> list[str]:
     """Sequence names of a split file; whether they exist is checked when the split is used."""
     names = []
-    for word in read_text(path, "split", 1 << 20).split():
+    for word in read_text(path, "split", "max_text_bytes").split():
         m = re.fullmatch(r"sequence([0-9]{1,6})", word)  # ASCII digits, as every number
         if not m:
             raise InputError(f"{path}: expected lines like 'sequence1', got {word[:40]!r}")

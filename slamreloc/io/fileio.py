@@ -103,17 +103,46 @@ def read_text(path: str | Path, what: str, limit: int | str) -> str:
     """`read_bytes` as UTF-8 text (a leading byte-order mark, which some editors write, is
     dropped: every text file is read the same way, JSON's too); InputError for bytes that are
     not UTF-8 or that hold a NUL byte (no text format has one; as a name it would be cut)."""
+    return read_text_bytes(path, what, limit).decode("utf-8-sig")
+
+
+def read_text_bytes(path: str | Path, what: str, limit: int | str) -> bytes:
+    """The bytes of a text file by `read_text`'s rule (the bound, UTF-8, no NUL byte), not
+    decoded: for a reader that walks a large file line by line, one copy of it in memory
+    (its size in bytes) rather than a str of up to 4 bytes a character."""
     data = read_bytes(path, what, limit)
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as err:
-        raise InputError(f"{path}: {what} is not UTF-8 text (byte {err.start})") from None
+    bad = _utf8_error(data)
+    if bad is not None:
+        raise InputError(f"{path}: {what} is not UTF-8 text (byte {bad})")
     nul = data.find(b"\0")
     if nul >= 0:
         line = data.count(b"\n", 0, nul) + 1
         raise InputError(f"{path}:{line}: {what} holds a NUL byte (byte {nul}); text files "
                          "have none")
-    return text
+    return data
+
+
+UTF8_CHUNK = 1 << 20  # bytes decoded at a time to check a text file's UTF-8
+
+
+def _utf8_error(data: bytes) -> int | None:
+    """The offset in bytes of the first byte of `data` that is not UTF-8 (None: it is all
+    UTF-8), decoded UTF8_CHUNK bytes at a time, each chunk ending before a character's
+    first byte (never inside one), so that no str of the whole file is made."""
+    if data.isascii():
+        return None
+    start = 0
+    while start < len(data):
+        end = min(start + UTF8_CHUNK, len(data))
+        for _ in range(3):  # back to a character's first byte (a UTF-8 character is <= 4)
+            if end < len(data) and 0x80 <= data[end] < 0xC0:
+                end -= 1
+        try:
+            data[start:end].decode("utf-8")
+        except UnicodeDecodeError as err:
+            return start + err.start
+        start = end
+    return None
 
 
 def sha256_of(f: BinaryIO) -> str:

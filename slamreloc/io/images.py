@@ -343,10 +343,28 @@ def _file_bytes(path: Path, what: str) -> bytes:
     return read_bytes(path, what, "max_image_bytes")
 
 
-def read_image(path: str | Path,
-               fits: Callable[[int, int, object], None] | None = None) -> np.ndarray:
-    """RGB uint8 (H, W, 3) from an image file; `fits` as decode_image's."""
-    return decode_rgb(_file_bytes(Path(path), "image"), Path(path), fits)
+def size_problem(got: tuple[int, int], size: tuple[int, int], what: str = "image"
+                 ) -> str | None:
+    """Why an image (or, `what` "depth", a registered depth map) of `got` (width, height)
+    pixels is not of its dataset's `size`; None when it is. The one rule of a frame's size,
+    at the dataset's load (`check_frame_files`) and where each file is read."""
+    if tuple(got) == tuple(size):
+        return None
+    if what == "depth":
+        return (f"depth is {got[0]}x{got[1]}, its image is {size[0]}x{size[1]} (registered "
+                "depth must match)")
+    return f"image is {got[0]}x{got[1]}, the dataset's images are {size[0]}x{size[1]}"
+
+
+def read_image(path: str | Path, fits: Callable[[int, int, object], None] | None = None,
+               size: tuple[int, int] | None = None) -> np.ndarray:
+    """RGB uint8 (H, W, 3) from an image file; `fits` as decode_image's. `size` (width,
+    height): the size the image must have (`size_problem`)."""
+    image = decode_rgb(_file_bytes(Path(path), "image"), Path(path), fits)
+    problem = size and size_problem((image.shape[1], image.shape[0]), size)
+    if problem:
+        raise InputError(f"{path}: {problem}")
+    return image
 
 
 def read_depth(path: str | Path, units_per_metre: float = 1000.0,
@@ -359,9 +377,9 @@ def read_depth(path: str | Path, units_per_metre: float = 1000.0,
         raise InputError(f"{path}: depth must be a single-channel image, got shape {raw.shape}")
     if raw.dtype != np.uint16:
         raise InputError(f"{path}: depth must be 16-bit (uint16), got {raw.dtype}")
-    if size is not None and (raw.shape[1], raw.shape[0]) != tuple(size):
-        raise InputError(f"{path}: depth is {raw.shape[1]}x{raw.shape[0]}, its image is "
-                         f"{size[0]}x{size[1]}")
+    problem = size and size_problem((raw.shape[1], raw.shape[0]), size, "depth")
+    if problem:
+        raise InputError(f"{path}: {problem}")
     return depth_from_raw(raw, units_per_metre)
 
 
@@ -426,15 +444,14 @@ def check_frame_files(image_path: Path, size: tuple[int, int], depth_path: Path 
                       check_depth: bool = False) -> None:
     """At dataset load: the image has the dataset's size; registered depth (if asked) is a
     16-bit single-channel image of the same size. Reads headers only."""
-    got = image_size(image_path)
-    if got != tuple(size):
-        raise InputError(f"{image_path}: image is {got[0]}x{got[1]}, the dataset's images are "
-                         f"{size[0]}x{size[1]}")
+    problem = size_problem(image_size(image_path), size)
+    if problem:
+        raise InputError(f"{image_path}: {problem}")
     if check_depth and depth_path is not None:
         h = image_header(depth_path, "depth")
         if h.channels != 1 or h.bits != 16:
             raise InputError(f"{depth_path}: depth must be a 16-bit single-channel image, got "
                              f"{h.channels} channel(s) of {h.bits} bits")
-        if (h.width, h.height) != tuple(size):
-            raise InputError(f"{depth_path}: depth is {h.width}x{h.height}, its image is "
-                             f"{size[0]}x{size[1]} (registered depth must match)")
+        problem = size_problem((h.width, h.height), size, "depth")
+        if problem:
+            raise InputError(f"{depth_path}: {problem}")

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from rich.table import Table
 
-from slamreloc.datasets import Dataset, read_image, read_reference
+from slamreloc.datasets import Dataset, read_frame_image, read_reference
 from slamreloc.datasets.poses import FrameKey, match_poses
 from slamreloc.errors import InputError
 from slamreloc.geometry import (Rigid3, Sim3, align_poses, distinct_stamps, pose_error,
@@ -53,7 +53,7 @@ def evaluate_frames(localizer: Localizer, frames: list[Frame], progress: bool = 
     localizer.extractor.check_frames(frames)
     results = []
     for frame in track(frames, f"localizing ({localizer.method})", enabled=progress):
-        image = read_image(frame.image_path)
+        image = read_frame_image(frame)
         if image.shape[:2] != (frame.camera.height, frame.camera.width):
             raise InputError(f"{frame.image_path}: image is {image.shape[1]}x{image.shape[0]}, "
                              f"its camera is {frame.camera.width}x{frame.camera.height}")

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from slamreloc.datasets import read_image
+from slamreloc.datasets import read_frame_image
 from slamreloc.features import Extractor
 from slamreloc.runtime.progress import track
 from slamreloc.types import Features, Frame
@@ -69,7 +69,7 @@ def _frame_rows(frame: Frame, feats: Features, points: np.ndarray, extractor: Ex
     if not len(labelled) or not affines:
         return _empty(extractor.dim)
     tree = cKDTree(feats.keypoints[labelled])
-    image = read_image(frame.image_path)
+    image = read_frame_image(frame)
     height, width = image.shape[:2]
     rows = []
     for affine in affines:

@@ -129,9 +129,15 @@ def _digest(f: BinaryIO, path: Path, what: str) -> str:
         raise InputError(f"{path}: cannot read {what} ({err.strerror or err})") from None
 
 
-def _mismatch(path: Path) -> InputError:
-    return InputError(f"{path}: contents do not match the checksum in {META} (the file is "
-                      "corrupted, comes from another map, or the map was replaced while in use)")
+class ChecksumMismatch(InputError):
+    """A map file whose bytes are not the ones its metadata lists (`SceneMap` tells a map
+    replaced while it was read from a damaged one)."""
+
+
+def _mismatch(path: Path) -> ChecksumMismatch:
+    return ChecksumMismatch(f"{path}: contents do not match the checksum in {META} (the file "
+                            "is corrupted, comes from another map, or the map was replaced "
+                            "while in use)")
 
 
 def check_digest(root: Path, name: str, files: Mapping[str, str]) -> str:
@@ -145,12 +151,15 @@ def check_digest(root: Path, name: str, files: Mapping[str, str]) -> str:
 
 
 def read_npz(path: Path, what: str, expected: str | None = None,
-             digests: dict[str, str] | None = None) -> dict[str, np.ndarray]:
+             digests: dict[str, str] | None = None, opened: BinaryIO | None = None
+             ) -> dict[str, np.ndarray]:
     """All arrays of an .npz archive, without unpickling anything. The file is opened once
-    (`open_regular`): its SHA-256 is computed from the bytes that are then parsed, checked
-    against `expected` when given, and recorded in `digests[path.name]` when given, so what
-    is checked is what is read even if the folder is replaced meanwhile."""
-    with open_regular(path, what) as f:
+    (`open_regular`; or `opened`, `path` opened earlier, read from its start and closed): its
+    SHA-256 is computed from the bytes that are then parsed, checked against `expected` when
+    given, and recorded in `digests[path.name]` when given, so what is checked is what is
+    read even if the folder is replaced meanwhile."""
+    with opened or open_regular(path, what) as f:
+        f.seek(0)
         digest = _digest(f, path, what)
         if expected is not None and digest != expected:
             raise _mismatch(path)

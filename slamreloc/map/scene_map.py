@@ -11,14 +11,17 @@ its metadata's schema meta.py's; writing it is write.py's.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
+from slamreloc.io.fileio import open_regular
 from slamreloc.map.format import (
     DATABASE,
     DB_KEYS,
@@ -26,6 +29,7 @@ from slamreloc.map.format import (
     PROVENANCE,
     SURFACE,
     WEIGHTS,
+    ChecksumMismatch,
     check_database,
     check_digest,
     check_is_map,
@@ -67,6 +71,32 @@ class MapProvenance:
     quality: np.ndarray  # (M,) float32 training weight in 0..1 (1 for labelled rows)
 
 
+_LOAD_ATTEMPTS = 5  # a load that met a map swapped in meanwhile reads the new one whole
+
+
+def _meta_identity(root: Path) -> tuple[int, ...] | None:
+    """Which metadata file `root` holds now (device, inode, modification time, size): every
+    save writes a new one, so a change means a map was saved over the folder."""
+    try:
+        st = os.stat(root / META)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino, st.st_mtime_ns, st.st_size
+
+
+def _open_listed(root: Path, info: MapMeta) -> dict[str, BinaryIO]:
+    """The files besides the weights that `info` lists, opened (those that open: a missing
+    or special file is reported where it is read, by path)."""
+    held = {}
+    for name in (DATABASE, SURFACE, PROVENANCE):
+        if name in (info.files or {}):
+            try:
+                held[name] = open_regular(root / name, "map file")
+            except InputError:
+                pass
+    return held
+
+
 @dataclass
 class SceneMap:
     root: Path
@@ -74,6 +104,11 @@ class SceneMap:
     regressor: SceneCoordinateRegressor | None  # None: loaded with regressor=False
     # file name -> SHA-256 of the bytes actually read (each file is hashed as it is parsed)
     digests: dict[str, str] = field(default_factory=dict, compare=False, repr=False)
+    # the map's other listed files, opened at the load with its metadata and weights and read
+    # on first use: a map saved over the folder meanwhile does not mix into this one
+    held: dict[str, BinaryIO] = field(default_factory=dict, compare=False, repr=False)
+    # the metadata file read (`_meta_identity`): another one there now means another map
+    meta_identity: tuple[int, ...] | None = field(default=None, compare=False, repr=False)
 
     @staticmethod
     def is_map(path: Path) -> bool:
@@ -86,14 +121,31 @@ class SceneMap:
         database only)."""
         root = Path(path)
         clean_leftovers(root)
-        check_is_map(root)  # says what is there instead: a file, a pipe, a link loop
-        info = MapMeta.read(root)
-        digests: dict[str, str] = {}
-        if regressor:
-            return SceneMap(root, info, read_regressor(root, info, digests), digests)
-        if info.format_version >= 2:
-            digests[WEIGHTS] = check_digest(root, WEIGHTS, info.files)
-        return SceneMap(root, info, None, digests)
+        for attempt in range(_LOAD_ATTEMPTS):
+            check_is_map(root)  # says what is there instead: a file, a pipe, a link loop
+            identity = _meta_identity(root)
+            info = MapMeta.read(root)
+            digests: dict[str, str] = {}
+            last = attempt == _LOAD_ATTEMPTS - 1
+            try:
+                if regressor:
+                    model = read_regressor(root, info, digests)
+                else:
+                    model = None
+                    if info.format_version >= 2:
+                        digests[WEIGHTS] = check_digest(root, WEIGHTS, info.files)
+                held = _open_listed(root, info)
+                if _meta_identity(root) != identity and not last:
+                    for f in held.values():  # perhaps another map's, swapped in meanwhile
+                        f.close()
+                    continue
+                return SceneMap(root, info, model, digests, held, identity)
+            except ChecksumMismatch:
+                # a writer swapped a new map in between the metadata and the weights: read
+                # the new one whole; a damaged file (the metadata unchanged) is reported
+                if _meta_identity(root) == identity or last:
+                    raise
+        raise AssertionError("unreachable")
 
     @property
     def meta(self) -> dict:
@@ -119,13 +171,26 @@ class SceneMap:
         expected = (self.info.files or {}).get(DATABASE) if self.format_version >= 2 else None
         if self.format_version >= 2 and expected is None:
             raise InputError(f"{path}: no checksum for it in {META}")
-        arrays = read_npz(path, "training database", expected, self.digests)
+        arrays = self._read_npz(DATABASE, "training database", expected)
         names = None if self.info.frame_names is None else list(self.info.frame_names)
         check_database(arrays, path, self.info.regressor.to_config().in_dim, names)
         self.info.check_database_counts(len(arrays["points"]), len(arrays["world_from_cam"]),
                                         path)
         return MapDatabase(*(arrays[k] for k in DB_KEYS[:4]), names or [],
                            arrays["world_from_cam"])
+
+    def _read_npz(self, name: str, what: str, expected: str | None) -> dict[str, np.ndarray]:
+        """`read_npz` of the map's file `name`; a checksum mismatch because the folder now
+        holds another map (saved over it since this one was loaded) says so."""
+        try:
+            return read_npz(self.root / name, what, expected, self.digests,
+                            self.held.pop(name, None))
+        except ChecksumMismatch:
+            if _meta_identity(self.root) != self.meta_identity:
+                raise InputError(f"{self.root}: another map was saved there since this one "
+                                 f"was loaded, so its {name} is not this map's; load the map "
+                                 "again") from None
+            raise
 
     def session_frames(self) -> dict[str, Rigid3] | None:
         """For a map a SLAM session learned (`slam --out`: recorded poses "slam", its frame
@@ -147,7 +212,7 @@ class SceneMap:
         path = self.root / SURFACE
         if not path.exists() and not path.is_symlink():
             raise InputError(f"{path}: the map lists a surface but the file is missing")
-        arrays = read_npz(path, "surface", self.info.files[SURFACE], self.digests)
+        arrays = self._read_npz(SURFACE, "surface", self.info.files[SURFACE])
         surface = Surface.from_arrays(arrays, str(path))
         if len(surface.points) == 0:  # would be served as a surface that never refines
             raise InputError(f"{path}: the surface holds no points")
@@ -169,8 +234,8 @@ class SceneMap:
             return None
         if not present:
             raise InputError(f"{path}: the map lists provenance but the file is missing")
-        arrays = read_npz(path, "provenance", self.info.files[PROVENANCE] if listed else None,
-                          self.digests)
+        arrays = self._read_npz(PROVENANCE, "provenance",
+                                self.info.files[PROVENANCE] if listed else None)
         check_provenance(arrays, path, len(self.database.points))
         return MapProvenance(arrays["source"].astype(np.int8),
                              arrays["quality"].astype(np.float32))

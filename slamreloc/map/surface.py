@@ -23,7 +23,7 @@ from functools import cached_property
 
 import numpy as np
 
-from slamreloc.datasets import Dataset, read_depth
+from slamreloc.datasets import Dataset, read_frame_depth
 from slamreloc.errors import InputError
 from slamreloc.geometry import MAX_COORDINATE, Rigid3, axis_angle_to_matrix, rotation_angle_deg
 from slamreloc.runtime.progress import track
@@ -123,17 +123,10 @@ def depth_cloud(depth: np.ndarray, camera: Camera, depth_camera: Camera | None,
     return backproject(depth, camera_of_depth(camera, depth.shape, depth_camera), sampling)
 
 
-def read_frame_depth(frame: Frame, dataset: Dataset) -> np.ndarray:
-    """A dataset frame's depth map as stored: float32 metres in its depth camera's pixels
-    (`frame.depth_camera`, or the image's where registered); InputError without one."""
-    if frame.depth_path is None:
-        raise InputError(f"{frame.image_path}: no depth image")
-    return read_depth(frame.depth_path, dataset.depth_units_per_metre)
-
-
 def frame_cloud(frame: Frame, dataset: Dataset) -> np.ndarray:
     """The points of a dataset frame's depth image in its depth camera's frame (metres)."""
-    return depth_cloud(read_frame_depth(frame, dataset), frame.camera, frame.depth_camera)
+    depth = read_frame_depth(frame, dataset.depth_units_per_metre)
+    return depth_cloud(depth, frame.camera, frame.depth_camera)
 
 
 def dataset_surface(dataset: Dataset, frames: list[Frame],

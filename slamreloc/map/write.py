@@ -31,8 +31,14 @@ from slamreloc.map.scene_map import MapDatabase, SceneMap
 
 def check_map_target(out: Path) -> None:
     """Raise unless `out` is absent, an empty folder, or a slamreloc map holding nothing but
-    a map's files (to be replaced whole: anything else in it would go with it)."""
+    a map's files (to be replaced whole: anything else in it would go with it). A symbolic
+    link is refused whatever it points to: the writer replaces the link, and never writes or
+    deletes through it (checked again at the swap: `_swap_in`)."""
     out = Path(out)
+    if out.is_symlink():
+        raise InputError(f"{out}: is a symbolic link (to {os.readlink(out)[:200]}), not a "
+                         "folder; a map writer replaces a folder and never writes through a "
+                         "link: give the map's own folder")
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not is_map(out))):
         raise InputError(f"{out}: exists and is not a slamreloc map; refusing to overwrite it")
     if out.is_dir():
@@ -70,20 +76,33 @@ def _remove_old_copy(old: Path, out: Path) -> None:
     """Remove `old`, a folder this writer made or moved aside (the temporary folder, or the
     map `out` held before the swap): its map files are deleted; anything else in it (a file
     someone wrote into the map's folder while the new map was being written) is moved into
-    `out`, where it was put, never deleted. A folder that cannot be removed is remembered
+    `out`, where it was put, never deleted. `old` is opened without following links, and its
+    entries are reached through that handle: a link or a file put in its place is left as it
+    is, and nothing it points to is touched. A folder that cannot be removed is remembered
     (`_MADE`), so that this process may remove it at its next write, and said on stderr."""
     _MADE.add(old)
     try:
-        for entry in os.scandir(old):
-            path = Path(entry.path)
-            if is_map_file(entry):
-                path.unlink()
-            elif out.is_dir() and not os.path.lexists(out / entry.name):
-                os.rename(path, out / entry.name)
-                print(f"note: {out / entry.name}: written into {out.name} while it was being "
-                      "replaced; kept", file=sys.stderr)
-            else:
-                raise OSError(errno.EEXIST, "a file that is not the map's is in the way", path)
+        fd = os.open(old, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
+    except FileNotFoundError:
+        _MADE.discard(old)
+        return
+    except OSError as err:
+        _MADE.discard(old)  # a link or a file: not this writer's to remove, ever
+        print(f"warning: {old}: left as it is ({err.strerror or err}): it is not the folder "
+              "this writer made; nothing it points to was touched", file=sys.stderr)
+        return
+    try:
+        with os.scandir(fd) as entries:
+            for entry in entries:
+                if is_map_file(entry):
+                    os.unlink(entry.name, dir_fd=fd)
+                elif out.is_dir() and not os.path.lexists(out / entry.name):
+                    os.rename(entry.name, out / entry.name, src_dir_fd=fd)
+                    print(f"note: {out / entry.name}: written into {out.name} while it was "
+                          "being replaced; kept", file=sys.stderr)
+                else:
+                    raise OSError(errno.EEXIST, "a file that is not the map's is in the way",
+                                  str(old / entry.name))
         old.rmdir()
         _MADE.discard(old)
     except FileNotFoundError:
@@ -91,6 +110,8 @@ def _remove_old_copy(old: Path, out: Path) -> None:
     except OSError as err:
         print(f"warning: {old}: not removed ({err.strerror or err}); this process removes "
               "it at its next write of the map", file=sys.stderr)
+    finally:
+        os.close(fd)
 
 
 # temporary and old folders this process made beside maps and has not removed yet (a removal
@@ -118,6 +139,7 @@ def _swap_in(tmp: Path, out: Path) -> Callable[[], None]:
     instant `out` is a complete map, except in the two-rename fallback, whose gap `_recover`
     repairs. Returns how to put the old map back (`commit_output`'s undo)."""
     old = temp_dir_path(out, "old")
+    _check_still_folder(out)
 
     def new_out() -> None:  # there was no map: the new one goes back to its temporary
         os.replace(out, tmp)
@@ -134,6 +156,10 @@ def _swap_in(tmp: Path, out: Path) -> Callable[[], None]:
         undo = new_out
     elif exchange_paths(tmp, out):
         undo = exchange_back
+        if tmp.is_symlink() or not tmp.is_dir():  # replaced in the instant since the check
+            exchange_back()
+            _check_still_folder(out)
+            raise InputError(f"{out}: replaced while the map was written; not written")
     else:
         _clear_own_path(old, out)
         os.replace(out, old)
@@ -143,6 +169,16 @@ def _swap_in(tmp: Path, out: Path) -> Callable[[], None]:
         undo = old_back
     fsync_dir(out.parent)
     return undo
+
+
+def _check_still_folder(out: Path) -> None:
+    """Raise where `out` has become something a map writer must not replace since its checks
+    (a symbolic link, a file): the new map is then discarded, what is at `out` kept."""
+    if out.is_symlink() or os.path.lexists(out) and not out.is_dir():
+        what = (f"a symbolic link (to {os.readlink(out)[:200]})" if out.is_symlink()
+                else "no longer a folder")
+        raise InputError(f"{out}: became {what} while the map was written; not written (what "
+                         "is there is kept, the new map discarded)")
 
 
 def save_map(out: str | Path, meta: MapMeta, model: SceneCoordinateRegressor, db: MapDatabase,

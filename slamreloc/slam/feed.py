@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slamreloc.datasets import Dataset, read_depth, read_image
+from slamreloc.datasets import Dataset, read_frame_depth, read_frame_image
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
 from slamreloc.slam.backend import SlamBackend, StepResult
@@ -56,8 +56,8 @@ def read_frames(dataset: Dataset, frames: Iterable[Frame], image: bool = True,
             raise InputError(f"{frame.image_path}: no depth image for depth odometry")
         yield FrameInput(
             frame.camera, frame.timestamp,
-            read_image(frame.image_path) if image else None,
-            read_depth(frame.depth_path, dataset.depth_units_per_metre) if depth else None,
+            read_frame_image(frame) if image else None,
+            read_frame_depth(frame, dataset.depth_units_per_metre) if depth else None,
             depth_camera=frame.depth_camera, rgb_from_depth=frame.rgb_from_depth,
             name=frame.name)
 
