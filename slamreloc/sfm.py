@@ -42,7 +42,8 @@ import numpy as np
 from slamreloc.camera_models import MODELS, PARAMS, colmap_head
 from slamreloc.errors import InputError
 from slamreloc.io.outputs import (check_outputs, is_file_debris_name, make_temp_dir,
-                                  naming_output, temp_dir_path, write_json)
+                                  naming_output, still_as_checked, temp_dir_path, what_is_there,
+                                  write_json)
 from slamreloc.io.fileio import is_link_loop
 from slamreloc.io.folder_lock import Debris, folder_write_lock
 from slamreloc.io.video import is_video, video_frames
@@ -365,13 +366,15 @@ def _report_selection(selector: KeyframeSelector | None, what: str, progress: bo
     return {"selection": s}
 
 
-def checked_image(path: Path) -> tuple[bytes, np.ndarray]:
+def checked_image(path: Path, size: tuple[int, int] | None = None
+                  ) -> tuple[bytes, np.ndarray]:
     """(the bytes, the decoded RGB) of an image file SfM may take: bounded, complete (a JPEG
     with its scan data: headers alone, or a scan cut right after its header, are refused, not
-    left for COLMAP to fail on or to read as a grey picture) and decoded in full. InputError
-    naming the file otherwise."""
+    left for COLMAP to fail on or to read as a grey picture) and decoded in full; of `size`
+    (width, height) where given (a dataset frame's: `size_problem`, the rule of the dataset's
+    load). InputError naming the file otherwise."""
     from slamreloc.io.fileio import read_bytes
-    from slamreloc.io.images import decode_rgb
+    from slamreloc.io.images import decode_rgb, size_problem
 
     data = read_bytes(path, "image", "max_image_bytes")
     if not data.startswith(COLMAP_IMAGE_MAGIC):  # named .jpg, but a WebP (a web download)
@@ -380,7 +383,11 @@ def checked_image(path: Path) -> tuple[bytes, np.ndarray]:
         raise InputError(f"{path}: {what} by its content (whatever its name), a format sfm "
                          "does not read (PNG, JPEG, BMP, TIFF and PNM are read): convert it, "
                          "or move it out")
-    return data, decode_rgb(data, path)  # `check_encoded_image`'s rules, every reader's
+    rgb = decode_rgb(data, path)  # `check_encoded_image`'s rules, every reader's
+    problem = size and size_problem((rgb.shape[1], rgb.shape[0]), size)
+    if problem:
+        raise InputError(f"{path}: {problem}")
+    return data, rgb
 
 
 def _is_image_file(path: Path, root: Path) -> bool:
@@ -513,7 +520,7 @@ def _collect_dataset(dataset, images_dir: Path, config: SfmConfig,
     for frame in _tracked(frames, "copying images", progress):
         named = PurePosixPath(frame.name).suffix.lower() in IMAGE_SUFFIXES
         name = frame.name if named else f"{frame.name}{frame.image_path.suffix.lower()}"
-        data, rgb = checked_image(frame.image_path)
+        data, rgb = checked_image(frame.image_path, (frame.camera.width, frame.camera.height))
         sizes.setdefault((rgb.shape[1], rgb.shape[0]), name)
         (images_dir / name).parent.mkdir(parents=True, exist_ok=True)
         (images_dir / name).write_bytes(data)  # the bytes checked, not the path again
@@ -666,13 +673,17 @@ def _run_into(source: Path, out: Path, config: SfmConfig, progress: bool) -> dic
     tmp = make_temp_dir(temp_dir_path(out), str(out))
     try:
         summary = _run(source, tmp, config, progress)
+        still_as_checked(out)  # a link, a file, a pipe put there: said so, not written
         try:  # one rename, over the empty folder given: a kill leaves it or the dataset
             os.replace(tmp, out)
         except OSError as err:
-            if err.errno not in (errno.ENOTEMPTY, errno.EEXIST):
-                raise
-            raise InputError(f"{out}: something was put into this folder while sfm ran; "
-                             "refusing to replace it (the dataset was not written)") from None
+            if err.errno in (errno.ENOTEMPTY, errno.EEXIST):
+                raise InputError(f"{out}: something was put into this folder while sfm ran; "
+                                 "refusing to replace it (the dataset was not written)") from None
+            if err.errno == errno.ENOTDIR:
+                raise InputError(f"{out}: became {what_is_there(out)} while sfm ran; the "
+                                 "dataset was not written") from None
+            raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     summary["dataset"] = str(out)

@@ -345,6 +345,58 @@ def check_outputs(outputs: dict[str, str | Path | None],
             if os.path.lexists(tmp) and (want_dir or not _unheld_file(tmp)):
                 raise InputError(temp_in_the_way(tmp, f"{out}: {option}"))
         _check_writable(Path(out), option)
+        record_checked(out)
+
+
+# what each output `check_outputs` passed was at that check: itself (None: absent) and its
+# folder, by (device, inode); its writer puts it in place only where neither has changed since
+# (`still_as_checked`) and records what it put there (`record_checked`)
+_CHECKED: dict[Path, tuple[tuple[int, int] | None, tuple[int, int] | None]] = {}
+
+
+def _identity(path: Path, follow: bool) -> tuple[int, int] | None:
+    try:
+        st = os.stat(path, follow_symlinks=follow)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
+def record_checked(out: str | Path) -> None:
+    """Remember what the output `out` and its folder are now (at `check_outputs`, and after
+    its writer put it in place), for `still_as_checked`."""
+    key = Path(os.path.abspath(out))
+    _CHECKED[key] = (_identity(key, False), _identity(key.parent, True))
+
+
+def still_as_checked(out: str | Path) -> None:
+    """InputError, naming `out`, where the output or its folder is no longer what
+    `check_outputs` (or its writer's last write) saw: a file, a folder, a link or a pipe put
+    at `out`, or its folder swapped for another (a link) while the command ran. Its writer
+    then puts nothing in place and what is there is kept. An output removed meanwhile may be
+    written; an output never checked (a library caller's) passes."""
+    key = Path(os.path.abspath(out))
+    if key not in _CHECKED:
+        return
+    was, folder = _CHECKED[key]
+    if folder is not None and _identity(key.parent, True) != folder:  # (None: made since)
+        raise InputError(f"{out}: its folder {key.parent} was replaced while the command ran; "
+                         "not written (what is there is kept)")
+    now = _identity(key, False)
+    if now is not None and now != was:
+        raise InputError(f"{out}: {what_is_there(key)} was put there while the command ran; "
+                         "not written (what is there is kept)")
+
+
+def what_is_there(path: Path) -> str:
+    """What is at `path` now, not following a link, in words ("a symbolic link (to X)", "a
+    file", "a named pipe", ...)."""
+    try:
+        if os.path.islink(path):
+            return f"a symbolic link (to {os.readlink(path)[:200]})"
+        return file_kind(os.lstat(path).st_mode)
+    except OSError:
+        return "nothing"
 
 
 _together = threading.local()  # .pending: the commits of an `outputs_together` block
@@ -518,11 +570,13 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
     def replace() -> Undo:  # the old file kept (a second name) until the block is done
         kept = False
         with naming_output(path):
+            still_as_checked(path)
             existed = os.path.lexists(path)
             if undoable and os.path.isfile(path) and not os.path.islink(path):
                 held.append((backup, _keep_old(path, backup)))
                 kept = True
             os.replace(tmp, path)
+            record_checked(path)
         if kept:
             return lambda: os.replace(backup, path)
         return None if existed else lambda: path.unlink(missing_ok=True)

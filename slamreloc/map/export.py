@@ -24,7 +24,8 @@ from slamreloc.errors import InputError
 from slamreloc.io.fileio import resolved, sha256_of
 from slamreloc.io.outputs import (Undo, atomic_file, commit_output, exchange_paths,
                                   make_temp_dir, marked_file, naming_output, outputs_together,
-                                  temp_dir_path, temp_in_the_way)
+                                  record_checked, still_as_checked, temp_dir_path,
+                                  temp_in_the_way)
 from slamreloc.geometry import Rigid3, matrix_to_quat, write_tum_trajectory
 from slamreloc.io.images import pixel_colours, read_image
 from slamreloc.io.jsonio import read_json
@@ -222,21 +223,30 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
     old = temp_dir_path(out, "old")
     moved: list[Path] = []  # the old model, once moved aside (where there is no exchange)
 
-    def swap() -> Undo:  # the new model in; the old one back on undo
+    def swap() -> Undo:
         with naming_output(out):
-            if not os.path.lexists(out):
-                os.replace(tmp, out)
-                return lambda: os.replace(out, tmp)  # removed with the unused temporary
-            if any(out.iterdir()) and not is_colmap_model(out):  # changed since the check
-                raise InputError(f"{out}: is no longer the COLMAP model export wrote; "
-                                 "refusing to replace it")
-            if exchange_paths(tmp, out):  # no instant without a model; the old one at tmp
-                return lambda: exchange_paths(tmp, out)
-            if os.path.lexists(old):  # not a killed export's (cleaned under the lock)
-                raise InputError(temp_in_the_way(old, str(out)))
-            os.replace(out, old)  # a kill -9 now: the next export puts it back
-            moved.append(old)
+            still_as_checked(out)  # a link, a file, another folder put there: not written
+            if os.path.islink(out):
+                raise InputError(f"{out}: is a symbolic link (to {os.readlink(out)[:200]}); "
+                                 "not written (what is there is kept)")
+            undo = put_in()
+        record_checked(out)
+        return undo
+
+    def put_in() -> Undo:  # the new model in; the old one back on undo
+        if not os.path.lexists(out):
             os.replace(tmp, out)
+            return lambda: os.replace(out, tmp)  # removed with the unused temporary
+        if any(out.iterdir()) and not is_colmap_model(out):  # changed since the check
+            raise InputError(f"{out}: is no longer the COLMAP model export wrote; "
+                             "refusing to replace it")
+        if exchange_paths(tmp, out):  # no instant without a model; the old one at tmp
+            return lambda: exchange_paths(tmp, out)
+        if os.path.lexists(old):  # not a killed export's (cleaned under the lock)
+            raise InputError(temp_in_the_way(old, str(out)))
+        os.replace(out, old)  # a kill -9 now: the next export puts it back
+        moved.append(old)
+        os.replace(tmp, out)
 
         def undo() -> None:
             os.replace(out, tmp)

@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.outputs import commit_output, exchange_paths, naming_output, temp_dir_path
+from slamreloc.io.outputs import (commit_output, exchange_paths, naming_output, record_checked,
+                                  still_as_checked, temp_dir_path)
 from slamreloc.map.format import (DATABASE, FORMAT_VERSION, MAP_FILES, META, WEIGHTS, is_map,
                                   is_map_file, sha256_file)
 from slamreloc.io.folder_lock import fsync_dir
@@ -168,12 +169,15 @@ def _swap_in(tmp: Path, out: Path) -> Callable[[], None]:
         os.replace(tmp, out)
         undo = old_back
     fsync_dir(out.parent)
+    record_checked(out)
     return undo
 
 
 def _check_still_folder(out: Path) -> None:
     """Raise where `out` has become something a map writer must not replace since its checks
-    (a symbolic link, a file): the new map is then discarded, what is at `out` kept."""
+    (a symbolic link, a file; or anything else than `check_outputs` saw, its folder included:
+    `still_as_checked`): the new map is then discarded, what is at `out` kept."""
+    still_as_checked(out)
     if out.is_symlink() or os.path.lexists(out) and not out.is_dir():
         what = (f"a symbolic link (to {os.readlink(out)[:200]})" if out.is_symlink()
                 else "no longer a folder")

@@ -87,6 +87,72 @@ def load_checkpoint(path: Path, fp: str) -> dict:
     return state
 
 
+def restore_checkpoint(path: Path, state: dict, epochs: int, model, opt, sched,
+                       gen: torch.Generator, average) -> tuple[int, list[float]]:
+    """Put a loaded checkpoint's `state` (`load_checkpoint`) into the training objects; returns
+    (the epoch to start at, the losses of the epochs before it). InputError naming `path` and
+    the field where the state is not one a run of `epochs` epochs of this model writes: an
+    epoch outside 0..epochs, losses that are not one finite number a finished epoch, weights
+    that are not finite, or states the model, optimiser, schedule, generator or weight
+    average cannot take (a fingerprint is plain text in the file: anyone can copy it)."""
+    epoch, losses = state.get("epoch"), state.get("losses")
+    if type(epoch) is not int or not 0 <= epoch <= epochs:
+        raise InputError(f"{path}: unreadable training checkpoint ('epoch' must be a whole "
+                         f"number in 0..{epochs}, got {str(epoch)[:40]})")
+    if (not isinstance(losses, list) or len(losses) != epoch
+            or not all(type(v) in (int, float) and np.isfinite(v) for v in losses)):
+        raise InputError(f"{path}: unreadable training checkpoint ('losses' must be {epoch} "
+                         "finite numbers, one a finished epoch)")
+    weights = state.get("model")
+    if isinstance(weights, dict) and not all(
+            not torch.is_tensor(t) or not t.is_floating_point() or bool(torch.isfinite(t).all())
+            for t in weights.values()):
+        raise InputError(f"{path}: unreadable training checkpoint ('model' holds NaN or "
+                         "infinite weights)")
+    # what this run's recipe fixes (the rate changes along the schedule, the rest does not)
+    groups = [{k: v for k, v in g.items() if k not in ("params", "lr", "initial_lr")}
+              for g in opt.state_dict()["param_groups"]]
+    schedule = {k: sched.state_dict()[k] for k in ("step_size", "gamma", "base_lrs")}
+    for key, target in (("model", model), ("optimizer", opt), ("scheduler", sched),
+                        ("average", average), ("generator", gen)):
+        try:
+            if key == "generator":
+                gen.set_state(state[key])
+            else:
+                target.load_state_dict(state[key])
+            problem = _restored_problem(key, opt, sched, groups, schedule)
+        except Exception as err:  # noqa: BLE001 - torch's loaders raise many kinds
+            problem = type(err).__name__
+        if problem:
+            raise InputError(f"{path}: unreadable training checkpoint ('{key}': "
+                             f"{problem})") from None
+    return epoch, [float(v) for v in losses]
+
+
+def _restored_problem(key: str, opt, sched, groups: list[dict], schedule: dict) -> str | None:
+    """Why the optimiser or schedule just restored is not this run's (None: it is): other
+    hyper-parameters, moments of another shape than their parameter or not finite, a step
+    count that is not a whole number."""
+    if key == "optimizer":
+        now = opt.state_dict()["param_groups"]
+        if [{k: v for k, v in g.items() if k not in ("params", "lr", "initial_lr")}
+                for g in now] != groups or not all(
+                    type(g["lr"]) is float and 0 < g["lr"] < float("inf") for g in now):
+            return "another optimiser's settings"
+        for param, moments in opt.state.items():
+            for name, value in moments.items():
+                if torch.is_tensor(value) and (
+                        value.dim() and value.shape != param.shape
+                        or value.is_floating_point() and not bool(torch.isfinite(value).all())):
+                    return f"its {name} does not fit the model"
+    if key == "scheduler":
+        now = sched.state_dict()
+        if {k: now[k] for k in schedule} != schedule or not all(
+                type(now[k]) is int and now[k] >= 0 for k in ("last_epoch", "_step_count")):
+            return "another schedule"
+    return None
+
+
 def _read(path: Path) -> dict:
     """The checkpoint's state; InputError if it is missing or unreadable."""
     if not path.is_file():

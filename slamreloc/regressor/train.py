@@ -14,7 +14,8 @@ from torch import nn
 from slamreloc.runtime.precision import autocast, bf16_support, resolve_precision
 from slamreloc.errors import Interrupted
 from slamreloc.runtime.progress import console, track
-from slamreloc.regressor.checkpoint import fingerprint, load_checkpoint, save_checkpoint
+from slamreloc.regressor.checkpoint import (fingerprint, load_checkpoint, restore_checkpoint,
+                                            save_checkpoint)
 from slamreloc.regressor.model import SceneCoordinateRegressor
 
 
@@ -110,12 +111,8 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
     start, losses = 0, []
     average = WeightAverage(model, config.epochs, config.average_tail)
     if state is not None:
-        model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        sched.load_state_dict(state["scheduler"])
-        gen.set_state(state["generator"])
-        start, losses = int(state["epoch"]), list(state["losses"])
-        average.load_state_dict(state["average"])
+        start, losses = restore_checkpoint(checkpoint, state, config.epochs, model, opt, sched,
+                                           gen, average)
         if model.config.head == "clusters":
             cluster = model.assign_clusters(y_n)
         if progress:
@@ -198,8 +195,18 @@ class WeightAverage:
         return {"count": self.count, "sums": self.sums}
 
     def load_state_dict(self, state: dict) -> None:
-        self.count = int(state["count"])
-        self.sums = {name: t.clone() for name, t in state["sums"].items()}
+        """ValueError unless `state` holds a whole count and a finite float32 sum of the
+        shape of each of the model's parameters (what `state_dict` gave)."""
+        count, sums = state["count"], state["sums"]
+        if type(count) is not int or count < 0 or not isinstance(sums, dict) or (
+                set(sums) != set(self.sums)):
+            raise ValueError("not a weight average of this model")
+        for name, t in sums.items():
+            if (not torch.is_tensor(t) or t.shape != self.sums[name].shape
+                    or t.dtype != torch.float32 or not bool(torch.isfinite(t).all())):
+                raise ValueError(f"weight average of {name} is not of its parameter's shape")
+        self.count = count
+        self.sums = {name: t.clone() for name, t in sums.items()}
 
 
 def _step(model, opt, xb, yb, wb, target, noise, config, gen, precision) -> torch.Tensor:
