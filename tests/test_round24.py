@@ -1,7 +1,9 @@
-"""Issue 43, attack round 24: an output (or its folder) changed after the start-up checks is
-not written over (C1, C2, C6, C7: `outputs.still_as_checked`); sfm copies only frame images of
-the dataset's size (C3); a training checkpoint whose state is not one a run of this model
-writes is refused naming the file and the field (C4, C5)."""
+"""Issue 43, attack rounds 24 and 25: an output (or its folder) changed after the start-up
+checks is not written over, a file rewritten in place included (C1, C2, C6, C7, D1:
+`outputs.still_as_checked`), and a writer that did not check is not bound by an earlier write
+(D2); sfm copies only frame images of the dataset's size (C3); a training checkpoint whose
+state is not one this run would hold at its epoch is refused naming the file and the field
+(C4, C5, D3-D5)."""
 
 from __future__ import annotations
 
@@ -44,6 +46,32 @@ def test_a_file_put_at_an_output_after_the_checks_is_kept(tmp_path, put):
     assert out.is_fifo() if put == "fifo" else out.read_text() == "precious\n"
     assert [p.name for p in tmp_path.iterdir()] != [] and not [
         p for p in tmp_path.iterdir() if ".tmp-" in p.name]
+
+
+def test_a_file_output_rewritten_in_place_after_the_checks_is_kept(tmp_path):
+    out = tmp_path / "report.json"
+    out.write_text("{}")
+    check_outputs({"--report": out}, {})
+    with open(out, "w") as f:  # the same inode: `echo precious > report.json`
+        f.write("precious\n")
+    with pytest.raises(InputError, match="report.json: a file was put there while the command "
+                                         "ran; not written"):
+        with atomic_file(out) as tmp:
+            tmp.write_text("{}")
+    assert out.read_text() == "precious\n"
+
+
+def test_a_writer_that_did_not_check_is_not_bound_by_its_earlier_write(tmp_path):
+    """A server saving a learned map twice, the folder restored by its operator in between."""
+    from tests.test_fuzz_inputs import _tiny_map
+
+    import shutil
+
+    out = _tiny_map(tmp_path / "learned")
+    shutil.copytree(out, tmp_path / "copy")
+    shutil.rmtree(out)
+    (tmp_path / "copy").rename(out)  # a byte-identical copy put back: another folder on disk
+    _tiny_map(out, n=80)
 
 
 def test_an_output_removed_meanwhile_or_written_twice_is_written(tmp_path):
@@ -134,6 +162,11 @@ DAMAGE = [  # (the field named, the damage)
     ("epoch", lambda s: s.update(epoch=-5)),
     ("losses", lambda s: s.update(losses="abc")),
     ("losses", lambda s: s.update(losses=[float("nan")] * len(s["losses"]))),
+    ("average", lambda s: s["average"].update(count=10 ** 6)),
+    ("optimizer", lambda s: s["optimizer"]["state"][0].update(step=torch.tensor(-5.0))),
+    ("optimizer", lambda s: s["optimizer"]["state"][0]["exp_avg_sq"].mul_(-1).sub_(1)),
+    ("optimizer", lambda s: s["optimizer"]["param_groups"][0].update(lr=50.0)),
+    ("scheduler", lambda s: s["scheduler"].update(last_epoch=0, _step_count=1)),
 ]
 
 

@@ -349,24 +349,36 @@ def check_outputs(outputs: dict[str, str | Path | None],
 
 
 # what each output `check_outputs` passed was at that check: itself (None: absent) and its
-# folder, by (device, inode); its writer puts it in place only where neither has changed since
-# (`still_as_checked`) and records what it put there (`record_checked`)
-_CHECKED: dict[Path, tuple[tuple[int, int] | None, tuple[int, int] | None]] = {}
+# folder; its writer puts it in place only where neither has changed since
+# (`still_as_checked`) and records what it put there (`record_written`)
+_CHECKED: dict[Path, tuple[tuple[int, ...] | None, tuple[int, ...] | None]] = {}
 
 
-def _identity(path: Path, follow: bool) -> tuple[int, int] | None:
+def _identity(path: Path, follow: bool) -> tuple[int, ...] | None:
+    """(device, inode), and for a regular file its size and modification time too (a file
+    rewritten in place keeps its inode); None where nothing is there."""
     try:
         st = os.stat(path, follow_symlinks=follow)
     except OSError:
         return None
+    if stat.S_ISREG(st.st_mode):
+        return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
     return st.st_dev, st.st_ino
 
 
 def record_checked(out: str | Path) -> None:
-    """Remember what the output `out` and its folder are now (at `check_outputs`, and after
-    its writer put it in place), for `still_as_checked`."""
+    """Remember what the output `out` and its folder are now (at `check_outputs`), for
+    `still_as_checked`."""
     key = Path(os.path.abspath(out))
     _CHECKED[key] = (_identity(key, False), _identity(key.parent, True))
+
+
+def record_written(out: str | Path) -> None:
+    """After a writer put `out` in place: what is there now is its own (for its next write).
+    Only outputs `check_outputs` checked are followed: a writer that did not check (a
+    library caller's, a server's) is not bound by an earlier write of the same path."""
+    if Path(os.path.abspath(out)) in _CHECKED:
+        record_checked(out)
 
 
 def still_as_checked(out: str | Path) -> None:
@@ -576,7 +588,7 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
                 held.append((backup, _keep_old(path, backup)))
                 kept = True
             os.replace(tmp, path)
-            record_checked(path)
+            record_written(path)
         if kept:
             return lambda: os.replace(backup, path)
         return None if existed else lambda: path.unlink(missing_ok=True)

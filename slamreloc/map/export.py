@@ -24,7 +24,7 @@ from slamreloc.errors import InputError
 from slamreloc.io.fileio import resolved, sha256_of
 from slamreloc.io.outputs import (Undo, atomic_file, commit_output, exchange_paths,
                                   make_temp_dir, marked_file, naming_output, outputs_together,
-                                  record_checked, still_as_checked, temp_dir_path,
+                                  record_written, still_as_checked, temp_dir_path,
                                   temp_in_the_way)
 from slamreloc.geometry import Rigid3, matrix_to_quat, write_tum_trajectory
 from slamreloc.io.images import pixel_colours, read_image
@@ -230,7 +230,7 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
                 raise InputError(f"{out}: is a symbolic link (to {os.readlink(out)[:200]}); "
                                  "not written (what is there is kept)")
             undo = put_in()
-        record_checked(out)
+        record_written(out)
         return undo
 
     def put_in() -> Undo:  # the new model in; the old one back on undo

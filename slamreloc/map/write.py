@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.errors import InputError
-from slamreloc.io.outputs import (commit_output, exchange_paths, naming_output, record_checked,
+from slamreloc.io.outputs import (commit_output, exchange_paths, naming_output, record_written,
                                   still_as_checked, temp_dir_path)
 from slamreloc.map.format import (DATABASE, FORMAT_VERSION, MAP_FILES, META, WEIGHTS, is_map,
                                   is_map_file, sha256_file)
@@ -169,7 +169,7 @@ def _swap_in(tmp: Path, out: Path) -> Callable[[], None]:
         os.replace(tmp, out)
         undo = old_back
     fsync_dir(out.parent)
-    record_checked(out)
+    record_written(out)
     return undo
 
 

@@ -87,14 +87,17 @@ def load_checkpoint(path: Path, fp: str) -> dict:
     return state
 
 
-def restore_checkpoint(path: Path, state: dict, epochs: int, model, opt, sched,
-                       gen: torch.Generator, average) -> tuple[int, list[float]]:
+def restore_checkpoint(path: Path, state: dict, epochs: int, steps_per_epoch: int, model,
+                       opt, sched, gen: torch.Generator, average) -> tuple[int, list[float]]:
     """Put a loaded checkpoint's `state` (`load_checkpoint`) into the training objects; returns
     (the epoch to start at, the losses of the epochs before it). InputError naming `path` and
-    the field where the state is not one a run of `epochs` epochs of this model writes: an
-    epoch outside 0..epochs, losses that are not one finite number a finished epoch, weights
-    that are not finite, or states the model, optimiser, schedule, generator or weight
-    average cannot take (a fingerprint is plain text in the file: anyone can copy it)."""
+    the field where the state is not one this run (`epochs` epochs of `steps_per_epoch`
+    optimiser steps, this model and recipe) writes: an epoch outside 0..epochs, losses that
+    are not one finite number a finished epoch, weights that are not finite, states the model,
+    optimiser, schedule, generator or weight average cannot take, or that another run would
+    hold at that epoch (a rate or a step count off the schedule, moments of another shape or
+    sign, an average of other epochs). A fingerprint is plain text in the file: anyone can
+    copy it, so the state itself is checked."""
     epoch, losses = state.get("epoch"), state.get("losses")
     if type(epoch) is not int or not 0 <= epoch <= epochs:
         raise InputError(f"{path}: unreadable training checkpoint ('epoch' must be a whole "
@@ -109,48 +112,93 @@ def restore_checkpoint(path: Path, state: dict, epochs: int, model, opt, sched,
             for t in weights.values()):
         raise InputError(f"{path}: unreadable training checkpoint ('model' holds NaN or "
                          "infinite weights)")
-    # what this run's recipe fixes (the rate changes along the schedule, the rest does not)
-    groups = [{k: v for k, v in g.items() if k not in ("params", "lr", "initial_lr")}
-              for g in opt.state_dict()["param_groups"]]
-    schedule = {k: sched.state_dict()[k] for k in ("step_size", "gamma", "base_lrs")}
-    for key, target in (("model", model), ("optimizer", opt), ("scheduler", sched),
+    run = _Run(epoch, steps_per_epoch, opt, sched, average)
+    for key, target in (("model", model), ("scheduler", sched), ("optimizer", opt),
                         ("average", average), ("generator", gen)):
         try:
             if key == "generator":
                 gen.set_state(state[key])
             else:
                 target.load_state_dict(state[key])
-            problem = _restored_problem(key, opt, sched, groups, schedule)
+            problem = run.problem(key)
         except Exception as err:  # noqa: BLE001 - torch's loaders raise many kinds
-            problem = type(err).__name__
+            problem = f"not a {key} state ({type(err).__name__})"
         if problem:
             raise InputError(f"{path}: unreadable training checkpoint ('{key}': "
                              f"{problem})") from None
     return epoch, [float(v) for v in losses]
 
 
-def _restored_problem(key: str, opt, sched, groups: list[dict], schedule: dict) -> str | None:
-    """Why the optimiser or schedule just restored is not this run's (None: it is): other
-    hyper-parameters, moments of another shape than their parameter or not finite, a step
-    count that is not a whole number."""
-    if key == "optimizer":
-        now = opt.state_dict()["param_groups"]
-        if [{k: v for k, v in g.items() if k not in ("params", "lr", "initial_lr")}
-                for g in now] != groups or not all(
-                    type(g["lr"]) is float and 0 < g["lr"] < float("inf") for g in now):
-            return "another optimiser's settings"
-        for param, moments in opt.state.items():
-            for name, value in moments.items():
-                if torch.is_tensor(value) and (
-                        value.dim() and value.shape != param.shape
-                        or value.is_floating_point() and not bool(torch.isfinite(value).all())):
-                    return f"its {name} does not fit the model"
-    if key == "scheduler":
-        now = sched.state_dict()
-        if {k: now[k] for k in schedule} != schedule or not all(
+class _Run:
+    """What the training objects of a run resumed at `epoch` must hold once restored: the
+    recipe's hyper-parameters (made before the restore), a schedule `epoch` epochs of
+    `steps_per_epoch` steps in (an interrupted epoch's steps included), the optimiser's steps
+    and rate on it, the weight average of the epochs of its tail finished."""
+
+    _FREE = ("params", "lr", "initial_lr")  # what a group may hold other than the recipe's
+
+    def __init__(self, epoch: int, steps_per_epoch: int, opt, sched, average) -> None:
+        self.epoch, self.steps_per_epoch = epoch, steps_per_epoch
+        self.opt, self.sched, self.average = opt, sched, average
+        self.groups = self._groups()
+        self.schedule = {k: sched.state_dict()[k] for k in ("step_size", "gamma", "base_lrs")}
+
+    def _groups(self) -> list[dict]:
+        return [{k: v for k, v in g.items() if k not in self._FREE}
+                for g in self.opt.state_dict()["param_groups"]]
+
+    def problem(self, key: str) -> str | None:
+        """Why the object `key` just restored is not this run's (None: it is)."""
+        if key == "optimizer":
+            if self._groups() != self.groups:
+                return "another optimiser's settings"
+            for param, moments in self.opt.state.items():
+                for name, value in moments.items():
+                    if not torch.is_tensor(value):
+                        continue
+                    if value.dim() and value.shape != param.shape or (
+                            value.is_floating_point() and not bool(torch.isfinite(value).all())):
+                        return f"its {name} does not fit the model"
+                    if name in ("step", "exp_avg_sq", "max_exp_avg_sq") and bool(
+                            (value < 0).any()):
+                        return f"a negative {name}"
+            return self._rate_problem()
+        if key == "scheduler":
+            return self._schedule_problem()
+        if key == "average":
+            expected = self.average.count_after(self.epoch)
+            if self.average.count != expected:
+                return (f"an average of {self.average.count} epochs, where {expected} of its "
+                        f"tail are finished at epoch {self.epoch}")
+        return None
+
+    def _schedule_problem(self) -> str | None:
+        now = self.sched.state_dict()
+        last = now["last_epoch"]
+        if {k: now[k] for k in self.schedule} != self.schedule or not all(
                 type(now[k]) is int and now[k] >= 0 for k in ("last_epoch", "_step_count")):
             return "another schedule"
-    return None
+        first = self.epoch * self.steps_per_epoch  # steps of the finished epochs, and at most
+        if not first <= last <= first + self.steps_per_epoch:  # the interrupted one's
+            return (f"{last} steps, where epoch {self.epoch} of {self.steps_per_epoch} steps "
+                    f"each is {first} to {first + self.steps_per_epoch}")
+        return None
+
+    def _rate_problem(self) -> str | None:
+        """The optimiser (restored after the schedule) off the schedule: a learning rate
+        other than the schedule's at its step, or a step count other than its."""
+        last = self.sched.last_epoch
+        gamma, size = self.schedule["gamma"], self.schedule["step_size"]
+        for group, base in zip(self.opt.param_groups, self.schedule["base_lrs"]):
+            rate = base * gamma ** (last // size)
+            if not (type(group["lr"]) is float and abs(group["lr"] - rate) <= 1e-6 * rate):
+                return (f"a learning rate of {group['lr']!r:.40}, where the schedule gives "
+                        f"{rate:.6g} at step {last}")
+            for param in group["params"]:
+                step = self.opt.state.get(param, {}).get("step")
+                if torch.is_tensor(step) and abs(float(step) - last) > 1:
+                    return f"{float(step):.0f} optimiser steps, where the schedule took {last}"
+        return None
 
 
 def _read(path: Path) -> dict:

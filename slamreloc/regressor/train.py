@@ -111,8 +111,8 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
     start, losses = 0, []
     average = WeightAverage(model, config.epochs, config.average_tail)
     if state is not None:
-        start, losses = restore_checkpoint(checkpoint, state, config.epochs, model, opt, sched,
-                                           gen, average)
+        start, losses = restore_checkpoint(checkpoint, state, config.epochs, steps_per_epoch,
+                                           model, opt, sched, gen, average)
         if model.config.head == "clusters":
             cluster = model.assign_clusters(y_n)
         if progress:
@@ -190,6 +190,10 @@ class WeightAverage:
             for name, p in model.named_parameters():
                 p.copy_(self.sums[name] / self.count)
         return self.count
+
+    def count_after(self, epochs_done: int) -> int:
+        """How many snapshots the average holds once `epochs_done` epochs are finished."""
+        return max(0, epochs_done - self.first_epoch)
 
     def state_dict(self) -> dict:
         return {"count": self.count, "sums": self.sums}
