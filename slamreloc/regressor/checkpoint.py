@@ -122,7 +122,7 @@ def restore_checkpoint(path: Path, state: dict, epochs: int, steps_per_epoch: in
                 target.load_state_dict(state[key])
             problem = run.problem(key)
         except Exception as err:  # noqa: BLE001 - torch's loaders raise many kinds
-            problem = f"not a {key} state ({type(err).__name__})"
+            problem = f"not a state this run's {key} takes ({type(err).__name__})"
         if problem:
             raise InputError(f"{path}: unreadable training checkpoint ('{key}': "
                              f"{problem})") from None
