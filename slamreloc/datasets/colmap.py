@@ -140,13 +140,7 @@ def _image_path(images_dir: Path, name: str, source: Path) -> Path:
     rel = PurePosixPath(name)
     if rel.is_absolute() or ".." in rel.parts or not rel.parts:
         raise InputError(f"{source}: image name {name!r} points outside {images_dir}")
-    path = images_dir.joinpath(*rel.parts)
-    try:  # what is there, said so: not found, a named pipe, a device, a name too long
-        with open_regular(path, "image"):
-            pass
-    except InputError as err:
-        raise InputError(f"{err} (listed in {source})") from None
-    return path
+    return images_dir.joinpath(*rel.parts)
 
 
 def image_world_from_cam(image, source: str) -> Rigid3 | None:
@@ -258,7 +252,10 @@ def load_colmap(root: Path) -> Dataset:
                                                       str(folder / f"cameras.{ext}"))
         camera = cameras[image.camera_id]
         path = _image_path(images_dir, image.name, images_file)
-        check_frame_files(path, (camera.width, camera.height))
+        try:  # what is there said so (not found, a named pipe, a name too long), or its size
+            check_frame_files(path, (camera.width, camera.height))
+        except InputError as err:
+            raise InputError(f"{err} (listed in {images_file})") from None
         seq = _sequence_of(image.name, root)
         frames = sequences.setdefault(seq, [])
         frames.append(Frame(

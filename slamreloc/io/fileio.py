@@ -191,6 +191,19 @@ def is_link_loop(path: Path) -> bool:
     return False
 
 
+def file_identity(path: str | Path, follow: bool = True) -> tuple[int, ...] | None:
+    """Which file `path` names now: (device, inode), and for a regular file its size and
+    modification time too (a file rewritten in place keeps its inode); None where nothing
+    is there. Two equal identities: the same file, unchanged between the two looks."""
+    try:
+        st = os.stat(path, follow_symlinks=follow)
+    except OSError:
+        return None
+    if stat.S_ISREG(st.st_mode):
+        return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
+    return st.st_dev, st.st_ino
+
+
 def stat_or_none(path: Path) -> os.stat_result | None:
     """`os.stat` of `path` (symbolic links followed, the kernel's own links under /proc
     included: `/dev/stdout` is the pipe or terminal it stands for); None where nothing is,

@@ -18,8 +18,8 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import (file_kind, is_link_loop, relation_on_disk, resolved,
-                                 stat_or_none)
+from slamreloc.io.fileio import (file_identity, file_kind, is_link_loop, relation_on_disk,
+                                 resolved, stat_or_none)
 
 
 def _own_test(value) -> tuple:
@@ -354,23 +354,11 @@ def check_outputs(outputs: dict[str, str | Path | None],
 _CHECKED: dict[Path, tuple[tuple[int, ...] | None, tuple[int, ...] | None]] = {}
 
 
-def _identity(path: Path, follow: bool) -> tuple[int, ...] | None:
-    """(device, inode), and for a regular file its size and modification time too (a file
-    rewritten in place keeps its inode); None where nothing is there."""
-    try:
-        st = os.stat(path, follow_symlinks=follow)
-    except OSError:
-        return None
-    if stat.S_ISREG(st.st_mode):
-        return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
-    return st.st_dev, st.st_ino
-
-
 def record_checked(out: str | Path) -> None:
     """Remember what the output `out` and its folder are now (at `check_outputs`), for
     `still_as_checked`."""
     key = Path(os.path.abspath(out))
-    _CHECKED[key] = (_identity(key, False), _identity(key.parent, True))
+    _CHECKED[key] = (file_identity(key, False), file_identity(key.parent))
 
 
 def record_written(out: str | Path) -> None:
@@ -391,10 +379,10 @@ def still_as_checked(out: str | Path) -> None:
     if key not in _CHECKED:
         return
     was, folder = _CHECKED[key]
-    if folder is not None and _identity(key.parent, True) != folder:  # (None: made since)
+    if folder is not None and file_identity(key.parent) != folder:  # (None: made since)
         raise InputError(f"{out}: its folder {key.parent} was replaced while the command ran; "
                          "not written (what is there is kept)")
-    now = _identity(key, False)
+    now = file_identity(key, False)
     if now is not None and now != was:
         raise InputError(f"{out}: {what_is_there(key)} was put there while the command ran; "
                          "not written (what is there is kept)")

@@ -25,7 +25,7 @@ from slamreloc.io.fileio import resolved, sha256_of
 from slamreloc.io.outputs import (Undo, atomic_file, commit_output, exchange_paths,
                                   make_temp_dir, marked_file, naming_output, outputs_together,
                                   record_written, still_as_checked, temp_dir_path,
-                                  temp_in_the_way)
+                                  temp_in_the_way, what_is_there)
 from slamreloc.geometry import Rigid3, matrix_to_quat, write_tum_trajectory
 from slamreloc.io.images import pixel_colours, read_image
 from slamreloc.io.jsonio import read_json
@@ -227,8 +227,8 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
         with naming_output(out):
             still_as_checked(out)  # a link, a file, another folder put there: not written
             if os.path.islink(out):
-                raise InputError(f"{out}: is a symbolic link (to {os.readlink(out)[:200]}); "
-                                 "not written (what is there is kept)")
+                raise InputError(f"{out}: is {what_is_there(out)}; not written (what is there "
+                                 "is kept)")
             undo = put_in()
         record_written(out)
         return undo

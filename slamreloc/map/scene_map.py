@@ -11,7 +11,6 @@ its metadata's schema meta.py's; writing it is write.py's.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -21,7 +20,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
-from slamreloc.io.fileio import open_regular
+from slamreloc.io.fileio import file_identity, open_regular
 from slamreloc.map.format import (
     DATABASE,
     DB_KEYS,
@@ -75,13 +74,9 @@ _LOAD_ATTEMPTS = 5  # a load that met a map swapped in meanwhile reads the new o
 
 
 def _meta_identity(root: Path) -> tuple[int, ...] | None:
-    """Which metadata file `root` holds now (device, inode, modification time, size): every
-    save writes a new one, so a change means a map was saved over the folder."""
-    try:
-        st = os.stat(root / META)
-    except OSError:
-        return None
-    return st.st_dev, st.st_ino, st.st_mtime_ns, st.st_size
+    """Which metadata file `root` holds now (`file_identity`): every save writes a new one,
+    so a change means a map was saved over the folder."""
+    return file_identity(root / META)
 
 
 def _open_listed(root: Path, info: MapMeta) -> dict[str, BinaryIO]:

@@ -19,7 +19,7 @@ import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.io.outputs import (commit_output, exchange_paths, naming_output, record_written,
-                                  still_as_checked, temp_dir_path)
+                                  still_as_checked, temp_dir_path, what_is_there)
 from slamreloc.map.format import (DATABASE, FORMAT_VERSION, MAP_FILES, META, WEIGHTS, is_map,
                                   is_map_file, sha256_file)
 from slamreloc.io.folder_lock import fsync_dir
@@ -179,10 +179,8 @@ def _check_still_folder(out: Path) -> None:
     `still_as_checked`): the new map is then discarded, what is at `out` kept."""
     still_as_checked(out)
     if out.is_symlink() or os.path.lexists(out) and not out.is_dir():
-        what = (f"a symbolic link (to {os.readlink(out)[:200]})" if out.is_symlink()
-                else "no longer a folder")
-        raise InputError(f"{out}: became {what} while the map was written; not written (what "
-                         "is there is kept, the new map discarded)")
+        raise InputError(f"{out}: became {what_is_there(out)} while the map was written; not "
+                         "written (what is there is kept, the new map discarded)")
 
 
 def save_map(out: str | Path, meta: MapMeta, model: SceneCoordinateRegressor, db: MapDatabase,
