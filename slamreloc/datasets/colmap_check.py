@@ -361,12 +361,12 @@ def _records(path: Path, min_record_bytes: int, walk: Callable[[Iterator], objec
 
 _WORD = re.compile(rb"\S+")
 # A POINTS2D line: X Y POINT3D_ID triples. Triples whose numbers pass `slamreloc.io.numbers`'s
-# rule at a glance (at most 100 integer digits, 200 fraction digits and a 2-digit positive
-# exponent: finite and under its 400 characters; an id of at most 9 digits, or -1: in range)
+# rule at a glance (at most 100 integer digits, 200 fraction digits and a positive exponent
+# below 200: finite and under its 400 characters; an id of at most 9 digits, or -1: in range)
 # are matched by one compiled pattern (possessive: no backtracking state kept per triple), so
 # a line of any length is never split into words; any other line is read a word at a time.
 _COORD = (rb"[+-]?(?:[0-9]{1,100}(?:\.[0-9]{0,200})?|\.[0-9]{1,200})"
-          rb"(?:[eE](?:[+-]?[0-9]{1,2}|-[0-9]{1,80}))?")
+          rb"(?:[eE](?:[+-]?1?[0-9]{1,2}|-[0-9]{1,80}))?")
 _POINT3D_ID = rb"(?:-0{0,50}1|-0{1,50}|\+?0{0,50}[0-9]{1,9})"
 _PLAIN_POINTS = re.compile(rb"(?:\s*%s\s+%s\s+%s(?!\S))*+\s*" % (_COORD, _COORD, _POINT3D_ID))
 

@@ -27,6 +27,8 @@ from slamreloc.io.outputs import (
     LOCK_HOLDERS,
     lock_file_refusal,
     lock_record,
+    make_parents,
+    remove_made,
     write_lock_path,
     writer_pid,
 )
@@ -117,9 +119,21 @@ def folder_write_lock(out: str | Path, what: str, debris: Debris,
 
 @contextmanager
 def _flocked(out: Path, what: str) -> Iterator[None]:
+    """Hold `out`'s lock file with `flock` (`_held_lock`), in `out`'s folder, made if missing
+    and removed again (with any folder made above it) where the writer wrote nothing."""
+    made = make_parents(out)
+    try:
+        with _held_lock(out, what):
+            yield
+    finally:
+        if not os.path.lexists(out):  # nothing written: no empty folders left behind
+            remove_made(made)
+
+
+@contextmanager
+def _held_lock(out: Path, what: str) -> Iterator[None]:
     """Hold `out`'s lock file with `flock` (no other process holds it: InputError naming the
     one that does), its record written; removed when done."""
-    out.parent.mkdir(parents=True, exist_ok=True)
     lock = write_lock_path(out)
     while True:
         fd = _open_lock(lock, out)

@@ -539,6 +539,36 @@ def naming_output(path: str | Path) -> Iterator[None]:
         raise
 
 
+def make_parents(path: str | Path) -> list[Path]:
+    """Make the missing folders above `path` (as `mkdir -p` would) and return those this
+    call made, outermost first: only they may be removed again (`remove_made`)."""
+    missing = []
+    parent = Path(path).parent
+    while not os.path.lexists(parent) and parent != parent.parent:
+        missing.append(parent)
+        parent = parent.parent
+    made = []
+    for folder in reversed(missing):
+        try:
+            os.mkdir(folder)
+            made.append(folder)
+        except FileExistsError:  # made meanwhile by someone else: theirs
+            pass
+    Path(path).parent.mkdir(parents=True, exist_ok=True)  # its usual errors, path named
+    return made
+
+
+def remove_made(folders: list[Path]) -> None:
+    """Remove the folders `make_parents` made, innermost first, where they are still empty
+    (a command that wrote nothing leaves no empty folders behind; anything put in one keeps
+    it and those above it)."""
+    for folder in reversed(folders):
+        try:
+            os.rmdir(folder)
+        except OSError:  # not empty, or gone: keep the rest
+            return
+
+
 def make_temp_dir(tmp: Path, what: str) -> Path:
     """Make the writer's temporary folder `tmp` (named with this process id) beside its
     output `what`: a new folder, never an existing path (`temp_in_the_way`), which a writer
@@ -558,9 +588,10 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
     failure. The temporary, and the second name the replaced file is kept under inside a
     block, are held with an exclusive `flock` while this writer lives: what a killed writer
     left (no process holds it, whatever its process id or PID namespace) is removed by the
-    next writer (`remove_dead_leftovers`), a live writer's never."""
+    next writer (`remove_dead_leftovers`), a live writer's never. Folders made above `path`
+    are removed again where nothing was written (`remove_made`)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    made = make_parents(path)
     remove_dead_leftovers(path)
     tmp = temp_file_path(path)
     held = [(tmp, _create_held(tmp, str(path)))]  # this writer's files, each with its lock
@@ -589,6 +620,8 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
         finally:
             for _, fd in held:
                 os.close(fd)  # releases its lock
+            if not os.path.lexists(path):  # nothing written: no empty folders left behind
+                remove_made(made)
 
     try:
         with naming_output(path):

@@ -46,7 +46,7 @@ from slamreloc.io.address import bind_problem, check_host, is_loopback, listen_a
 from slamreloc.io.fileio import relation, resolved
 from slamreloc.io.pem import certificates_der, read_pem
 from slamreloc.map.format import META
-from slamreloc.map.lock import map_write_lock
+from slamreloc.map.lock import clean_maps_folder, map_write_lock
 from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
@@ -262,6 +262,9 @@ class RelocalizerService:
         if config.learned_maps is not None:
             st = os.stat(config.learned_maps)
             self._learned = (Path(config.learned_maps).resolve(), (st.st_dev, st.st_ino))
+            for name in clean_maps_folder(self._learned[0]):  # a save a killed server left
+                _log(f"learned map {quoted(name)}: removed what a save cut short (a server "
+                     "killed while writing it) had left beside it")
 
     @staticmethod
     def pool_size(config: ServeConfig) -> int:
