@@ -106,7 +106,48 @@ def _fold_problem(model: str, distortion: tuple[float, ...], width: int, height:
             return (f"its distortion {list(distortion)} folds back inside the image (towards "
                     f"pixel ({edge[0]:g}, {edge[1]:g}) the distorted radius stops growing "
                     "before the image's edge), so its pixels cannot be undistorted")
-    return None
+    return _fold_in_circle(model, distortion, min(cx, width - 1 - cx, cy, height - 1 - cy),
+                           fx, fy, cx, cy)
+
+
+def _fold_in_circle(model: str, distortion: tuple[float, ...], radius_px: float,
+                    fx: float, fy: float, cx: float, cy: float) -> str | None:
+    """The fold test in every direction, not only along the axes (tangential terms fold the
+    mapping sideways): along 360 rays of ideal directions, out to where the distorted point
+    first leaves the circle of `radius_px` pixels around the principal point, the mapping
+    must keep its orientation (the Jacobian's determinant, by differences in radius and
+    angle, stays positive) and every ray must reach that circle. Then each pixel inside the
+    circle has exactly one direction."""
+    if radius_px <= 0:
+        return None
+    angles = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    radii = np.geomspace(1e-3, 1e3, 1200)  # steps of 1.2 %
+    step = 1e-5  # radians: the angular difference
+    with np.errstate(all="ignore"):
+        rays = [distort_normalized(model, distortion,
+                                   (radii[:, None, None] * np.stack(
+                                       [np.cos(angles + a), np.sin(angles + a)], 1)
+                                    ).reshape(-1, 2)).reshape(len(radii), len(angles), 2)
+                for a in (0.0, step)]
+        pixels = rays[0] * [fx, fy]
+        left = ~(np.hypot(pixels[..., 0], pixels[..., 1]) < radius_px)  # or not a number
+        outward = np.diff(rays[0], axis=0)
+        sideways = (rays[1] - rays[0])[:-1]
+        det = outward[..., 0] * sideways[..., 1] - outward[..., 1] * sideways[..., 0]
+    reached = left.any(axis=0)
+    first = np.where(reached, left.argmax(axis=0), len(radii))  # the first step outside
+    bad = (np.arange(len(radii) - 1)[:, None] < first[None, :]) & ~(det > 0)
+    if reached.all() and not bad.any():
+        return None
+    if bad.any():  # where the orientation flips
+        step_at, ray = np.unravel_index(np.argmax(bad), bad.shape)
+    else:  # a ray that never reaches the circle: where it ends
+        ray = int(np.argmin(reached))
+        step_at = len(radii) - 1
+    where = rays[0][step_at, ray] * [fx, fy] + [cx, cy]
+    return (f"its distortion {list(distortion)} folds back inside the image (near pixel "
+            f"({where[0]:.0f}, {where[1]:.0f}) two directions meet on one pixel, or none "
+            "reaches it), so its pixels cannot be undistorted")
 
 
 def colmap_values(model: str, params, source: str) -> tuple[str, float, float, float, float,
@@ -132,6 +173,9 @@ def split_camera_string(text: str, source: str) -> tuple[str, int, int, list[flo
     """(model, width, height, parameters) of `"OPENCV 640 480 fx fy cx cy k1 k2 p1 p2"`, a
     line of COLMAP's cameras.txt with or without its camera id."""
     # the words as COLMAP's reader splits them: ASCII blanks (a no-break space is no separator)
+    if "\n" in text.strip(" \t\r\n"):
+        raise InputError(f"{source}: more than one line; a camera is one line 'MODEL WIDTH "
+                         "HEIGHT PARAMS...'")
     words = [w for w in re.split(r"[ \t]+", text.strip(" \t\r\n")) if w]
     if words and words[0].isdigit() and len(words) > 1 and words[1] in PARAMS:
         words = words[1:]  # a cameras.txt line: CAMERA_ID MODEL WIDTH HEIGHT PARAMS
@@ -147,7 +191,7 @@ def split_camera_string(text: str, source: str) -> tuple[str, int, int, list[flo
         if problem is not None:  # the rule's own reason: `1e999` is beyond a number's range
             raise InputError(f"{source}: parameter {word[:40]!r} is {problem} "
                              f"({DECIMAL_WORDS}), in {text[:60]!r}")
-    return words[0].upper(), int(words[1]), int(words[2]), [float(w) for w in words[3:]]
+    return words[0], int(words[1]), int(words[2]), [float(w) for w in words[3:]]
 
 
 def colmap_head(model: str, fx: float, fy: float, cx: float, cy: float) -> list[float]:
@@ -190,14 +234,16 @@ def distort_normalized(model: str, distortion, xy: np.ndarray) -> np.ndarray:
 def undistort_normalized(model: str, distortion, xy_d: np.ndarray,
                          iterations: int = 40) -> np.ndarray:
     """Inverse of `distort_normalized` by Gauss-Newton with a numeric Jacobian (as COLMAP
-    does); converges to ~1e-12 for any lens whose distortion is monotonic over the image."""
+    does), each step halved until it brings the point closer (so it never jumps across a
+    pole of a rational lens to another root far away); converges to ~1e-12 for any lens
+    whose distortion is monotonic over the image."""
     xy_d = np.asarray(xy_d, np.float64)
     if model == "PINHOLE" or not len(xy_d):
         return xy_d.copy()
     xy = xy_d.copy()
     eps = 1e-7
+    f = distort_normalized(model, distortion, xy) - xy_d
     for _ in range(iterations):
-        f = distort_normalized(model, distortion, xy) - xy_d
         fx = (distort_normalized(model, distortion, xy + [eps, 0]) - xy_d - f) / eps
         fy = (distort_normalized(model, distortion, xy + [0, eps]) - xy_d - f) / eps
         a, b, c, d = fx[:, 0], fy[:, 0], fx[:, 1], fy[:, 1]
@@ -205,10 +251,31 @@ def undistort_normalized(model: str, distortion, xy_d: np.ndarray,
         det = np.where(np.abs(det) < 1e-12, 1e-12, det)
         step = np.stack([(d * f[:, 0] - b * f[:, 1]) / det,
                          (-c * f[:, 0] + a * f[:, 1]) / det], axis=1)
-        xy -= step
+        xy, f, step = _closer(model, distortion, xy_d, xy, f, step)
         if np.max(np.abs(step), initial=0) < 1e-12:
             break
     return xy
+
+
+def _closer(model: str, distortion, xy_d: np.ndarray, xy: np.ndarray, f: np.ndarray,
+            step: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(new points, their residuals, the steps taken) for Gauss-Newton steps `step` from `xy`
+    (residuals `f`): a step that does not bring a point's distortion closer to `xy_d` is
+    halved, up to 30 times (then the point stays)."""
+    before = np.hypot(f[:, 0], f[:, 1])
+    todo = np.arange(len(xy))
+    new_xy, new_f, taken = xy.copy(), f.copy(), np.zeros_like(step)
+    for _ in range(30):
+        trial = xy[todo] - step[todo]
+        with np.errstate(all="ignore"):
+            res = distort_normalized(model, distortion, trial) - xy_d[todo]
+        ok = np.hypot(res[:, 0], res[:, 1]) <= before[todo]  # NaN: not closer
+        new_xy[todo[ok]], new_f[todo[ok]], taken[todo[ok]] = trial[ok], res[ok], step[todo[ok]]
+        todo = todo[~ok]
+        if not len(todo):
+            break
+        step[todo] *= 0.5
+    return new_xy, new_f, taken
 
 
 def map_pixels(uv: np.ndarray, fx: float, fy: float, cx: float, cy: float, model: str,

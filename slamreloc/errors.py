@@ -19,6 +19,10 @@ class OutOfMemory(InputError):
     answers it TOO_LARGE, as an input over a bound)."""
 
 
+class Diverged(SlamrelocError):
+    """Training whose loss stopped being a finite number; nothing of it is kept."""
+
+
 class Interrupted(SlamrelocError):
     """Ctrl-C during long work; the message says what was saved and how to continue."""
 

@@ -46,6 +46,7 @@ from slamreloc.io.outputs import (check_outputs, is_file_debris_name, make_temp_
                                   write_json)
 from slamreloc.io.fileio import is_link_loop
 from slamreloc.io.folder_lock import Debris, folder_write_lock
+from slamreloc.io.images import write_image
 from slamreloc.io.video import is_video, video_frames
 from slamreloc.runtime.progress import console, make_progress, shown
 from slamreloc.types import Camera, frame_name_problem
@@ -432,6 +433,11 @@ def _looks_like_dataset(root: Path) -> bool:
     return is_tum(root) or is_colmap(root) or is_sevenscenes(root)
 
 
+def video_frame_name(video: Path, index: int) -> str:
+    """The frame name a video's `index`-th sampled frame gets (`STEM/frame-000012.jpg`)."""
+    return f"{video.stem}/frame-{index:06d}.jpg"
+
+
 def _collect_video(path: Path, images_dir: Path, config: SfmConfig,
                    progress: bool) -> SfmInput:
     import cv2
@@ -452,10 +458,8 @@ def _collect_video(path: Path, images_dir: Path, config: SfmConfig,
 
         # a frame keeps its index among the sampled ones: the names show what selection dropped
         for index, rgb in sampled() if selector is None else selector.select(sampled()):
-            name = f"{path.stem}/frame-{index:06d}.jpg"
-            if not cv2.imwrite(str(images_dir / name), rgb[:, :, ::-1],
-                               [cv2.IMWRITE_JPEG_QUALITY, 95]):
-                raise InputError(f"{images_dir / name}: could not write a video frame")
+            name = video_frame_name(path, index)
+            write_image(images_dir / name, rgb[:, :, ::-1], (cv2.IMWRITE_JPEG_QUALITY, 95))
             names.append(name)
             sizes.setdefault((rgb.shape[1], rgb.shape[0]), name)
     return SfmInput("video", names, notes={"video": str(path), "fps": config.video_fps,
@@ -613,6 +617,9 @@ def run_sfm(source: Path, out: Path, config: SfmConfig = SfmConfig(),
         raise InputError(f"{source}: `min_parallax` is for `select` parallax, which `select` "
                          "auto uses for a video only (give `select` parallax, or leave "
                          "`min_parallax` out)")
+    if video and (problem := frame_name_problem(video_frame_name(source, 0))):
+        raise InputError(f"{source}: its frames are named after the video, and "
+                         f"{video_frame_name(source, 0)!r} {problem}: rename the video")
     if video or source.is_dir() and not _looks_like_dataset(source):
         # a video or a folder of images: no depth, no camera, no splits
         if config.scale_from_depth:
@@ -625,18 +632,10 @@ def run_sfm(source: Path, out: Path, config: SfmConfig = SfmConfig(),
         if config.split != SfmConfig.split:
             raise InputError(f"{source}: `split` chooses a dataset's frames; a video or a "
                              "folder of images has none (leave it out)")
-    made = [p for p in out.absolute().parents if not p.exists()]  # folders this run makes
-    try:
-        # a second writer fails at once, not late; a full disk names the output
-        with folder_write_lock(out, "this dataset", SFM_DEBRIS), naming_output(out):
-            return _run_into(source, out, config, progress)
-    except BaseException:
-        for folder in made:  # nearest first: a failed run leaves no folder it made
-            try:
-                folder.rmdir()
-            except OSError:  # not empty (another's), or gone
-                break
-        raise
+    # a second writer fails at once, not late; a full disk names the output; a failed run
+    # leaves no folder it made
+    with folder_write_lock(out, "this dataset", SFM_DEBRIS), naming_output(out):
+        return _run_into(source, out, config, progress)
 
 
 def _only_sfm_outputs(folder: Path) -> bool:

@@ -85,9 +85,10 @@ def test_a_special_file_as_odometry_or_weights_is_named(small_map, scene_dir, ki
     one_line_exit_2(["slam", str(kidnap_scene), "--map", str(small_map.root), "--odometry",
                      str(fifo), "--report", str(tmp_path / "r.json")], "a named pipe")
     (tmp_path / "folder").mkdir()
+    # a folder is read as `--poses` reads one: a COLMAP model's
     one_line_exit_2(["slam", str(kidnap_scene), "--map", str(small_map.root), "--odometry",
                      str(tmp_path / "folder"), "--report", str(tmp_path / "r.json")],
-                    "a folder")
+                    "folder: no COLMAP model")
     one_line_exit_2(["map", str(scene_dir), "--out", str(tmp_path / "m"), "--features",
                      "superpoint", "--superpoint-weights", str(fifo)], "a named pipe")
 

@@ -18,7 +18,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from slamreloc.datasets import load_dataset
-from slamreloc.datasets.poses import read_poses
+from slamreloc.datasets.poses import FrameKey, read_poses
 from slamreloc.datasets.rosbag import bag_trajectory, load_rosbag
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix, tum_line, write_tum_trajectory
@@ -411,8 +411,9 @@ def read_tum_file(reader: str, path: Path) -> tuple[list[float], list[Rigid3]]:
     if reader == "trajectory":
         stamps, poses = read_tum(path)
         return list(stamps), poses
-    if reader == "odometry":
-        odo = TrajectoryOdometry.from_file(path)
+    if reader == "odometry":  # matched to frames of those stamps, as `slam` does
+        odo = TrajectoryOdometry.from_file(path, [FrameKey(f"f{i}", None, float(t))
+                                                  for i, t in enumerate(read_tum(path)[0])])
         return list(odo.stamps), odo.poses
     if reader == "reference":
         ref = read_poses(path)

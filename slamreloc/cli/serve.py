@@ -55,12 +55,13 @@ def serve(
     host: Annotated[str, typer.Option(
         help="address to bind; a non-loopback one needs a token")] = "127.0.0.1",
     port: Annotated[int, typer.Option(help="port (0: any free one, printed)")] = 50051,
-    workers: Annotated[int, typer.Option(
-        help="localizations at once (the cores are split between them)")] = 1,
-    max_sessions: Annotated[int, typer.Option(help="SLAM sessions open at once")] = 8,
-    max_learning_sessions: Annotated[int, typer.Option(
-        help="of those, sessions that learn their map (no map; about 2 GB each when full)")]
-    = 2,
+    workers: Annotated[Optional[int], typer.Option(
+        help="localizations at once (the cores are split between them) [default: 1]")] = None,
+    max_sessions: Annotated[Optional[int], typer.Option(
+        help="SLAM sessions open at once [default: 8]")] = None,
+    max_learning_sessions: Annotated[Optional[int], typer.Option(
+        help="of those, sessions that learn their map (no map; about 2 GB each when full) "
+             "[default: 2]")] = None,
     token_file: Annotated[Optional[Path], typer.Option(
         help=f"file holding the token every call must carry (or ${TOKEN_ENV})")] = None,
     tls_cert: Annotated[Optional[Path], typer.Option(help="TLS certificate (PEM)")] = None,
@@ -72,7 +73,8 @@ def serve(
     engine: Annotated[Engine, typer.Option(
         help="grpc: this process; ray: deployments on Ray Serve (one per map, --replicas)")]
     = Engine.grpc,
-    replicas: Annotated[int, typer.Option(help="--engine ray: replicas per map")] = 1,
+    replicas: Annotated[Optional[int], typer.Option(
+        help="--engine ray: replicas per map [default: 1]")] = None,
     learned_maps: Annotated[Optional[Path], typer.Option(
         help="folder where learning sessions save their maps (SessionSave NAME: DIR/NAME, "
              "then served as NAME); without it a save is refused")] = None,
@@ -88,7 +90,7 @@ def serve(
     from slamreloc.service.server import WATCH_RULE, check_seconds
 
     check_seconds(watch, "watch", **WATCH_RULE)
-    if not 1 <= replicas <= MAX_REPLICAS:  # whatever the engine: a value is right or wrong
+    if replicas is not None and not 1 <= replicas <= MAX_REPLICAS:
         raise InputError(f"`replicas` {replicas}: 1 to {MAX_REPLICAS}")
     maps = list(maps or [])
     if not maps and learned_maps is None:
@@ -111,16 +113,29 @@ def serve(
         if learned_maps is not None:
             raise InputError("--engine ray: learning sessions (--learned-maps) are served by "
                              "--engine grpc only")
+        grpc_only = [f"--{o}" for o, v in (("workers", workers), ("max-sessions", max_sessions),
+                     ("max-learning-sessions", max_learning_sessions)) if v is not None]
+        if grpc_only:
+            raise InputError(f"--engine ray: {', '.join(grpc_only)} applies to --engine grpc "
+                             "only (Ray Serve scales a map by --replicas and serves no "
+                             "sessions)")
         if token is None:
             raise InputError("--engine ray: Ray Serve's gRPC proxy listens on every interface, "
                              f"whatever --host says; give a token (--token-file or ${TOKEN_ENV})")
-        ray_serve_forever(named, replicas=replicas, host=host, port=port, token=token)
+        ray_serve_forever(named, replicas=replicas or 1, host=host, port=port, token=token,
+                          watch_s=watch, max_request_bytes=int(max_request_mb * (1 << 20)))
         return
+    if replicas is not None:
+        raise InputError("--replicas applies to --engine ray only (--engine grpc serves each "
+                         "map from this process; --workers sets its localizations at once)")
     from slamreloc.service.server import ServeConfig, serve_forever
 
     serve_forever(named, ServeConfig(
-        host=host, port=port, workers=workers, max_sessions=max_sessions,
-        max_learning_sessions=max_learning_sessions, token=token,
+        host=host, port=port, workers=ServeConfig.workers if workers is None else workers,
+        max_sessions=ServeConfig.max_sessions if max_sessions is None else max_sessions,
+        max_learning_sessions=(ServeConfig.max_learning_sessions
+                               if max_learning_sessions is None else max_learning_sessions),
+        token=token,
         tls_cert=tls_cert, tls_key=tls_key, max_request_bytes=int(max_request_mb * (1 << 20)),
         watch_s=watch, learned_maps=learned_maps,
         max_learned_maps=(ServeConfig.max_learned_maps if max_learned_maps is None

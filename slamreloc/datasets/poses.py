@@ -21,7 +21,8 @@ A frame of a dataset takes the pose of (`match_poses`; the first rule that finds
 2. the same with image suffixes stripped on both sides (`.color.png`, `.png`, `.jpg`, ...);
 3. for poses without a name (TUM without the sidecar): its timestamp, within 20 ms
    (`geometry.nearest_stamps`); one pose may not stand for frames of two sequences.
-Frames the file has no pose for become unposed.
+A file that names one frame in several of these ways must give it one pose (InputError
+naming both names otherwise). Frames the file has no pose for become unposed.
 """
 
 from __future__ import annotations
@@ -39,10 +40,12 @@ from slamreloc.geometry import (
     Rigid3,
     names_sidecar,
     nearest_stamps,
+    pose_gap,
     read_named_trajectory,
     read_names_sidecar,
     read_tum_trajectory,
     refuse_json_text,
+    same_pose,
 )
 from slamreloc.io.fileio import open_regular, read_text
 from slamreloc.io.outputs import reads_as
@@ -98,6 +101,10 @@ class FrameKey:
             image = None
         return FrameKey(frame.name, image, frame.timestamp, frame.sequence)
 
+    def ids(self) -> list[str]:
+        """The names a pose file may give the frame: its name, then its image's path."""
+        return [self.name] + ([self.image] if self.image and self.image != self.name else [])
+
 
 def read_own_trajectory(path: Path) -> None:
     """A TUM trajectory slamreloc wrote: every writer of one (`evaluate`, `slam`, `export
@@ -125,7 +132,8 @@ def check_names_sidecar_free(trajectory: Path, option: str) -> None:
                 or not entry.is_file()):  # a link to a trajectory elsewhere reads this sidecar
             continue
         try:
-            read_tum_trajectory(entry)
+            if not read_tum_trajectory(entry):  # no stamps to misread (`> X.out` made it)
+                continue
         except InputError:
             continue
         raise InputError(f"{trajectory}: {option} would write its frame names to {sidecar}, "
@@ -226,23 +234,41 @@ def read_poses(path: str | Path) -> ReferencePoses:
 
 def match_poses(reference: ReferencePoses, keys: list[FrameKey]) -> list[Rigid3 | None]:
     """The reference's world_from_cam for each frame (None where it has none), by the rules
-    of the module docstring."""
+    of the module docstring. InputError where the file gives one frame different poses under
+    several of its names (`seq-01/frame-000000` and `seq-01/frame-000000.color.png`): as for
+    a name given twice, which one is the camera's is not for the reader to guess."""
     exact = reference.world_from_cam
-    stripped: dict[str, str | None] = {}  # stripped name -> the name (None: two names strip
-    for name in exact:                      # to it, which tells no frame apart)
-        key = strip_image_suffix(name)
-        stripped[key] = None if key in stripped else name
+    by_stripped: dict[str, list[str]] = {}  # stripped name -> the file's names stripping to it
+    for name in exact:
+        by_stripped.setdefault(strip_image_suffix(name), []).append(name)
+    claimed: dict[str, int] = {}  # a name of the file -> the frame it names exactly
+    for i, key in enumerate(keys):
+        for name in key.ids():
+            if name in exact:
+                claimed.setdefault(name, i)
     out: list[Rigid3 | None] = []
-    for key in keys:
-        ids = [key.name] + ([key.image] if key.image else [])
-        hit = next((i for i in ids if i in exact), None)
-        if hit is None:
-            hit = next((stripped[s] for s in map(strip_image_suffix, ids)
-                        if stripped.get(s) is not None), None)
+    for i, key in enumerate(keys):
+        hits = [n for n in key.ids() if n in exact]
+        # the names that strip to the frame's, unless they name another frame exactly
+        near = list(dict.fromkeys(n for s in map(strip_image_suffix, key.ids())
+                                  for n in by_stripped.get(s, ()) if claimed.get(n, i) == i))
+        _one_pose(reference, key, list(dict.fromkeys(hits + near)))
+        hit = hits[0] if hits else near[0] if near else None
         out.append(None if hit is None else exact[hit])
     if len(reference.stamps):
         _match_stamps(reference, keys, out)
     return out
+
+
+def _one_pose(reference: ReferencePoses, key: FrameKey, names: list[str]) -> None:
+    """InputError unless the file's `names` that stand for the frame `key` give it one pose."""
+    first = names[0] if names else None
+    for name in names[1:]:
+        a, b = reference.world_from_cam[first], reference.world_from_cam[name]
+        if not same_pose(a, b):
+            raise InputError(f"{reference.source}: gives frame {key.name!r} two poses, as "
+                             f"{first!r} and as {name!r} ({pose_gap(a, b)}); give each frame "
+                             "one pose")
 
 
 def _match_stamps(reference: ReferencePoses, keys: list[FrameKey],

@@ -16,7 +16,8 @@ A bag is a ROS 1 `.bag` file, a ROS 2 bag folder (with `metadata.yaml`) or a ROS
   pair; each image's world_from_cam (metres) is interpolated at its stamp between the pose
   messages around it, within 0.1 s on both sides. A pose whose child frame is not the image's
   frame is composed with the `/tf_static` chain from that frame to the image's when there is
-  one.
+  one. A pose topic's messages all name one world frame (header.frame_id) and one child
+  frame, and `/tf_static` is a tree (each frame one parent, no loop); else the bag is refused.
 - Repeated stamps: two messages of one image, depth or pose topic with the same stamp are one
   message twice when they hold the same image bytes or the same pose (`geometry.same_pose`:
   within float noise), and are read once; otherwise the bag is refused, naming the topic and
@@ -48,7 +49,12 @@ from slamreloc.errors import InputError
 from slamreloc.io.fileio import open_regular
 from slamreloc.geometry import (MAX_COORDINATE, Rigid3, matrix_to_quat, nearest_stamps,
                                 pose_gap, same_pose, unit_quaternion)
-from slamreloc.io.images import check_encoded_image, check_image_size, clean_depth_m
+from slamreloc.io.images import (
+    check_encoded_image,
+    check_image_size,
+    clean_depth_m,
+    encode_image,
+)
 from slamreloc.runtime.progress import console
 from slamreloc.types import Camera, Frame, k_matrix_problem
 
@@ -403,13 +409,6 @@ def _raw_pixels(msg: Any, channels: int, dtype: type, source: str, what: str) ->
     return pixels.reshape(shape).astype(dtype)
 
 
-def _png(pixels: np.ndarray, source: str) -> bytes:
-    ok, data = cv2.imencode(".png", pixels)
-    if not ok:
-        raise InputError(f"{source}: cannot encode the image as PNG")
-    return data.tobytes()
-
-
 def colour_file(msg: Any, source: str) -> tuple[bytes, str, tuple[int, int]]:
     """(file bytes, suffix, (width, height)) of a colour Image or CompressedImage message (a
     bag's, or a live ROS node's: messages are read by their fields)."""
@@ -426,7 +425,7 @@ def colour_file(msg: Any, source: str) -> tuple[bytes, str, tuple[int, int]]:
     channels, to_bgr = COLOUR_ENCODINGS[msg.encoding]
     pixels = _raw_pixels(msg, channels, np.uint8, source, "image")
     bgr = pixels if to_bgr is None else cv2.cvtColor(pixels, to_bgr)
-    return _png(bgr, source), ".png", (int(msg.width), int(msg.height))
+    return encode_image(bgr, ".png", source), ".png", (int(msg.width), int(msg.height))
 
 
 def depth_millimetres(depth: np.ndarray) -> np.ndarray:
@@ -444,7 +443,7 @@ def _depth_file(msg: Any, source: str) -> tuple[bytes, str, tuple[int, int]]:
     dtype = DEPTH_ENCODINGS[msg.encoding]
     depth = _raw_pixels(msg, 1, dtype, source, "depth")
     mm = depth if dtype is np.uint16 else depth_millimetres(depth)
-    return _png(mm, source), ".png", (int(msg.width), int(msg.height))
+    return encode_image(mm, ".png", source), ".png", (int(msg.width), int(msg.height))
 
 
 FileMaker = Callable[[Any, str], tuple[bytes, str, tuple[int, int]]]
@@ -606,18 +605,38 @@ def _pose_messages(bag: _Bag, spec: str) -> Iterator[tuple[float, Any]]:
                 yield receive_time, transform
 
 
+def _one_frame(bag: _Bag, spec: str, field: str, frames: list[str | None]) -> str | None:
+    """The frame id that every message of pose `spec` names in `field` (`header.frame_id`:
+    the world frame, `child_frame_id`: the frame posed; None: PoseStamped names none). Two
+    frame ids on one topic are an InputError naming the bag, the topic and both: its poses
+    would be of two frames, or in two worlds, taken as one trajectory. An empty id on every
+    message is one frame id like any other."""
+    other = next((i for i, frame in enumerate(frames) if frame != frames[0]), None)
+    if other is not None:
+        raise InputError(f"{bag.path}: pose {spec}: messages 0 and {other} have different "
+                         f"{field} ({frames[0]!r} and {frames[other]!r}): the poses of one "
+                         "topic must be of one frame in one world frame")
+    return frames[0]
+
+
 def _read_pose_track(bag: _Bag, spec: str) -> PoseTrack:
     """The pose messages of `spec` (a pose topic or tf:PARENT:CHILD), sorted by stamp, each
-    stamp once: messages of one stamp must carry the same pose (`same_pose`), else InputError
-    naming the bag, the topic and the stamp."""
-    stamps, poses, child = [], [], None
+    stamp once: all must name one world and one child frame (`_one_frame`), and messages of
+    one stamp must carry the same pose (`same_pose`), else InputError naming the bag, the
+    topic and the frames or the stamp."""
+    stamps, poses = [], []
+    parents: list[str | None] = []  # header.frame_id of each message
+    children: list[str | None] = []  # child_frame_id of each message (None: PoseStamped)
     for i, (receive_time, msg) in enumerate(_pose_messages(bag, spec)):
         header, child_frame, translation, rotation = _pose_fields(msg)
         stamps.append(_stamp(header, receive_time))
         poses.append(_rigid(translation, rotation, f"{bag.path}: pose {spec}, message {i}"))
-        child = _frame_id(child_frame) if child_frame is not None else None
+        parents.append(_frame_id(header.frame_id))
+        children.append(_frame_id(child_frame) if child_frame is not None else None)
     if not poses:
         raise InputError(f"{bag.path}: pose {spec} has no messages")
+    _one_frame(bag, spec, "header.frame_id", parents)
+    child = _one_frame(bag, spec, "child_frame_id", children)
     kept: list[int] = []  # message indices, by stamp, the first of each stamp
     for i in np.argsort(stamps, kind="stable").tolist():
         first = kept[-1] if kept and stamps[kept[-1]] == stamps[i] else None
@@ -633,7 +652,8 @@ def _read_pose_track(bag: _Bag, spec: str) -> PoseTrack:
 def _static_transforms(bag: _Bag) -> dict[tuple[str, str], Rigid3]:
     """(parent, child) -> parent_from_child of every /tf_static transform. A pair published
     again with the same transform (latched topics repeat) is read once; with another one it
-    is an InputError naming the pair (`same_pose`): which one holds is not for us to guess."""
+    is an InputError naming the pair (`same_pose`): which one holds is not for us to guess.
+    The transforms must form a tf tree (`_check_tree`): one chain between two frames."""
     if bag.topics.get(TF_STATIC_TOPIC, ("",))[0] != TF_MESSAGE:
         return {}
     edges: dict[tuple[str, str], Rigid3] = {}
@@ -646,12 +666,48 @@ def _static_transforms(bag: _Bag) -> dict[tuple[str, str], Rigid3]:
                 raise InputError(f"{bag.path}: /tf_static gives {pair[0]} -> {pair[1]} twice "
                                  f"with different transforms ({pose_gap(edges[pair], edge)})")
             edges.setdefault(pair, edge)
+    _check_tree(bag, edges)
     return edges
+
+
+def _check_tree(bag: _Bag, edges: dict[tuple[str, str], Rigid3]) -> None:
+    """An InputError naming the bag where the (parent, child) pairs of /tf_static are no tree:
+    a frame given two parents (the frame and both) or a loop (its frames): either gives two
+    chains between some frames, which may disagree, and which one holds is not for us to
+    guess."""
+    parents: dict[str, str] = {}  # child -> parent
+    for parent, child in edges:
+        if parents.setdefault(child, parent) != parent:
+            raise InputError(f"{bag.path}: /tf_static gives frame {child} two parents "
+                             f"({parents[child]} and {parent}): a tf tree gives each frame "
+                             "one parent")
+    loop = _loop(parents)
+    if loop:
+        raise InputError(f"{bag.path}: /tf_static has a loop ({' -> '.join(loop)}): a tf tree "
+                         "has none")
+
+
+def _loop(parents: dict[str, str]) -> list[str] | None:
+    """The frames of a loop in a child -> parent map, parent first and back to it (["a", "b",
+    "a"]: a -> b -> a), None where every frame's ancestors end at a root."""
+    rooted: set[str] = set()  # frames whose ancestors end at a root
+    for start in parents:
+        path = {start: 0}  # start, its parent, its grandparent, ... -> place in the walk
+        frame = start
+        while frame in parents and frame not in rooted:
+            frame = parents[frame]
+            if frame in path:
+                up = list(path)[path[frame]:]  # the loop, child first
+                return up[::-1] + [up[-1]]
+            path[frame] = len(path)
+        rooted.update(path)
+    return None
 
 
 def static_chain(edges: dict[tuple[str, str], Rigid3], start: str, goal: str) -> Rigid3 | None:
     """start_from_goal through the static transforms (either direction), None without a
-    chain. Breadth first: the chain of fewest transforms."""
+    chain. Breadth first: the chain of fewest transforms (in a tree, `_check_tree`, the only
+    one)."""
     reached = {start: Rigid3.identity()}
     frontier = [start]
     while frontier and goal not in reached:

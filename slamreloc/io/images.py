@@ -171,17 +171,27 @@ def _jpeg_header(data: bytes, source, what: str) -> ImageHeader:
     raise InputError(f"{source}: not a readable {what} (no JPEG frame header found)")
 
 
+_PILLOW_BOUND = threading.Lock()  # held while Pillow's own size bound is lifted
+
+
 def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
     import warnings
 
     from PIL import Image
 
     try:
-        with warnings.catch_warnings():
+        # Pillow refuses a header over its own bound (2 x MAX_IMAGE_PIXELS) before its size
+        # can be read: lifted here, so that every format's size meets `check_image_size`'s
+        # one bound (`max_image_pixels`), which a user may raise
+        with _PILLOW_BOUND, warnings.catch_warnings():
             warnings.simplefilter("ignore")  # DecompressionBombWarning: we check sizes below
-            with Image.open(io.BytesIO(data)) as img:  # parses the header, decodes nothing
-                fmt, (width, height), mode = img.format, img.size, img.mode
-                pages = bool(getattr(img, "is_animated", False))  # a next page: one look
+            bound, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+            try:
+                with Image.open(io.BytesIO(data)) as img:  # parses the header, decodes nothing
+                    fmt, (width, height), mode = img.format, img.size, img.mode
+                    pages = bool(getattr(img, "is_animated", False))  # a next page: one look
+            finally:
+                Image.MAX_IMAGE_PIXELS = bound
     except Exception as err:  # noqa: BLE001 - Pillow's parsers raise many kinds on bad bytes
         kind = "unknown format" if "cannot identify" in str(err) else type(err).__name__
         raise InputError(f"{source}: not a readable {what} ({kind}; PNG, JPEG, BMP, TIFF, "
@@ -193,6 +203,8 @@ def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
         raise InputError(f"{source}: a {OTHER_FORMATS[fmt]} {what} of more than one page or "
                          "frame; give one image per file")
     channels, bits = PILLOW_MODES.get(mode, (4, 8))
+    if fmt == "PPM" and mode == "I":  # Pillow's mode for a PGM of 16-bit samples (maxval
+        bits = 16                     # over 255): PNM holds no wider ones
     return ImageHeader(width, height, channels, bits, OTHER_FORMATS[fmt])
 
 
@@ -329,6 +341,24 @@ def decode_rgb(data: bytes, source,
     if img.dtype != np.uint8:
         img = cv2.convertScaleAbs(img, alpha=255.0 / 65535.0)
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def encode_image(pixels: np.ndarray, suffix: str, source, params: tuple[int, ...] = ()
+                 ) -> bytes:
+    """The file bytes of `pixels` (OpenCV's order: BGR, or one channel; uint8 or uint16) in
+    the format of `suffix` (".png", ".jpg"); InputError naming `source` where OpenCV cannot
+    encode them."""
+    ok, data = cv2.imencode(suffix, pixels, list(params))
+    if not ok:
+        raise InputError(f"{source}: cannot encode the image as {suffix.lstrip('.').upper()}")
+    return data.tobytes()
+
+
+def write_image(path: str | Path, pixels: np.ndarray, params: tuple[int, ...] = ()) -> None:
+    """Write `pixels` (as `encode_image`) to `path`, in the format of its suffix, through
+    Python's file API: a path OpenCV's own writer cannot take (a name that is not UTF-8 text)
+    is written all the same."""
+    Path(path).write_bytes(encode_image(pixels, Path(path).suffix, path, params))
 
 
 def pixel_colours(image: np.ndarray, xy: np.ndarray) -> np.ndarray:

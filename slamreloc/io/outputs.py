@@ -428,7 +428,7 @@ def outputs_together() -> Iterator[None]:
         done = True
     finally:
         _together.pending = None
-        with _signals_held():
+        with signals_held():
             undos: list[Undo] = []
             try:  # folders (a map) last: a kill -9 between renames leaves the old map
                 for commit, _, _ in sorted(pending, key=lambda c: c[2]) if done else ():
@@ -457,7 +457,7 @@ def outputs_now() -> Iterator[None]:
 
 
 @contextmanager
-def _signals_held() -> Iterator[None]:
+def signals_held() -> Iterator[None]:
     """A Ctrl-C or SIGTERM arriving inside the block waits for its end, then is raised
     (KeyboardInterrupt) unless the block raised; off the main thread nothing is held."""
     import signal

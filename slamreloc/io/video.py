@@ -30,6 +30,11 @@ def video_frames(path: Path, fps: float) -> Iterator[tuple[float, np.ndarray]]:
 
     with open_regular(path, "video"):  # a pipe or a device would block the decoder
         pass
+    try:
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:  # OpenCV's binding cannot take such a path (it crashed)
+        raise InputError(f"{path}: its path is not UTF-8 text, which OpenCV's video reader "
+                         "cannot open; rename the video (or its folder)") from None
     cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
     if not cap.isOpened():
         cap.release()

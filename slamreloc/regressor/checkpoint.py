@@ -162,6 +162,8 @@ class _Run:
                     if name in ("step", "exp_avg_sq", "max_exp_avg_sq") and bool(
                             (value < 0).any()):
                         return f"a negative {name}"
+                if self._moments_apart(moments):
+                    return "a first moment larger than its second moment allows"
             return self._rate_problem()
         if key == "scheduler":
             return self._schedule_problem()
@@ -171,6 +173,21 @@ class _Run:
                 return (f"an average of {self.average.count} epochs, where {expected} of its "
                         f"tail are finished at epoch {self.epoch}")
         return None
+
+    def _moments_apart(self, moments: dict) -> bool:
+        """Whether Adam's moments of one parameter are no state its updates reach: from zero,
+        m = (1-b1) sum b1^k g_k and v = (1-b2) sum b2^k g_k^2, so by Cauchy-Schwarz
+        m^2 <= C v with C = (1-b1)^2 / ((1-b2) (1 - b1^2/b2)) (about 53 for the betas 0.9,
+        0.999), whatever the gradients were."""
+        m, v = moments.get("exp_avg"), moments.get("exp_avg_sq")
+        if not (torch.is_tensor(m) and torch.is_tensor(v) and m.shape == v.shape):
+            return False
+        b1, b2 = self.opt.param_groups[0]["betas"]
+        if not b1 * b1 < b2 < 1:
+            return False
+        bound = (1 - b1) ** 2 / ((1 - b2) * (1 - b1 * b1 / b2))
+        m, v = m.double(), v.double()
+        return bool((m * m > bound * (1 + 1e-3) * v + 1e-30).any())
 
     def _schedule_problem(self) -> str | None:
         now = self.sched.state_dict()

@@ -12,7 +12,8 @@ import torch
 from torch import nn
 
 from slamreloc.runtime.precision import autocast, bf16_support, resolve_precision
-from slamreloc.errors import Interrupted
+from slamreloc.errors import Diverged, Interrupted
+from slamreloc.io.outputs import signals_held
 from slamreloc.runtime.progress import console, track
 from slamreloc.regressor.checkpoint import (fingerprint, load_checkpoint, restore_checkpoint,
                                             save_checkpoint)
@@ -71,7 +72,8 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
     weights, normalisation and regions instead of initialising them from the data.
     on_epoch_end(epoch, loss_m): called after each epoch (0-based) with its mean training
     distance (metres), before any weight averaging is applied to the model. on_step(): called
-    after each optimiser step (a caller that must end training within a step raises there)."""
+    after each optimiser step (a caller that must end training within a step raises there).
+    Diverged where an epoch's loss is no longer a finite number."""
     t_cpu = time.process_time()
     dev = resolve_device(device)
     precision = resolve_precision(config.precision, dev.type)
@@ -137,8 +139,12 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
                 epoch_loss += dist
                 if on_step is not None:
                     on_step()
-            losses.append(float(epoch_loss) / steps_per_epoch * float(model.out_scale))
-            average.update(model, epoch)
+            loss = float(epoch_loss) / steps_per_epoch * float(model.out_scale)
+            if not np.isfinite(loss):
+                raise Diverged(_divergence(epoch, config.epochs, checkpoint if state else None))
+            with signals_held():  # an epoch is finished with its loss and average, or not
+                losses.append(loss)
+                average.update(model, epoch)
             if on_epoch_end is not None:
                 on_epoch_end(epoch, losses[-1])
             if checkpoint and time.monotonic() - last_save > config.checkpoint_every_s:
@@ -148,11 +154,12 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
     except KeyboardInterrupt:
         if not checkpoint:
             raise
-        # the interrupted epoch is redone from the state it had reached
-        save_checkpoint(checkpoint, fp, epoch, losses, model, opt, sched, gen, average,
+        # the epochs finished are those with a loss; an interrupted one is redone from the
+        # state it had reached
+        save_checkpoint(checkpoint, fp, len(losses), losses, model, opt, sched, gen, average,
                         settings)
         raise Interrupted(
-            f"{checkpoint}: training interrupted at epoch {epoch + 1}/{config.epochs}; its "
+            f"{checkpoint}: training interrupted at epoch {len(losses) + 1}/{config.epochs}; its "
             "state is saved there: run the same command with `resume` to continue") from None
     averaged = average.copy_to(model)
     model.eval().cpu()
@@ -161,6 +168,17 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
             "resumed_at_epoch": start if state is not None else None,
             "n_samples": len(x), "device": dev.type, "precision": precision,
             "cpu_s": time.process_time() - t_cpu}  # CPU time of this process (all threads)
+
+
+def _divergence(epoch: int, epochs: int, resumed_from: str | Path | None) -> str:
+    """Why training stopped at 0-based `epoch`: its loss is no longer a finite number; after a
+    resume, the checkpoint's state is the cause (no training from the start reaches it)."""
+    if resumed_from is not None:
+        return (f"{resumed_from}: training resumed from this checkpoint diverged at epoch "
+                f"{epoch + 1}/{epochs} (its loss is no longer a finite number): its state is "
+                "not one training reaches; run without `resume` to start anew")
+    return (f"training diverged at epoch {epoch + 1}/{epochs}: its loss is no longer a finite "
+            "number (lower `lr`, or check the labels)")
 
 
 class WeightAverage:

@@ -206,22 +206,29 @@ def _block() -> None:
 
 
 def serve_forever(maps: dict[str, Path], replicas: int = 1, host: str = "127.0.0.1",
-                  port: int = 9000, token: str | None = None) -> None:
+                  port: int = 9000, token: str | None = None, watch_s: float = WATCH_S,
+                  max_request_bytes: int = MAX_REQUEST_BYTES) -> None:
     """`slamreloc serve --engine ray`: deploy, say where, block until Ctrl-C (or SIGTERM), then
-    shut Serve and Ray down. Port 0: a free port (the printed one)."""
+    shut Serve and Ray down. Port 0: a free port (the printed one). `watch_s`: seconds between
+    checks for a map folder replaced on disk (0: only ReloadMap); `max_request_bytes`: the
+    largest request taken."""
     import signal
 
     port = port or free_port()
-    signal.signal(signal.SIGTERM, _interrupt)
-    if token is None:
-        print(f"slamreloc serve: Ray Serve's gRPC proxy listens on every interface at port "
-              f"{port}, not only {host}; without a token anyone who reaches it can use it",
-              file=sys.stderr, flush=True)
-    deploy(maps, replicas, host, port, token=token)
+    previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
-        print(f"listening on {host}:{port} (ray serve)", flush=True)
-        _block()
-    except KeyboardInterrupt:
-        print("slamreloc serve: stopping (ray serve)", file=sys.stderr, flush=True)
+        if token is None:
+            print(f"slamreloc serve: Ray Serve's gRPC proxy listens on every interface at "
+                  f"port {port}, not only {host}; without a token anyone who reaches it can "
+                  "use it", file=sys.stderr, flush=True)
+        deploy(maps, replicas, host, port, token=token, watch_s=watch_s,
+               max_request_bytes=max_request_bytes)
+        try:
+            print(f"listening on {host}:{port} (ray serve)", flush=True)
+            _block()
+        except KeyboardInterrupt:
+            print("slamreloc serve: stopping (ray serve)", file=sys.stderr, flush=True)
+        finally:
+            shutdown()
     finally:
-        shutdown()
+        signal.signal(signal.SIGTERM, previous)  # the caller's, as it was

@@ -35,6 +35,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
+
+from slamreloc.errors import Diverged
 from slamreloc.regressor.model import RegressorConfig, SceneCoordinateRegressor
 from slamreloc.regressor.train import TrainConfig, train_regressor
 
@@ -204,9 +206,14 @@ class BackgroundLearner:
                             lr=c.train.lr * c.warm_lr_scale)
             if not final:
                 rows = self._window(n)
-        stats = train_regressor(model, descriptors[rows].astype(np.float32), points[rows], train,
-                                c.device, progress=False, fine_tune=not scratch,
-                                on_epoch_end=self._check_stop, on_step=self._check_stop)
+        try:
+            stats = train_regressor(model, descriptors[rows].astype(np.float32), points[rows],
+                                    train, c.device, progress=False, fine_tune=not scratch,
+                                    on_epoch_end=self._check_stop, on_step=self._check_stop)
+        except Diverged:  # the published model stays; the next round starts from scratch
+            self._stale = True
+            self.busy_s += time.perf_counter() - start
+            return
         model.eval().requires_grad_(False)  # published: read by the tracker, never trained
         self.model = model  # the swap: readers hold either the old model or this one
         self.version += 1

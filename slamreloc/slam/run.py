@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from slamreloc.datasets import load_dataset
+from slamreloc.datasets.poses import FrameKey
 from slamreloc.errors import InputError, Interrupted
 from slamreloc.geometry import Rigid3, align_poses
 from slamreloc.map.format import check_is_map
@@ -70,10 +71,12 @@ TOPIC_PREFIX = "topic:"  # --odometry topic:/NAME: a pose topic of the ROS bag d
 
 
 def make_odometry(name: str, depth_camera: Camera | None,
-                  dataset_dir: Path | None = None) -> Odometry:
+                  dataset_dir: Path | None = None,
+                  frames: list[FrameKey] | None = None) -> Odometry:
     """depth_camera: the camera that took the depth when it is not registered to the image
     (`Frame.depth_camera`, any pixel size: scaled to each depth map), else None; dataset_dir:
-    the dataset tracked (a ROS bag, for `topic:/NAME`)."""
+    the dataset tracked (a ROS bag, for `topic:/NAME`); frames: the frames tracked, in stream
+    order, which a pose file's poses are matched to (`TrajectoryOdometry.from_file`)."""
     if name == "auto":
         name = "kiss-icp" if depth_camera is not None else "open3d"
     if name == "kiss-icp":
@@ -95,7 +98,9 @@ def make_odometry(name: str, depth_camera: Camera | None,
     if not os.path.lexists(name):
         raise InputError(f"`odometry` {name!r}: not auto, kiss-icp, open3d, {TOPIC_PREFIX}/NAME "
                          "or an existing TUM trajectory file")
-    return TrajectoryOdometry.from_file(name)
+    if frames is None:
+        raise InputError(f"`odometry` {name}: a pose file is matched to a dataset's frames")
+    return TrajectoryOdometry.from_file(name, frames)
 
 
 def _live_plugins(dataset, map_dir: Path | None, out: Path, config: SlamRunConfig) -> list:
@@ -153,7 +158,9 @@ def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = Sl
             f"skips {config.kidnap_skip}, which needs more than "
             f"{config.kidnap_from + config.kidnap_skip} frames (lower `kidnap_from`, "
             "`kidnap_every` or `kidnap_skip`); tracking without kidnaps", stacklevel=2)
-    odometry = make_odometry(config.odometry, depth_camera_of(frames), dataset_dir)
+    processed = [frames[i] for i in kept]
+    odometry = make_odometry(config.odometry, depth_camera_of(frames), dataset_dir,
+                             [FrameKey.of(f, Path(dataset.root)) for f in processed])
     external = odometry.name == "trajectory"
     if out is not None and external:
         raise InputError("a learned map (`out`) needs depth: its rows are lifted from each "
@@ -170,7 +177,6 @@ def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = Sl
         if localizer is not None:
             localizer.extractor.check_frames(frames)
     backend = SlamBackend(odometry, plugins, config.backend)
-    processed = [frames[i] for i in kept]
     inputs = read_frames(dataset, processed, image=True, depth=not external)
     mapper = next((p for p in plugins if isinstance(getattr(p, "live_map", None), LiveMap)),
                   None)

@@ -17,12 +17,12 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import read_bytes
 from slamreloc.io.folder_lock import Debris, folder_write_lock, holds_only, leftovers
+from slamreloc.io.images import write_image
 from slamreloc.io.outputs import make_temp_dir, temp_dir_path
 from slamreloc.synthetic.render import RenderScene, render_frame
 from slamreloc.synthetic.room import build_room
@@ -103,8 +103,8 @@ def _write_frames(tmp: Path, config: SceneConfig, progress: Progress | None) -> 
                                       noise_seed=(config.seed, seq_index, i))
             stem = tmp / seq / f"frame-{i:06d}"
             depth_mm = np.where(np.isfinite(depth) & (depth < 65.5), depth * 1000.0 + 0.5, 0)
-            cv2.imwrite(f"{stem}.color.png", rgb[:, :, ::-1])
-            cv2.imwrite(f"{stem}.depth.png", depth_mm.astype(np.uint16))
+            write_image(f"{stem}.color.png", rgb[:, :, ::-1])
+            write_image(f"{stem}.depth.png", depth_mm.astype(np.uint16))
             np.savetxt(f"{stem}.pose.txt", world_from_cam.matrix())
             done += 1
             if progress is not None:
