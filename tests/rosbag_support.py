@@ -9,8 +9,11 @@ from typing import Any
 
 import cv2
 import numpy as np
+import pytest
 
+from slamreloc.datasets import load_dataset
 from slamreloc.datasets.base import Dataset
+from slamreloc.datasets.rosbag import BagTopics, set_topics
 from slamreloc.geometry import Rigid3, axis_angle_to_matrix
 from slamreloc.io.images import read_image
 from slamreloc.types import Camera, Frame
@@ -225,3 +228,17 @@ def write_bag(dataset: Dataset, frames: list[Frame], path: Path, version: int = 
         topics["/tf_static"] = static_tf(msgs, t0)
     topics.update(extra or {})
     return write_messages(path, msgs, topics, mcap)
+
+
+@pytest.fixture(autouse=True)
+def automatic_topics():
+    """`--topic` (and `set_topics`) hold process-wide: reset them after each test (a test
+    module takes this fixture by importing it)."""
+    yield
+    set_topics(BagTopics())
+
+
+def first_test_frames(scene_dir: Path, n: int) -> tuple[Dataset, list[Frame]]:
+    """(the synthetic scene's dataset, its first `n` test frames): what bag tests write."""
+    dataset = load_dataset(scene_dir)
+    return dataset, dataset.frames("test")[:n]

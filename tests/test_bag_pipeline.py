@@ -10,17 +10,10 @@ import numpy as np
 import pytest
 
 from slamreloc.datasets import load_dataset
-from slamreloc.datasets.rosbag import BagTopics, set_topics
 from slamreloc.localize.evaluate import align_to_reference
 from slamreloc.map.scene_map import SceneMap
 from tests.fuzzing import run_cli, run_cli_output
-from tests.rosbag_support import write_bag
-
-
-@pytest.fixture(autouse=True)
-def automatic_topics():
-    yield
-    set_topics(BagTopics())
+from tests.rosbag_support import automatic_topics, write_bag  # noqa: F401 - a fixture
 
 
 def bag_of(scene_dir, sequence: str, path):

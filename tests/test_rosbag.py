@@ -30,7 +30,9 @@ from slamreloc.io.images import read_depth, read_image
 from slamreloc.slam.run import make_odometry
 from slamreloc.types import Camera
 from tests.fuzzing import run_cli
-from tests.rosbag_support import (
+from tests.rosbag_support import (  # noqa: F401 - automatic_topics: a fixture
+    automatic_topics,
+    first_test_frames,
     CAM_FROM_BODY,
     DEPTH_TOPIC,
     IMAGE_TOPIC,
@@ -49,8 +51,7 @@ N_FRAMES = 8
 @pytest.fixture(scope="module")
 def scene(scene_dir):
     """(the synthetic scene's dataset, the first test frames)."""
-    dataset = load_dataset(scene_dir)
-    return dataset, dataset.frames("test")[:N_FRAMES]
+    return first_test_frames(scene_dir, N_FRAMES)
 
 
 @pytest.fixture(scope="module")
@@ -58,11 +59,6 @@ def tiny_map(tmp_path_factory) -> Path:
     return _tiny_map(tmp_path_factory.mktemp("rosbag") / "map")
 
 
-@pytest.fixture(autouse=True)
-def automatic_topics():
-    """`--topic` (run in process) sets the process-wide topics: reset them after each test."""
-    yield
-    set_topics(BagTopics())
 
 
 def bag_path(tmp_path: Path, version: int, name: str = "run") -> Path:

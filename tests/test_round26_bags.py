@@ -18,7 +18,9 @@ from slamreloc.datasets.rosbag import BagTopics, bag_trajectory, parse_topics, s
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
 from tests.fuzzing import run_cli
-from tests.rosbag_support import (
+from tests.rosbag_support import (  # noqa: F401 - automatic_topics: a fixture
+    automatic_topics,
+    first_test_frames,
     BASE_FROM_MOUNT,
     CAM,
     CAM_FROM_BODY,
@@ -36,20 +38,12 @@ CAM_FROM_BASE = (BASE_FROM_MOUNT @ MOUNT_FROM_CAM).inverse()
 
 @pytest.fixture(scope="module")
 def scene(scene_dir):
-    dataset = load_dataset(scene_dir)
-    return dataset, dataset.frames("test")[:N_FRAMES]
+    return first_test_frames(scene_dir, N_FRAMES)
 
 
 @pytest.fixture(scope="module")
 def tiny_map(tmp_path_factory) -> Path:
     return _tiny_map(tmp_path_factory.mktemp("round26_bags") / "map")
-
-
-@pytest.fixture(autouse=True)
-def automatic_topics():
-    """`--topic` (and `set_topics`) hold process-wide: reset them after each test."""
-    yield
-    set_topics(BagTopics())
 
 
 def bag_name(tmp_path: Path, version: int) -> Path:
