@@ -341,14 +341,16 @@ def _short_values(v: np.ndarray) -> str:
 
 def read_tum_trajectory(path, numeric_stamps: bool = False) -> list[tuple[str, Rigid3]]:
     """A TUM trajectory file: one `name tx ty tz qx qy qz qw` per line (camera-to-world);
-    blank lines and `#` comments are skipped. Errors name the file and line. A timestamp
+    blank lines and `#` comments are skipped; lines and fields by TUM's line rule
+    (`plain_lines`, the rule of rgb.txt). Errors name the file and line. A timestamp
     (a numeric first column) on more than one line is one pose read twice when the lines
     carry the same pose (`same_pose`), and is read once; with different poses it is an
     InputError naming both lines (`unique_stamps`): which one is the camera's is not for the
     reader to guess."""
     path = Path(path)
     return unique_stamps([(i, *parse_tum_line(line, f"{path}:{i}", numeric_stamps))
-                          for i, line in _content_lines(path, "trajectory")], path)
+                          for i, line in _content_lines(path, "trajectory", plain=True)],
+                         path)
 
 
 def _stamp_value(text: str) -> float | None:
@@ -391,14 +393,17 @@ def refuse_json_text(text: str, path, what: str) -> None:
                          "file holds one pose per line)")
 
 
-def _content_lines(path: Path, what: str) -> list[tuple[int, str]]:
+def _content_lines(path: Path, what: str, plain: bool = False) -> list[tuple[int, str]]:
     """(line number, line) of a UTF-8 text file, blank lines and `#` comments skipped;
-    an unreadable or binary file is an InputError naming it."""
-    from slamreloc.io.fileio import read_text
+    an unreadable or binary file is an InputError naming it. `plain`: by the line rule of
+    TUM's files (`slamreloc.io.fileio.plain_lines`: lines end at "\\n", fields are separated
+    by spaces or tabs only, any other control character or blank refused)."""
+    from slamreloc.io.fileio import plain_lines, read_text
 
     text = read_text(path, what, "max_text_bytes")
     refuse_json_text(text, path, what)
-    return [(i, line) for i, line in enumerate(text.splitlines(), 1)
+    lines = plain_lines(text, path, what) if plain else enumerate(text.splitlines(), 1)
+    return [(i, line) for i, line in lines
             if line.strip() and not line.lstrip().startswith("#")]
 
 

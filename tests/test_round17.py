@@ -218,8 +218,8 @@ def test_a_trajectory_of_no_poses_is_read_where_it_can_be(small_map, scene_dir, 
     code, err = run_cli(["slam", str(scene_dir), "--map", str(small_map.root), "--report",
                          str(tmp_path / "r.json"), "--split", "seq-02", "--odometry", str(empty)])
     assert code == 2 and err.strip().splitlines()[-1] == (
-        f"error: {empty}: no poses in the trajectory file, and odometry needs the poses of the "
-        "frames it tracks"), err
+        f"error: {empty}: no poses (expected lines 'name tx ty tz qx qy qz qw' or 'timestamp "
+        "tx ty tz qx qy qz qw', or a COLMAP model folder)"), err
 
 
 def test_a_map_is_not_extended_by_another_datasets_frames_of_its_names(small_map, scene_dir,

@@ -94,7 +94,8 @@ def test_bad_input_is_one_line(kidnap_scene, small_map, tmp_path):
     bad = tmp_path / "odo.txt"
     bad.write_text("0.0 1 2 3 0 0 0 1\nframe-1 1 2 3 0 0 0 1\n")
     cases = [
-        (("--map", small_map.root, "--odometry", bad), "odo.txt:2: timestamp"),
+        # read as `--poses` reads it: one stamped pose and one named `frame-1`
+        (("--map", small_map.root, "--odometry", bad), "odo.txt: no pose for frame"),
         (("--map", tmp_path / "nomap"), "not a slamreloc map"),
         (("--map", small_map.root, "--split", "nosuch"), "unknown split"),
     ]

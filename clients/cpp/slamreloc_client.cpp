@@ -9,10 +9,15 @@
 // Every file named here is read as the Python side reads it: a regular file (a pipe, device or
 // folder is refused, never opened blocking), of bounded size (PEM 1 MiB, an image 64 MiB).
 //
+// An option given twice is refused ("--camera is given twice: give it once"), as the Python CLI
+// refuses it.
+//
 // SEQUENCE is a 7-Scenes sequence folder (frame-XXXXXX.color.png or .color.jpg, in name order)
-// or a TUM RGB-D folder (rgb.txt: `timestamp rgb/file.png` lines, in the order listed). Each
-// image's file is sent as it is (the server decodes it) and one line is printed per image, as
-// `slamreloc localize` prints it (with all the digits of a double):
+// or a TUM RGB-D folder (rgb.txt: `timestamp rgb/file.png` lines, in the order listed, by the
+// Python TUM reader's rules: UTF-8, lines ending at \n, fields separated by spaces or tabs and
+// no other blank or line break; see plain_text_problem). Each image's file is sent as
+// it is (the server decodes it) and one line is printed per image, as `slamreloc localize`
+// prints it (with all the digits of a double):
 //
 //   NAME tx ty tz qx qy qz qw INLIERS     world_from_cam (camera-to-world; metres, x y z w)
 //   # NAME: not localized (N inliers)
@@ -196,6 +201,28 @@ std::string shown(const std::string& text) {
   return out + (text.size() > 80 ? "'..." : "'");
 }
 
+// The length in bytes of the UTF-8 character that starts at text[i], its code point in `cp`;
+// 0 where the bytes there are not UTF-8 by Python's strict decoder (cut short, an overlong
+// form, a surrogate, beyond U+10FFFF), which then reports byte i.
+int utf8_char(const std::string& text, std::size_t i, char32_t& cp) {
+  const unsigned char c = text[i];
+  const int n = c < 0x80            ? 1
+                : (c >> 5) == 0x6   ? 2
+                : (c >> 4) == 0xE   ? 3
+                : (c >> 3) == 0x1E  ? 4
+                                    : 0;
+  if (n == 0 || i + n > text.size()) return 0;
+  cp = n == 1 ? c : c & (0x7F >> n);
+  for (int k = 1; k < n; ++k) {
+    const unsigned char cc = text[i + k];
+    if ((cc >> 6) != 0x2) return 0;
+    cp = (cp << 6) | (cc & 0x3F);
+  }
+  const char32_t least[] = {0, 0, 0x80, 0x800, 0x10000};
+  if (cp < least[n] || cp > 0x10FFFF || (cp >= 0xD800 && cp <= 0xDFFF)) return 0;
+  return n;
+}
+
 // Why `name` cannot name a served map (empty when it can): the server's rule
 // (`map_name_problem`): valid UTF-8, 1 to kMaxMapName characters, none of them a control,
 // format, line or space character. (Its composed-form rule is left to the server.)
@@ -203,22 +230,9 @@ std::string map_name_problem(const std::string& name) {
   if (name.empty()) return "is empty (give a map name, or leave --map out)";
   std::size_t chars = 0;
   for (std::size_t i = 0; i < name.size(); ++chars) {
-    const unsigned char c = name[i];
-    const int n = c < 0x80            ? 1
-                  : (c >> 5) == 0x6   ? 2
-                  : (c >> 4) == 0xE   ? 3
-                  : (c >> 3) == 0x1E  ? 4
-                                      : 0;
-    if (n == 0 || i + n > name.size()) return "is not valid UTF-8 text";
-    char32_t cp = n == 1 ? c : c & (0x7F >> n);
-    for (int k = 1; k < n; ++k) {
-      const unsigned char cc = name[i + k];
-      if ((cc >> 6) != 0x2) return "is not valid UTF-8 text";
-      cp = (cp << 6) | (cc & 0x3F);
-    }
-    const char32_t least[] = {0, 0, 0x80, 0x800, 0x10000};
-    if (cp < least[n] || cp > 0x10FFFF || (cp >= 0xD800 && cp <= 0xDFFF))
-      return "is not valid UTF-8 text";
+    char32_t cp = 0;
+    const int n = utf8_char(name, i, cp);
+    if (n == 0) return "is not valid UTF-8 text";
     const bool bad = cp <= 0x20 || (cp >= 0x7F && cp <= 0xA0) || cp == 0xAD || cp == 0x1680 ||
                      (cp >= 0x2000 && cp <= 0x200F) || (cp >= 0x2028 && cp <= 0x202F) ||
                      (cp >= 0x205F && cp <= 0x206F) || cp == 0x3000 || cp == 0xFEFF;
@@ -358,6 +372,18 @@ Options parse_args(int argc, char** argv) {
     if (opts.call.token.empty())
       throw Error("$SLAMRELOC_TOKEN is empty (give a token, or unset it)");
   }
+  // an option given twice is refused (which value was meant?) before any value is read: the
+  // Python CLI's rule and message (slamreloc.cli), `--server=X` and `--server X` alike
+  static const char* const options[] = {"--server", "--map", "--token", "--tls-ca", "--camera",
+                                        "--timeout"};
+  std::set<std::string> given;
+  for (int i = 1; i < argc; ++i) {
+    const std::string arg = argv[i];
+    const std::string name = arg.substr(0, arg.find('='));
+    if (std::find(std::begin(options), std::end(options), name) == std::end(options)) continue;
+    if (!given.insert(name).second) throw Error(name + " is given twice: give it once");
+    if (name.size() == arg.size()) ++i;  // its value is the next argument
+  }
   std::vector<std::string> positional;
   for (int i = 1; i < argc; ++i) {
     std::string arg = argv[i];
@@ -418,6 +444,82 @@ Options parse_args(int argc, char** argv) {
   return opts;
 }
 
+// Why the UTF-8 `text` breaks the plain line rule of TUM's lists, from byte `start` on (empty
+// when it does not; `line` is then the line number of what breaks it): a carriage return not
+// followed by a line feed, or a blank or line break other than a space, a tab and a line feed
+// (\v, \f, 0x1c-0x1f, U+0085, U+00A0, U+1680, U+2000-U+200A, U+2028, U+2029, U+202F, U+205F,
+// U+3000: every character Python's str.isspace takes besides those). Other characters (other
+// control characters included) belong to their field. slamreloc.io.fileio.plain_lines's rule,
+// in the same words.
+std::string plain_text_problem(const std::string& text, std::size_t start, std::size_t& line) {
+  line = 1;
+  for (std::size_t i = start; i < text.size();) {
+    char32_t cp = 0;
+    const int n = utf8_char(text, i, cp);  // the text was checked as UTF-8
+    const bool lone_cr = cp == 0x0D && (i + 1 >= text.size() || text[i + 1] != '\n');
+    const bool blank = cp == 0x0B || cp == 0x0C || (cp >= 0x1C && cp <= 0x1F) || cp == 0x85 ||
+                       cp == 0xA0 || cp == 0x1680 || (cp >= 0x2000 && cp <= 0x200A) ||
+                       cp == 0x2028 || cp == 0x2029 || cp == 0x202F || cp == 0x205F ||
+                       cp == 0x3000;
+    if (lone_cr || blank) {
+      char code[16];
+      std::snprintf(code, sizeof code, "U+%04X", static_cast<unsigned>(cp));
+      return std::string(lone_cr ? "a carriage return not followed by a line feed"
+                                 : "a blank or line break other than a space, a tab or a line "
+                                   "feed") +
+             " (" + code + "): fields are separated by spaces or tabs only, lines end at a line "
+                           "feed (or CR LF)";
+    }
+    if (cp == '\n') ++line;
+    i += n == 0 ? 1 : n;
+  }
+  return "";
+}
+
+// Why `name`, a TUM image's file stem, cannot name a frame (empty when it can): the Python
+// datasets' rule (slamreloc.types.frame_name_problem), of whose printable test this keeps the
+// control characters (C0, DEL, C1; format, private-use and unassigned characters are left to
+// the server): not empty, no control character, not absolute, and, a backslash read as a
+// slash, no '..', no empty or '.' part.
+std::string frame_name_problem(const std::string& name) {
+  if (name.empty()) return "is empty";
+  for (std::size_t i = 0; i < name.size();) {
+    char32_t cp = 0;
+    const int n = utf8_char(name, i, cp);  // the list was checked as UTF-8
+    if (cp < 0x20 || (cp >= 0x7F && cp <= 0x9F))
+      return "holds a line break or another control character";
+    i += n == 0 ? 1 : n;
+  }
+  std::string slashed = name;
+  std::replace(slashed.begin(), slashed.end(), '\\', '/');
+  std::vector<std::string> parts;
+  for (std::size_t start = 0;;) {
+    const std::size_t slash = slashed.find('/', start);
+    parts.push_back(slashed.substr(start, slash == std::string::npos ? slash : slash - start));
+    if (slash == std::string::npos) break;
+    start = slash + 1;
+  }
+  const auto has = [&](const char* part) {
+    return std::find(parts.begin(), parts.end(), part) != parts.end();
+  };
+  if (name.front() == '/' || has(".."))
+    return "is not a path inside the dataset (absolute, or with '..')";
+  if (has("") || has("."))
+    return "is not a plain relative path (an empty or '.' part, as in 'a//b' or 'a/./b')";
+  return "";
+}
+
+// The fields of `line`, separated by spaces and tabs.
+std::vector<std::string> plain_fields(const std::string& line) {
+  std::vector<std::string> fields;
+  for (std::size_t i = line.find_first_not_of(" \t"); i != std::string::npos;) {
+    const std::size_t end = line.find_first_of(" \t", i);
+    fields.push_back(line.substr(i, end == std::string::npos ? std::string::npos : end - i));
+    i = end == std::string::npos ? end : line.find_first_not_of(" \t", end);
+  }
+  return fields;
+}
+
 // The images of a 7-Scenes sequence folder (name order) or a TUM RGB-D folder (rgb.txt order).
 std::vector<fs::path> sequence_images(const fs::path& dir) {
   std::error_code ec;
@@ -426,26 +528,48 @@ std::vector<fs::path> sequence_images(const fs::path& dir) {
   std::vector<fs::path> images;
   const fs::path list = dir / "rgb.txt";
   if (fs::exists(list, ec)) {  // rgb.txt: slamreloc.datasets.tum's rules
+    // read as slamreloc.io.fileio.read_text reads text (UTF-8, no NUL byte, a leading
+    // byte-order mark dropped), its lines and fields by plain_lines's rule
     const std::string text = read_file(list, "image list", kMaxListBytes);
+    for (std::size_t i = 0; i < text.size();) {
+      char32_t cp = 0;
+      const int n = utf8_char(text, i, cp);
+      if (n == 0)
+        throw Error(list.string() + ": image list is not UTF-8 text (byte " + std::to_string(i) +
+                    ")");
+      i += n;
+    }
     const auto nul = text.find('\0');
     if (nul != std::string::npos)  // the Python readers' rule: no text file holds one
       throw Error(list.string() + ":" +
                   std::to_string(1 + std::count(text.begin(), text.begin() + nul, '\n')) +
                   ": image list holds a NUL byte (byte " + std::to_string(nul) +
                   "); text files have none");
-    std::istringstream in(text);
+    const std::size_t start = text.rfind("\xEF\xBB\xBF", 0) == 0 ? 3 : 0;
+    std::size_t bad_line = 0;
+    const std::string problem = plain_text_problem(text, start, bad_line);
+    if (!problem.empty())
+      throw Error(list.string() + ":" + std::to_string(bad_line) + ": image list holds " +
+                  problem);
     std::map<double, std::pair<int, std::string>> seen;  // stamp -> (first line, its file)
     std::set<std::string> stems;
     double last_t = 0;  // the latest stamp so far, on line last_n (0: none yet)
     int last_n = 0;
-    std::string line;
-    for (int n = 1; std::getline(in, line); ++n) {
+    int n = 0;
+    for (std::size_t pos = start; pos < text.size();) {
+      std::size_t nl = text.find('\n', pos);
+      if (nl == std::string::npos) nl = text.size();
+      std::string line = text.substr(pos, nl - pos);
+      pos = nl + 1;
+      ++n;
+      if (!line.empty() && line.back() == '\r') line.pop_back();
       const std::string where = list.string() + ":" + std::to_string(n);
-      std::istringstream fields(line);
-      std::string stamp, file, extra;
-      if (!(fields >> stamp) || stamp[0] == '#') continue;  // blank line or comment
-      if (!(fields >> file) || (fields >> extra))
-        throw Error(where + ": expected `timestamp file`");
+      const std::vector<std::string> fields = plain_fields(line);
+      if (fields.empty() || fields[0][0] == '#') continue;  // blank line or comment
+      if (fields.size() != 2)
+        throw Error(where + ": expected 2 fields, got " + std::to_string(fields.size()));
+      const std::string& stamp = fields[0];
+      const std::string& file = fields[1];
       const double t = parse_number(stamp, where + ": timestamp");
       if (std::fabs(t) > kMaxStampS)
         throw Error(where + ": timestamp " + stamp + " is beyond 1e12 s: timestamps are seconds");
@@ -464,7 +588,12 @@ std::vector<fs::path> sequence_images(const fs::path& dir) {
                     std::to_string(last_n) + "'s; the frames must be listed in time order");
       last_t = t;
       last_n = n;
-      if (!stems.insert(rel.stem().string()).second)
+      const std::string stem = rel.stem().string();  // the frame's name, as Python's
+      const std::string name_problem = frame_name_problem(stem);
+      if (!name_problem.empty())
+        throw Error(where + ": frame name " + shown(stem) + " " + name_problem +
+                    ": its name comes from the file's name; rename it");
+      if (!stems.insert(stem).second)
         throw Error(list.string() + ": image '" + rel.stem().string() +
                     "' is listed more than once");
       images.push_back(dir / rel);

@@ -15,7 +15,7 @@ import numpy as np
 from slamreloc.datasets.base import Dataset
 from slamreloc.datasets.io import check_frame_files, image_size, read_intrinsics, read_text
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import optional_file
+from slamreloc.io.fileio import optional_file, plain_lines
 from slamreloc.geometry import parse_stamp, read_tum_trajectory
 from slamreloc.types import Camera, Frame
 
@@ -31,11 +31,13 @@ def _read_list(path: Path, n_fields: int) -> list[list[str]]:
     same file is one row read twice (read once); naming different files it is an InputError
     naming both lines: which image is that instant's is not for the reader to guess. The
     rows are in time order (a stamp earlier than the line before is an InputError: tracking
-    would run the sequence backwards in places)."""
+    would run the sequence backwards in places). Lines and fields by `plain_lines`' rule (the
+    C++ client reads rgb.txt by it too): lines end at "\\n", fields are separated by spaces or
+    tabs, any other control character or blank is an InputError naming the line."""
     rows = []
     seen: dict[float, tuple[int, str]] = {}  # stamp -> (its first line, its file)
     last: tuple[float, int] | None = None  # the latest stamp so far, and its line
-    for i, line in enumerate(read_text(path, "list").splitlines(), 1):
+    for i, line in plain_lines(read_text(path, "list"), path, "list"):
         if not line.strip() or line.lstrip().startswith("#"):
             continue
         parts = line.split()

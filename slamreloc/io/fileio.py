@@ -6,6 +6,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import os
+import re
 import stat
 import threading
 from contextvars import ContextVar
@@ -143,6 +144,40 @@ def _utf8_error(data: bytes) -> int | None:
             return start + err.start
         start = end
     return None
+
+
+# What a line of `plain_lines` may not hold: a carriage return not followed by a line feed, or
+# a blank or line break other than a space, a tab and a line feed (\v, \f, \x1c-\x1f, U+0085,
+# U+00A0, U+1680, U+2000-U+200A, U+2028, U+2029, U+202F, U+205F, U+3000: exactly what
+# `str.isspace` takes besides those, so that `str.split()` of a line that passes splits at
+# spaces and tabs only, and no line holds a break `str.splitlines` would see). clients/cpp's
+# `plain_text_problem` holds the same list.
+_NOT_PLAIN = re.compile(r"\r(?!\n)|[^\S \t\n\r]")
+PLAIN_RULE = "fields are separated by spaces or tabs only, lines end at a line feed (or CR LF)"
+
+
+def plain_lines(text: str, path: str | Path, what: str) -> list[tuple[int, str]]:
+    """(line number from 1, line) of each line of `text` (a file read by `read_text`: UTF-8, a
+    leading byte-order mark dropped, no NUL byte) by the plain line rule of slamreloc's
+    line-and-field lists (TUM's rgb.txt, depth.txt and groundtruth.txt, TUM trajectories),
+    which the C++ client follows too: lines end at "\\n" (a "\\r" before it is dropped), and a
+    line's fields are separated by spaces and tabs only, so `line.split()` gives them. Any
+    other blank or line break (\\v, \\f, a lone \\r, U+0085, NBSP, U+2003, U+2028, ...) is an
+    InputError `FILE:LINE: WHAT holds ...` naming it: readers differ on whether it ends a line,
+    separates fields or belongs to one (Python's `str.splitlines` and `str.split` take it for a
+    break, C's and C++'s streams each for some of them). Other characters (other control
+    characters included) belong to the field they are in."""
+    bad = _NOT_PLAIN.search(text)
+    if bad is not None:
+        line = text.count("\n", 0, bad.start()) + 1
+        code = ord(bad.group())
+        kind = ("a carriage return not followed by a line feed" if code == 0x0D
+                else "a blank or line break other than a space, a tab or a line feed")
+        raise InputError(f"{path}:{line}: {what} holds {kind} (U+{code:04X}): {PLAIN_RULE}")
+    lines = text.split("\n")
+    if lines[-1] == "":  # the end of the last line, not a line
+        lines.pop()
+    return [(i, line[:-1] if line.endswith("\r") else line) for i, line in enumerate(lines, 1)]
 
 
 def sha256_of(f: BinaryIO) -> str:
