@@ -106,20 +106,19 @@ def _fold_problem(model: str, distortion: tuple[float, ...], width: int, height:
             return (f"its distortion {list(distortion)} folds back inside the image (towards "
                     f"pixel ({edge[0]:g}, {edge[1]:g}) the distorted radius stops growing "
                     "before the image's edge), so its pixels cannot be undistorted")
-    return _fold_in_circle(model, distortion, min(cx, width - 1 - cx, cy, height - 1 - cy),
-                           fx, fy, cx, cy)
+    return _fold_in_circle(model, distortion, width, height, fx, fy, cx, cy)
 
 
-def _fold_in_circle(model: str, distortion: tuple[float, ...], radius_px: float,
+def _fold_in_circle(model: str, distortion: tuple[float, ...], width: int, height: int,
                     fx: float, fy: float, cx: float, cy: float) -> str | None:
     """The fold test in every direction, not only along the axes (tangential terms fold the
-    mapping sideways): along 360 rays of ideal directions, out to where the distorted point
-    first leaves the circle of `radius_px` pixels around the principal point, the mapping
-    must keep its orientation (the Jacobian's determinant, by differences in radius and
-    angle, stays positive) and every ray must reach that circle. Then each pixel inside the
+    mapping sideways), over the circle inscribed in the image (centred on the image, wherever
+    the principal point lies): along 360 rays of ideal directions from the optical axis, up
+    to where the distorted point leaves that circle after entering it, the mapping must keep
+    its orientation (the Jacobian's determinant, by differences in radius and angle, stays
+    positive), and a ray that enters the circle must leave it. Then each pixel inside the
     circle has exactly one direction."""
-    if radius_px <= 0:
-        return None
+    centre, radius_px = np.array([(width - 1) / 2, (height - 1) / 2]), min(width, height) / 2
     angles = np.linspace(0, 2 * np.pi, 360, endpoint=False)
     radii = np.geomspace(1e-3, 1e3, 1200)  # steps of 1.2 %
     step = 1e-5  # radians: the angular difference
@@ -129,20 +128,25 @@ def _fold_in_circle(model: str, distortion: tuple[float, ...], radius_px: float,
                                        [np.cos(angles + a), np.sin(angles + a)], 1)
                                     ).reshape(-1, 2)).reshape(len(radii), len(angles), 2)
                 for a in (0.0, step)]
-        pixels = rays[0] * [fx, fy]
-        left = ~(np.hypot(pixels[..., 0], pixels[..., 1]) < radius_px)  # or not a number
+        offset = rays[0] * [fx, fy] + [cx, cy] - centre
+        inside = np.hypot(offset[..., 0], offset[..., 1]) < radius_px  # NaN: outside
         outward = np.diff(rays[0], axis=0)
         sideways = (rays[1] - rays[0])[:-1]
         det = outward[..., 0] * sideways[..., 1] - outward[..., 1] * sideways[..., 0]
-    reached = left.any(axis=0)
-    first = np.where(reached, left.argmax(axis=0), len(radii))  # the first step outside
-    bad = (np.arange(len(radii) - 1)[:, None] < first[None, :]) & ~(det > 0)
-    if reached.all() and not bad.any():
+    steps = np.arange(len(radii))[:, None]
+    entered = inside.any(axis=0)
+    first_in = np.where(entered, inside.argmax(axis=0), len(radii))
+    out_after = ~inside & (steps > first_in[None, :])  # outside again, after entering
+    left = out_after.any(axis=0)
+    first_out = np.where(left, out_after.argmax(axis=0), len(radii))
+    bad = (steps[:-1] < first_out[None, :]) & entered[None, :] & ~(det > 0)
+    stuck = entered & ~left  # a ray that stays inside: it folds back before the edge
+    if not stuck.any() and not bad.any():
         return None
     if bad.any():  # where the orientation flips
         step_at, ray = np.unravel_index(np.argmax(bad), bad.shape)
-    else:  # a ray that never reaches the circle: where it ends
-        ray = int(np.argmin(reached))
+    else:  # a ray that never leaves the circle: where it ends
+        ray = int(np.argmax(stuck))
         step_at = len(radii) - 1
     where = rays[0][step_at, ray] * [fx, fy] + [cx, cy]
     return (f"its distortion {list(distortion)} folds back inside the image (near pixel "

@@ -106,22 +106,27 @@ def test_the_fast_points2d_check_takes_only_what_the_word_rule_takes(triples):
 
 
 # ---- round 26, F1: a lens that folds sideways -----------------------------------------------
-def test_a_lens_folding_off_the_axes_is_refused():
+@pytest.mark.parametrize("cx", ["160", "5.5", "-9.5"])
+def test_a_lens_folding_off_the_axes_is_refused(cx):
     """F1: tangential terms fold the mapping off the four axis rays the check walked: an
-    OPENCV lens whose pixels inside the inscribed circle have two directions was taken."""
+    OPENCV lens whose pixels inside the inscribed circle have two directions was taken.
+    Round 27, G1: with the principal point off centre (or outside the image) the circle
+    around it was tiny or empty, and the same lens was taken: the circle is the image's."""
     code, err = run_cli(["localize", "no-map", "x.png", "--camera",
-                         "OPENCV 320 240 200 200 160 120 0.28 0.16 -0.29 -0.36"])
+                         f"OPENCV 320 240 200 200 {cx} 120 0.28 0.16 -0.29 -0.36"])
     assert code == 2 and err.strip().splitlines()[-1].startswith(
         "error: --camera: its distortion [0.28, 0.16, -0.29, -0.36] folds back inside the "
         "image (near pixel"), err
 
 
 @given(st.sampled_from(["OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE", "RADIAL"]),
-       st.lists(st.floats(-0.6, 0.6), min_size=8, max_size=8))
-@settings(max_examples=60, deadline=None)
-def test_a_lens_taken_undistorts_every_pixel_of_its_circle(model, values):
-    """Every pixel inside the circle inscribed around the principal point of a lens the check
-    takes comes back to itself through undistortion (one direction each)."""
+       st.lists(st.floats(-0.6, 0.6), min_size=8, max_size=8),
+       st.sampled_from([159.5, 100.0, 20.0, -9.5]))
+@settings(max_examples=80, deadline=None)
+def test_a_lens_taken_undistorts_every_pixel_of_its_circle(model, values, cx):
+    """Every pixel inside the circle inscribed in the image, for a lens the check takes,
+    comes back to itself through undistortion (one direction each), wherever the principal
+    point lies."""
     from slamreloc.camera_models import (
         distort_normalized,
         fold_problem,
@@ -130,12 +135,13 @@ def test_a_lens_taken_undistorts_every_pixel_of_its_circle(model, values):
     )
 
     distortion = tuple(values[:n_distortion(model)])
-    f, cx, cy = 200.0, 159.5, 119.5
+    f, cy = 200.0, 119.5
     if fold_problem(model, distortion, 320, 240, f, f, cx, cy):
         return
     angles = np.linspace(0, 2 * np.pi, 90, endpoint=False)
-    radius = np.linspace(1, min(cx, cy) - 0.5, 40)[:, None]
-    pixels = np.stack([radius * np.cos(angles), radius * np.sin(angles)], -1).reshape(-1, 2)
+    radius = np.linspace(0, 119.5, 40)[:, None]  # the circle inscribed in 320 x 240
+    pixels = np.stack([159.5 + radius * np.cos(angles), 119.5 + radius * np.sin(angles)],
+                      -1).reshape(-1, 2) - [cx, cy]
     ideal = undistort_normalized(model, distortion, pixels / f)
     back = distort_normalized(model, distortion, ideal) * f
     assert np.abs(back - pixels).max() < 0.05
@@ -415,3 +421,56 @@ def test_an_empty_file_beside_a_trajectory_output_is_not_a_trajectory(tmp_path):
     (tmp_path / "run.out").write_text("0.000000 0 0 0 0 0 0 1\n")
     with pytest.raises(InputError, match="also names the stamps of the trajectory"):
         check_names_sidecar_free(tmp_path / "run.txt", "--trajectory")
+
+
+# ---- round 27, G3, G4: samples wider than 16 bits -------------------------------------------
+def _float_images(tmp_path):
+    import cv2
+
+    grey = (np.arange(64 * 48).reshape(48, 64) % 255 / 255).astype(np.float32)
+    pfm = tmp_path / "g.pfm"
+    pfm.write_bytes(b"Pf\n64 48\n-1.0\n" + np.flipud(grey).astype("<f4").tobytes())
+    colour = tmp_path / "c.tif"
+    cv2.imwrite(str(colour), np.dstack([grey] * 3))
+    return {"grey PFM": pfm, "colour float TIFF": colour}
+
+
+def test_images_of_float_samples_are_refused_saying_so(tmp_path):
+    """G3: a float PFM was decoded with a saturating cast to 8 bits (a black picture, taken);
+    G4: a float colour TIFF was "unknown format" though TIFF is read."""
+    from slamreloc.errors import InputError
+    from slamreloc.io.images import read_image
+
+    files = _float_images(tmp_path)
+    with pytest.raises(InputError, match=r"g\.pfm: not a readable image \(32-bit PNM samples, "
+                                         r"which OpenCV does not decode; save it with 8 or 16 "
+                                         r"bits\)$"):
+        read_image(files["grey PFM"])
+    with pytest.raises(InputError, match=r"c\.tif: not a readable image \(a TIFF whose layout "
+                                         r"or samples are not read, such as 32-bit float "
+                                         r"colour; save it with 8 or 16 bits\)$"):
+        read_image(files["colour float TIFF"])
+
+
+# ---- round 27, G5: the environment does not overrule --max-request-mb -----------------------
+def test_ray_serve_request_bound_holds_over_the_environment(small_map, monkeypatch):
+    """G5: `RAY_SERVE_GRPC_MAX_MESSAGE_SIZE` in the environment silently overruled
+    `--max-request-mb` (`os.environ.setdefault`)."""
+    pytest.importorskip("ray")
+    import ray
+
+    from slamreloc.service import ray_serve
+
+    class Started(Exception):
+        pass
+
+    def init(**kwargs):
+        raise Started
+
+    monkeypatch.setenv("RAY_SERVE_GRPC_MAX_MESSAGE_SIZE", str(64 << 20))
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", init)
+    with pytest.raises(Started):
+        ray_serve.deploy({"m": small_map.root}, grpc_port=ray_serve.free_port(),
+                         http_port=ray_serve.free_port(), max_request_bytes=1 << 20)
+    assert os.environ["RAY_SERVE_GRPC_MAX_MESSAGE_SIZE"] == str(1 << 20)

@@ -176,14 +176,18 @@ def test_consistent_frames_load_as_before(scene, tmp_path, kind, parents, childr
 
 # --- F7: /tf_static is a tree ------------------------------------------------------------------
 
-def tf_bag(scene, path: Path, static: list[tuple[str, str, Rigid3]]) -> Path:
+def tf_bag(scene, path: Path, static: list[tuple[str, str, Rigid3]],
+           also_dynamic: list[tuple[str, str, Rigid3]] = ()) -> Path:
     """A bag of the scene's frames posed by /tf map -> base (the rig's base), with `static`
-    (parent, child, parent_from_child) on /tf_static."""
+    (parent, child, parent_from_child) on /tf_static and `also_dynamic` on /tf with each
+    pose."""
     dataset, frames = scene
     msgs = Messages(2)
     t0 = frame_stamp(frames[0])
     dynamic = [msgs.tf([msgs.transform(frame_stamp(f), "map", "base",
-                                       f.world_from_cam @ CAM_FROM_BASE)]) for f in frames]
+                                       f.world_from_cam @ CAM_FROM_BASE)]
+                       + [msgs.transform(frame_stamp(f), parent, child, pose)
+                          for parent, child, pose in also_dynamic]) for f in frames]
     transforms = msgs.tf([msgs.transform(t0, parent, child, pose)
                           for parent, child, pose in static])
     return write_bag(dataset, frames, path, poses=None, static=False,
@@ -202,12 +206,13 @@ SHIFTED = Rigid3(np.eye(3), np.array([0.3, 0.0, 0.0]))
     # the same chain, agreeing: still two parents, which tf2 does not build either
     ([("base", CAM, BASE_FROM_MOUNT @ MOUNT_FROM_CAM)],
      "/tf_static gives frame cam two parents (mount and base)"),
-    # a loop, each frame one parent: cam -> base closes base -> mount -> cam
+    # a loop: cam -> base closes base -> mount -> cam, and gives base (/tf: map's child) a
+    # second parent
     ([(CAM, "base", MOUNT_FROM_CAM.inverse() @ BASE_FROM_MOUNT.inverse())],
-     "/tf_static has a loop (cam -> base -> mount -> cam): a tf tree has none"),
+     "/tf_static and /tf give frame base two parents (cam and map)"),
     # a pair given both ways, agreeing: a loop of two frames (tf2 refuses it too)
     ([("mount", "base", BASE_FROM_MOUNT.inverse())],
-     "/tf_static has a loop (base -> mount -> base): a tf tree has none"),
+     "/tf_static and /tf give frame base two parents (mount and map)"),
     # ... where the reversed child has a parent already: two parents
     ([(CAM, "mount", MOUNT_FROM_CAM.inverse())],
      "/tf_static gives frame mount two parents (base and cam)"),
@@ -238,3 +243,20 @@ def test_a_static_tree_loads_and_a_repeated_transform_is_read_once(scene, tmp_pa
     bag = write_bag(dataset, frames, tmp_path / "odom.bag", 1, poses="odometry", static=False,
                     extra={"/tf_static": static_tf(msgs, frame_stamp(frames[0])) * 2})
     assert_true_poses(bag, frames)
+
+
+@pytest.mark.parametrize("static, dynamic, problem", [
+    (RIG, [("base", CAM, BASE_FROM_MOUNT @ MOUNT_FROM_CAM @ SHIFTED)],
+     "/tf_static and /tf give frame cam two parents (mount and base)"),
+    ([("base", CAM, BASE_FROM_MOUNT @ MOUNT_FROM_CAM @ SHIFTED)], RIG,
+     "/tf_static and /tf give frame cam two parents (base and mount)"),
+], ids=["static-chain", "dynamic-chain"])
+def test_a_frame_with_parents_on_tf_and_tf_static_is_refused(scene, tmp_path, static, dynamic,
+                                                            problem):
+    """Round 27, G2: one parent of the camera on /tf_static and another on /tf (0.3 m apart):
+    the static chain was taken without a word. /tf and /tf_static make one tree."""
+    bag = tf_bag(scene, tmp_path / "run", static, dynamic)
+    set_topics(parse_topics(["pose=tf:map:base"]))
+    with pytest.raises(InputError) as err:
+        load_dataset(bag)
+    assert str(err.value) == f"{bag}: {problem}: a tf tree gives each frame one parent"

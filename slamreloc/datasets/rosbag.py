@@ -666,25 +666,38 @@ def _static_transforms(bag: _Bag) -> dict[tuple[str, str], Rigid3]:
                 raise InputError(f"{bag.path}: /tf_static gives {pair[0]} -> {pair[1]} twice "
                                  f"with different transforms ({pose_gap(edges[pair], edge)})")
             edges.setdefault(pair, edge)
-    _check_tree(bag, edges)
+    _check_tree(bag, [(pair, TF_STATIC_TOPIC) for pair in edges] + _tf_pairs(bag))
     return edges
 
 
-def _check_tree(bag: _Bag, edges: dict[tuple[str, str], Rigid3]) -> None:
-    """An InputError naming the bag where the (parent, child) pairs of /tf_static are no tree:
-    a frame given two parents (the frame and both) or a loop (its frames): either gives two
-    chains between some frames, which may disagree, and which one holds is not for us to
-    guess."""
-    parents: dict[str, str] = {}  # child -> parent
-    for parent, child in edges:
-        if parents.setdefault(child, parent) != parent:
-            raise InputError(f"{bag.path}: /tf_static gives frame {child} two parents "
-                             f"({parents[child]} and {parent}): a tf tree gives each frame "
-                             "one parent")
-    loop = _loop(parents)
+def _tf_pairs(bag: _Bag) -> list[tuple[tuple[str, str], str]]:
+    """((parent, child), "/tf") of every pair the bag's /tf transforms name (none without
+    /tf): /tf and /tf_static make one tf tree."""
+    if bag.topics.get(TF_TOPIC, ("",))[0] != TF_MESSAGE:
+        return []
+    pairs = {(_frame_id(t.header.frame_id), _frame_id(t.child_frame_id))
+             for _, msg in bag.messages(TF_TOPIC) for t in msg.transforms}
+    return [(pair, TF_TOPIC) for pair in sorted(pairs)]
+
+
+def _check_tree(bag: _Bag, pairs: list[tuple[tuple[str, str], str]]) -> None:
+    """An InputError naming the bag where the (parent, child) pairs of /tf_static and /tf
+    (each with the topic that gives it) are no tree: a frame given two parents (the frame,
+    both parents and their topics) or a loop (its frames): either gives two chains between
+    some frames, which may disagree, and which one holds is not for us to guess."""
+    parents: dict[str, tuple[str, str]] = {}  # child -> (parent, the topic giving it)
+    for (parent, child), topic in pairs:
+        first, where = parents.setdefault(child, (parent, topic))
+        if first != parent:
+            said = f"{where} gives" if where == topic else f"{where} and {topic} give"
+            raise InputError(f"{bag.path}: {said} frame {child} two parents ({first} and "
+                             f"{parent}): a tf tree gives each frame one parent")
+    loop = _loop({child: parent for child, (parent, _) in parents.items()})
     if loop:
-        raise InputError(f"{bag.path}: /tf_static has a loop ({' -> '.join(loop)}): a tf tree "
-                         "has none")
+        topics = sorted({topic for _, topic in pairs})
+        said = f"{topics[0]} has" if len(topics) == 1 else " and ".join(topics) + " hold"
+        raise InputError(f"{bag.path}: {said} a loop ({' -> '.join(loop)}): a tf tree has "
+                         "none")
 
 
 def _loop(parents: dict[str, str]) -> list[str] | None:

@@ -172,6 +172,8 @@ def _jpeg_header(data: bytes, source, what: str) -> ImageHeader:
 
 
 _PILLOW_BOUND = threading.Lock()  # held while Pillow's own size bound is lifted
+# the first bytes of the formats read through Pillow, to name one it cannot parse
+_MAGIC = ((b"II*\0", "TIFF"), (b"MM\0*", "TIFF"), (b"PF", "PFM (PNM)"), (b"Pf", "PFM (PNM)"))
 
 
 def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
@@ -193,6 +195,11 @@ def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
             finally:
                 Image.MAX_IMAGE_PIXELS = bound
     except Exception as err:  # noqa: BLE001 - Pillow's parsers raise many kinds on bad bytes
+        known = next((name for magic, name in _MAGIC if data.startswith(magic)), None)
+        if known is not None and "cannot identify" in str(err):  # e.g. float colour samples
+            raise InputError(f"{source}: not a readable {what} (a {known} whose layout or "
+                             "samples are not read, such as 32-bit float colour; save it with "
+                             "8 or 16 bits)") from None
         kind = "unknown format" if "cannot identify" in str(err) else type(err).__name__
         raise InputError(f"{source}: not a readable {what} ({kind}; PNG, JPEG, BMP, TIFF, "
                          "WebP and PNM are read)") from None
@@ -308,6 +315,10 @@ def decode_image(data: bytes, source, flags: int = cv2.IMREAD_COLOR, what: str =
     (BGR for colour). `fits(width, height, source)`: a further check of the header's size
     before decoding (a feature extractor's `check_size`)."""
     header = check_encoded_image(data, source, what)
+    if header.bits > 16:  # OpenCV decodes none, or casts them to 8 bits (a float PFM: 0 or 1)
+        raise InputError(f"{source}: not a readable {what} ({header.bits}-bit "
+                         f"{header.format} samples, which OpenCV does not decode; save it "
+                         "with 8 or 16 bits)")
     if fits is not None:
         fits(header.width, header.height, source)
     # the pixels as stored: a JPEG's EXIF orientation is not applied (its header's size is
@@ -324,9 +335,7 @@ def decode_image(data: bytes, source, flags: int = cv2.IMREAD_COLOR, what: str =
     else:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     if img is None or img.size == 0:
-        why = (f"{header.bits}-bit {header.format} samples, which OpenCV does not decode; "
-               "save it with 8 or 16 bits" if header.bits > 16 else "empty or corrupt")
-        raise InputError(f"{source}: not a readable {what} ({why})")
+        raise InputError(f"{source}: not a readable {what} (empty or corrupt)")
     if (img.shape[1], img.shape[0]) != (header.width, header.height):
         raise InputError(f"{source}: not a readable {what} (decoded {img.shape[1]}x"
                          f"{img.shape[0]}, its header says {header.width}x{header.height})")

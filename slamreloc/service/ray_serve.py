@@ -148,8 +148,9 @@ def deploy(maps: dict[str, Path], replicas: int = 1, host: str = "127.0.0.1",
     t0 = time.perf_counter()
     started_ray = False
     if not ray.is_initialized():
-        # read by Serve's proxy when it starts (workers inherit a local instance's environment)
-        os.environ.setdefault("RAY_SERVE_GRPC_MAX_MESSAGE_SIZE", str(max_request_bytes))
+        # read by Serve's proxy when it starts (workers inherit a local instance's
+        # environment): `max_request_bytes` holds, whatever the environment said
+        os.environ["RAY_SERVE_GRPC_MAX_MESSAGE_SIZE"] = str(max_request_bytes)
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
         if address is None:
             ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False,
