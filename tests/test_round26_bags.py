@@ -17,7 +17,6 @@ from slamreloc.datasets import load_dataset
 from slamreloc.datasets.rosbag import BagTopics, bag_trajectory, parse_topics, set_topics
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
-from tests.fuzzing import run_cli
 from tests.rosbag_support import (  # noqa: F401 - automatic_topics: a fixture
     automatic_topics,
     first_test_frames,
@@ -31,6 +30,7 @@ from tests.rosbag_support import (  # noqa: F401 - automatic_topics: a fixture
     write_bag,
 )
 from tests.test_fuzz_inputs import _tiny_map
+from tests.test_input_leftovers import one_error_line
 
 N_FRAMES = 4
 CAM_FROM_BASE = (BASE_FROM_MOUNT @ MOUNT_FROM_CAM).inverse()
@@ -48,15 +48,6 @@ def tiny_map(tmp_path_factory) -> Path:
 
 def bag_name(tmp_path: Path, version: int) -> Path:
     return tmp_path / ("run.bag" if version == 1 else "run")
-
-
-def one_error_line(argv: list[str]) -> str:
-    """The CLI's one `error:` line for `argv`, which must exit 2 without a traceback."""
-    code, err = run_cli(argv)
-    assert "Traceback" not in err, err
-    errors = [line for line in err.splitlines() if line.startswith("error:")]
-    assert code == 2 and len(errors) == 1 and err.splitlines()[-1] == errors[0], err
-    return errors[0]
 
 
 def evaluate_argv(tiny_map: Path, bag: Path, report: Path, *topics: str) -> list[str]:
