@@ -23,15 +23,15 @@ class TrajectoryOdometry(Odometry):
     name = "trajectory"
 
     def __init__(self, stamps: np.ndarray, poses: list[Rigid3], source: str,
-                 max_dt: float = 0.01, frames: list[str] | None = None):
+                 max_dt: float = 0.01, by_frame: bool = False):
         """stamps: seconds; poses: camera-to-odometry-frame; source: what errors name (the
-        file, or the bag and its topic); frames: where the poses are the tracked frames' own,
-        one for each (None where it has none), those frames' names (`stamps` unused)."""
+        file, or the bag and its topic); by_frame: the poses are the tracked frames' own, one
+        for each, in stream order (`stamps` unused)."""
         self.stamps = np.asarray(stamps, dtype=np.float64)
         self.poses = poses
         self.source = source
         self.max_dt = max_dt
-        self.frames = frames
+        self.by_frame = by_frame
 
     @classmethod
     def from_file(cls, path: str | Path, keys: list[FrameKey]) -> TrajectoryOdometry:
@@ -47,10 +47,10 @@ class TrajectoryOdometry(Odometry):
                              f"{key.timestamp or 0.0:.6f}), number {missing + 1} of the "
                              f"{len(keys)} tracked; odometry needs a pose of every frame")
         return cls(np.array([k.timestamp or 0.0 for k in keys]), matched, str(path),
-                   MAX_DT, [k.name for k in keys])
+                   MAX_DT, by_frame=True)
 
     def step(self, depth, camera, image=None, timestamp=0.0, index=0) -> OdometryStep:
-        if self.frames is not None:
+        if self.by_frame:
             if not 0 <= index < len(self.poses):
                 raise InputError(f"{self.source}: no pose for frame number {index + 1}: it "
                                  f"was matched to {len(self.poses)} frames")
