@@ -22,7 +22,6 @@ at +0.5. Camera strings and COLMAP files are in COLMAP's convention and converte
 from __future__ import annotations
 
 import re
-
 from functools import lru_cache
 
 import numpy as np
@@ -98,15 +97,21 @@ def _fold_problem(model: str, distortion: tuple[float, ...], width: int, height:
         upto = out[:beyond[0] + 1] if len(beyond) else out
         if (model == "OPENCV_FISHEYE" and not len(beyond) and np.all(np.diff(upto) > 0)
                 and reach > distort_normalized(model, distortion, 1e6 * unit[None]) @ unit):
-            return (f"towards pixel ({edge[0]:g}, {edge[1]:g}) the image reaches beyond what "
-                    "the fisheye lens sees (more than 90 degrees off its axis: a field of view "
-                    f"over 180 degrees at fx={fx:g}, fy={fy:g}); check the focal lengths")
+            return _beyond_fisheye(f"{edge[0]:g}, {edge[1]:g}", fx, fy)
         if (not len(beyond) or not np.isfinite(upto[-1])
                 or not np.all(np.diff(upto) > 0)):
             return (f"its distortion {list(distortion)} folds back inside the image (towards "
                     f"pixel ({edge[0]:g}, {edge[1]:g}) the distorted radius stops growing "
                     "before the image's edge), so its pixels cannot be undistorted")
     return _fold_in_circle(model, distortion, width, height, fx, fy, cx, cy)
+
+
+def _beyond_fisheye(pixel: str, fx: float, fy: float) -> str:
+    """The problem of a fisheye camera whose image reaches past 90 degrees off its axis
+    towards `pixel` ("x, y"): its focal lengths are too short for the image."""
+    return (f"towards pixel ({pixel}) the image reaches beyond what the fisheye lens sees "
+            "(more than 90 degrees off its axis: a field of view over 180 degrees at "
+            f"fx={fx:g}, fy={fy:g}); check the focal lengths")
 
 
 def _fold_in_circle(model: str, distortion: tuple[float, ...], width: int, height: int,
@@ -117,7 +122,9 @@ def _fold_in_circle(model: str, distortion: tuple[float, ...], width: int, heigh
     to where the distorted point leaves that circle after entering it, the mapping must keep
     its orientation (the Jacobian's determinant, by differences in radius and angle, stays
     positive), and a ray that enters the circle must leave it. Then each pixel inside the
-    circle has exactly one direction."""
+    circle has exactly one direction. A fisheye ray that keeps its orientation and is still
+    inside the circle at 90 degrees off the axis (the last radius, 89.94 degrees) is no fold:
+    the circle reaches past what the lens sees, and that is said instead."""
     centre, radius_px = np.array([(width - 1) / 2, (height - 1) / 2]), min(width, height) / 2
     angles = np.linspace(0, 2 * np.pi, 360, endpoint=False)
     radii = np.geomspace(1e-3, 1e3, 1200)  # steps of 1.2 %
@@ -134,21 +141,27 @@ def _fold_in_circle(model: str, distortion: tuple[float, ...], width: int, heigh
         sideways = (rays[1] - rays[0])[:-1]
         det = outward[..., 0] * sideways[..., 1] - outward[..., 1] * sideways[..., 0]
     steps = np.arange(len(radii))[:, None]
-    entered = inside.any(axis=0)
-    first_in = np.where(entered, inside.argmax(axis=0), len(radii))
-    out_after = ~inside & (steps > first_in[None, :])  # outside again, after entering
+    # each ray's own branch ends where its orientation first flips (a barrel lens's distorted
+    # radius peaks, then turns back through the principal point: a branch of directions
+    # beyond the lens's field that undistortion never takes, which may cross the circle
+    # when the principal point lies outside it, as in a crop)
+    flip = ~(det > 0)
+    flips = flip.any(axis=0)
+    branch_end = np.where(flips, flip.argmax(axis=0), len(radii) - 1)  # its last step
+    own = steps <= branch_end[None, :]
+    entered = (inside & own).any(axis=0)
+    first_in = np.where(entered, (inside & own).argmax(axis=0), len(radii))
+    out_after = ~inside & own & (steps > first_in[None, :])  # outside again, after entering
     left = out_after.any(axis=0)
-    first_out = np.where(left, out_after.argmax(axis=0), len(radii))
-    bad = (steps[:-1] < first_out[None, :]) & entered[None, :] & ~(det > 0)
-    stuck = entered & ~left  # a ray that stays inside: it folds back before the edge
+    bad = entered & ~left & flips  # flips while inside: two directions meet there
+    stuck = entered & ~left & ~flips  # still inside at the last radius: never leaves
     if not stuck.any() and not bad.any():
-        return None
-    if bad.any():  # where the orientation flips
-        step_at, ray = np.unravel_index(np.argmax(bad), bad.shape)
-    else:  # a ray that never leaves the circle: where it ends
-        ray = int(np.argmax(stuck))
-        step_at = len(radii) - 1
+        return _circle_reached(model, distortion, width, height, fx, fy, cx, cy)
+    ray = int(np.argmax(bad)) if bad.any() else int(np.argmax(stuck))
+    step_at = int(branch_end[ray])
     where = rays[0][step_at, ray] * [fx, fy] + [cx, cy]
+    if model == "OPENCV_FISHEYE" and not bad.any():
+        return _beyond_fisheye(f"{where[0]:.0f}, {where[1]:.0f}", fx, fy)
     return (f"its distortion {list(distortion)} folds back inside the image (near pixel "
             f"({where[0]:.0f}, {where[1]:.0f}) two directions meet on one pixel, or none "
             "reaches it), so its pixels cannot be undistorted")
@@ -202,6 +215,31 @@ def colmap_head(model: str, fx: float, fy: float, cx: float, cy: float) -> list[
     """The focal and principal-point parameters of a COLMAP model, COLMAP's convention."""
     cx, cy = cx + COLMAP_CENTRE, cy + COLMAP_CENTRE
     return [0.5 * (fx + fy), cx, cy] if PARAMS[model][0] == "f" else [fx, fy, cx, cy]
+
+
+def _circle_reached(model: str, distortion: tuple[float, ...], width: int, height: int,
+                    fx: float, fy: float, cx: float, cy: float) -> str | None:
+    """The last part of the fold test: every pixel of the circle inscribed in the image
+    (sampled: 360 directions, 24 radii) undistorts to a direction that distorts back onto it
+    (within 0.05 px). The rays' branches (`_fold_in_circle`) keep their orientation; this
+    finds a part of the circle that none of them reaches (a lens whose radius peaks before
+    the circle's far side, seen from a principal point outside it)."""
+    centre, radius_px = np.array([(width - 1) / 2, (height - 1) / 2]), min(width, height) / 2
+    angles = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    radius = np.linspace(0, radius_px - 0.5, 24)[:, None]
+    pixels = np.stack([centre[0] + radius * np.cos(angles), centre[1] + radius * np.sin(angles)],
+                      -1).reshape(-1, 2)
+    f, c = np.array([fx, fy]), np.array([cx, cy])
+    with np.errstate(all="ignore"):
+        ideal = undistort_normalized(model, distortion, (pixels - c) / f)
+        back = distort_normalized(model, distortion, ideal) * f + c
+        miss = ~(np.hypot(*(back - pixels).T) < 0.05)
+    if not miss.any():
+        return None
+    where = pixels[int(np.argmax(miss))]
+    return (f"its distortion {list(distortion)} folds back inside the image (near pixel "
+            f"({where[0]:.0f}, {where[1]:.0f}) two directions meet on one pixel, or none "
+            "reaches it), so its pixels cannot be undistorted")
 
 
 def distort_normalized(model: str, distortion, xy: np.ndarray) -> np.ndarray:

@@ -32,6 +32,21 @@ ROS_MODELS = {"PINHOLE": ("plumb_bob", 5), "OPENCV": ("plumb_bob", 5),
               "FULL_OPENCV": ("rational_polynomial", 8), "OPENCV_FISHEYE": ("equidistant", 4)}
 
 
+def full_resolution(camera: Camera, binning: tuple[int, int] = (1, 1),
+                    roi_offset: tuple[int, int] = (0, 0),
+                    size: tuple[int, int] | None = None) -> Camera:
+    """The full-resolution calibration (of `size`, default the window's) of which `camera` is
+    the image delivered with `binning` (binning_x, binning_y; 0 is 1) and a window at
+    `roi_offset`: f_full = b f, c_full = b c + offset + (b - 1) / 2 (a binned pixel's centre
+    is the centre of the b full-resolution pixels it sums)."""
+    bx, by = (b or 1 for b in binning)
+    x, y = roi_offset
+    width, height = size or (camera.width * bx + x, camera.height * by + y)
+    return Camera(width, height, camera.fx * bx, camera.fy * by,
+                  camera.cx * bx + x + (bx - 1) / 2, camera.cy * by + y + (by - 1) / 2,
+                  camera.model, camera.distortion)
+
+
 def stamp_ns(seconds: float) -> int:
     return int(round(seconds * 1e9))
 
@@ -77,19 +92,27 @@ class Messages:
                          step=len(data) // h, data=data.copy())
 
     def camera_info(self, stamp: float, camera: Camera, model: str | None = None,
-                    d: list[float] | None = None) -> Any:
-        """A CameraInfo of `camera`, or of its K with the given distortion model and D."""
+                    d: list[float] | None = None, binning: tuple[int, int] = (0, 0),
+                    roi: tuple[int, int, int, int] = (0, 0, 0, 0),
+                    size: tuple[int, int] | None = None) -> Any:
+        """A CameraInfo of `camera`, or of its K with the given distortion model and D;
+        `binning` (binning_x, binning_y), `roi` (x_offset, y_offset, width, height) and `size`
+        (the width, height it claims instead of the camera's; (0, 0): not given) as given
+        (`camera` is then the full-resolution calibration: see `full_resolution`)."""
         name, n = ROS_MODELS[camera.model]
         d = d if d is not None else (list(camera.distortion) + [0.0] * n)[:n]
         k = [camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1]
         p = [camera.fx, 0, camera.cx, 0, 0, camera.fy, camera.cy, 0, 0, 0, 1, 0]
-        roi = self.make("sensor_msgs/msg/RegionOfInterest", x_offset=0, y_offset=0, height=0,
-                        width=0, do_rectify=False)
+        x, y, w, h = roi
+        window = self.make("sensor_msgs/msg/RegionOfInterest", x_offset=x, y_offset=y,
+                           height=h, width=w, do_rectify=False)
+        width, height = size or (camera.width, camera.height)
         return self.make("sensor_msgs/msg/CameraInfo", header=self.header(stamp),
-                         height=camera.height, width=camera.width,
+                         height=height, width=width,
                          distortion_model=model or name, d=np.array(d, np.float64),
                          k=np.array(k, np.float64), r=np.eye(3).reshape(-1),
-                         p=np.array(p, np.float64), binning_x=0, binning_y=0, roi=roi)
+                         p=np.array(p, np.float64), binning_x=binning[0],
+                         binning_y=binning[1], roi=window)
 
     def _xyz(self, msgtype: str, v) -> Any:
         return self.make(msgtype, x=float(v[0]), y=float(v[1]), z=float(v[2]))

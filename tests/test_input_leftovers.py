@@ -21,12 +21,17 @@ from slamreloc.datasets import load_dataset
 from slamreloc.datasets.poses import FrameKey, read_poses
 from slamreloc.datasets.rosbag import bag_trajectory, load_rosbag
 from slamreloc.errors import InputError
-from slamreloc.geometry import Rigid3, axis_angle_to_matrix, tum_line, write_tum_trajectory
+from slamreloc.geometry import (
+    Rigid3,
+    axis_angle_to_matrix,
+    read_tum_trajectory,
+    tum_line,
+    write_tum_trajectory,
+)
 from slamreloc.map.format import META
 from slamreloc.map.meta import MapMeta
 from slamreloc.map.scene_map import SceneMap
 from slamreloc.slam.external import TrajectoryOdometry
-from slamreloc.slam.trajectory import read_tum
 from tests.colmap_project import write_colmap_project
 from tests.fuzzing import fuzz_settings, run_cli
 from tests.rosbag_support import IMAGE_TOPIC, Messages, frame_stamp, write_bag
@@ -409,11 +414,12 @@ def read_tum_file(reader: str, path: Path) -> tuple[list[float], list[Rigid3]]:
     """(stamps, poses) of the TUM file `path` as `reader` reads it: `slam`'s trajectory
     reader, `slam --odometry`, `--poses` / `--reference`, a TUM folder's ground truth."""
     if reader == "trajectory":
-        stamps, poses = read_tum(path)
-        return list(stamps), poses
+        rows = read_tum_trajectory(path, numeric_stamps=True)
+        return [float(stamp) for stamp, _ in rows], [pose for _, pose in rows]
     if reader == "odometry":  # matched to frames of those stamps, as `slam` does
-        odo = TrajectoryOdometry.from_file(path, [FrameKey(f"f{i}", None, float(t))
-                                                  for i, t in enumerate(read_tum(path)[0])])
+        stamps = read_tum_file("trajectory", path)[0]
+        odo = TrajectoryOdometry.from_file(path, [FrameKey(f"f{i}", None, t)
+                                                  for i, t in enumerate(stamps)])
         return list(odo.stamps), odo.poses
     if reader == "reference":
         ref = read_poses(path)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -18,7 +19,9 @@ from slamreloc.geometry import Rigid3, axis_angle_to_matrix, pose_error
 from slamreloc.slam.backend import BackendConfig, SlamBackend
 from slamreloc.slam.keyframes import KeyframeRows
 from slamreloc.slam.live_map import LiveMap, LiveMapConfig
+from slamreloc.synthetic import render_scene
 from slamreloc.types import Camera
+from tests.conftest import SMALL_SCENE
 
 LIVE = ["--split", "kidnap", "--kidnap-every", "30", "--kidnap-skip", "10"]
 
@@ -167,6 +170,37 @@ def test_second_session_anchors_in_the_first_map_and_extends_it(live_session, ki
     assert r["live_map"]["n_prior_frames"] == r1["live_map"]["n_keyframes"]
     assert r["live_map"]["n_keyframes"] > 0
     assert {p.name: p.read_bytes() for p in map1.iterdir() if p.is_file()} == before
+
+
+def test_a_session_of_another_dataset_records_where_the_map_s_frames_are(
+        live_session, kidnap_scene, scene_dir, tmp_path):
+    """Attack round 28, H1: `slam OTHER --map MAP1 --out MAP3` recorded OTHER alone, while its
+    first frames are MAP1's, from MAP1's dataset: export coloured them grey and said "colours
+    from the images", and MAP1's dataset was no input of commands on MAP3. MAP3 now records
+    the datasets of the frames it took over (`extended`)."""
+    r1, map1, work = live_session
+    map3 = work / "map3"
+    # the room again, without a kidnap sequence: no frame is named as MAP1's (seq-03/...)
+    other = render_scene(tmp_path / "other", replace(SMALL_SCENE, n_kidnap=0, n_unlabelled=0))
+    res = cli("slam", other, "--split", "train", "--map", map1, "--out", map3,
+              "--report", work / "r3x.json", "--save-every", "0")
+    assert res.returncode == 0, res.stderr
+    meta = json.loads((map3 / "slamreloc_map.json").read_text())
+    assert meta["dataset"]["root"] == str(other.resolve())
+    assert meta["extended"] == {"source_map": str(map1.resolve()),
+                                "dataset_roots": [str(kidnap_scene.resolve())],
+                                "n_prior_frames": r1["live_map"]["n_keyframes"]}
+    res = cli("export", map3, "--ply", work / "m3.ply")
+    assert res.returncode == 0 and "colours from the images)" in " ".join(res.stderr.split())
+    res = cli("export", map3, "--colmap", kidnap_scene / "col")
+    assert res.returncode == 2 and "a dataset of the map's earlier sessions" in res.stderr
+    assert not (kidnap_scene / "col").exists()
+    # a session whose frames are named as MAP1's but come from elsewhere: refused, naming
+    # the dataset they do come from
+    res = cli("slam", scene_dir, "--split", "kidnap", "--map", map1, "--out", work / "map4",
+              "--report", work / "r4x.json")
+    assert res.returncode == 2 and not (work / "map4").exists()
+    assert f"which come from the map's dataset ({kidnap_scene.resolve()})" in res.stderr
 
 
 def test_slam_in_a_learned_map_scores_in_its_frame(live_session, kidnap_scene):

@@ -136,6 +136,9 @@ def metadata(draw) -> dict:
         doc["files"] = {WEIGHTS: SHA, DATABASE: SHA,
                         **draw(st.dictionaries(st.sampled_from(["surface.npz", "provenance.npz"]),
                                                st.just(SHA)))}
+    # required: every writer lists the training frames (a map without them is refused)
+    doc["frame_names"] = draw(st.lists(st.text(max_size=8).filter(
+        lambda n: frame_name_problem(n) is None), max_size=4))
     optional = {
         "slamreloc_version": st.text(max_size=8) | finite_json,
         "train": st.dictionaries(st.text("abc_", max_size=5), finite_json, max_size=4)
@@ -157,8 +160,6 @@ def metadata(draw) -> dict:
                                                      "split": st.none() | st.text(max_size=4)}),
                                    "history": st.lists(st.text(max_size=5), max_size=3)},
                                   strict=("n_frames_registered", "dataset")),
-        "frame_names": st.lists(st.text(max_size=8).filter(lambda n: frame_name_problem(n)
-                                                           is None), max_size=4),
         "tag": finite_json,
     }
     for key, strategy in optional.items():

@@ -251,3 +251,23 @@ def test_a_frame_with_parents_on_tf_and_tf_static_is_refused(scene, tmp_path, st
     with pytest.raises(InputError) as err:
         load_dataset(bag)
     assert str(err.value) == f"{bag}: {problem}: a tf tree gives each frame one parent"
+
+
+@pytest.mark.parametrize("static, dynamic, problem", [
+    # a loop of two frames apart from the rig, on /tf_static alone while /tf is there too
+    (RIG + [("x", "y", SHIFTED), ("y", "x", SHIFTED.inverse())], [],
+     "/tf_static has a loop (x -> y -> x)"),
+    # map -> base on /tf, base -> mount -> cam on /tf_static, cam -> map on /tf: one loop
+    # through both topics, each frame with one parent
+    (RIG, [(CAM, "map", (BASE_FROM_MOUNT @ MOUNT_FROM_CAM).inverse())],
+     "/tf and /tf_static hold a loop (cam -> map -> base -> mount -> cam)"),
+], ids=["static-loop", "loop-through-both"])
+def test_a_tf_loop_names_the_topics_of_its_transforms(scene, tmp_path, static, dynamic,
+                                                      problem):
+    """A loop in the tree /tf and /tf_static make is refused naming the topics its own
+    transforms come from, not every topic of the tree."""
+    bag = tf_bag(scene, tmp_path / "run", static, dynamic)
+    set_topics(parse_topics(["pose=tf:map:base"]))
+    with pytest.raises(InputError) as err:
+        load_dataset(bag)
+    assert str(err.value) == f"{bag}: {problem}: a tf tree has none"

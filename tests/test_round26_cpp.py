@@ -27,6 +27,7 @@ from slamreloc.geometry import read_tum_trajectory
 from slamreloc.io.fileio import plain_lines
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto import relocalizer_pb2_grpc as pb_grpc
+from slamreloc.proto.messages import map_name_problem
 from tests.fuzzing import run_cli_output
 from tests.test_cpp_client import MISSING, client_binary  # noqa: F401 (a fixture)
 
@@ -298,3 +299,48 @@ def test_options_given_once_are_still_taken(client_binary, fake_server, tmp_path
     assert done.returncode == 0, done.stderr
     assert done.stdout.splitlines() == ["# a.png: not localized (0 inliers)",
                                         "# b.png: not localized (0 inliers)"]
+
+
+def test_the_printable_table_is_pythons():
+    """clients/cpp/nonprintable.inc, the C++ client's table of characters Python's
+    str.isprintable() refuses, is what its generator writes from this Python's Unicode data:
+    the client's name rules and the server's refuse the same characters."""
+    root = Path(__file__).resolve().parents[1] / "clients" / "cpp"
+    done = subprocess.run(["python", str(root / "nonprintable.py")], capture_output=True,
+                          text=True, timeout=120, check=True)
+    assert (root / "nonprintable.inc").read_text() == done.stdout, (
+        "clients/cpp/nonprintable.inc is stale: run python clients/cpp/nonprintable.py > "
+        "clients/cpp/nonprintable.inc")
+
+
+# characters that are no control character and no blank, and still not printable to Python:
+# format (soft hyphen, zero-width space, BOM inside a name, a tag), private-use, unassigned
+NOT_PRINTABLE = ["\u00ad", "\u200b", "\u2066", "\ufeff", "\U000e0001", "\ue000",
+                 "\U000f0000", "\U0010fffd", "\u0378", "\U0003fffd", "\ufdd0"]
+
+
+@needs_cpp
+def test_format_private_and_unassigned_characters_are_refused_alike(
+        client_binary, fake_server, tmp_path):  # noqa: F811
+    """A frame name or a map name holding a character that is printable to neither side's
+    rule: the C++ client refuses it before sending anything, as Python does (it was left to
+    the server for format, private-use and unassigned characters)."""
+    assert not any(c.isprintable() or c.isspace() or unicodedata.category(c) == "Cc"
+                   for c in NOT_PRINTABLE)
+    for i, c in enumerate(NOT_PRINTABLE):
+        root = _tum_folder(tmp_path / f"t{i}", f"1.0 rgb/a{c}.png\n2.0 rgb/b.png\n".encode())
+        cv2.imwrite(str(root / "rgb" / f"a{c}.png"), np.zeros((240, 320, 3), np.uint8))
+        py, cpp = _python(root), _cpp(client_binary, fake_server, root)
+        assert py[0] is None and "control character" in py[1], (hex(ord(c)), py)
+        assert cpp[0] is None and cpp[1].startswith(f"{root / 'rgb.txt'}:1: frame name "), cpp
+        assert "control character" in cpp[1], (hex(ord(c)), cpp)
+        assert map_name_problem(f"m{c}") is not None
+        done = subprocess.run([str(client_binary), "--server", fake_server, "--map", f"m{c}",
+                               str(tmp_path / f"t{i}")], capture_output=True, text=True,
+                              timeout=60, check=False)
+        assert done.returncode == 2 and done.stdout == "", (hex(ord(c)), done)
+        assert done.stderr.startswith("error: --map ") and "printable" in done.stderr, done
+    for c in ("\u00e9", "\U0001f600", "\u3001"):  # printable: taken by both
+        root = _tum_folder(tmp_path / f"ok{ord(c)}", f"1.0 rgb/{c}.png\n".encode())
+        cv2.imwrite(str(root / "rgb" / f"{c}.png"), np.zeros((240, 320, 3), np.uint8))
+        assert _python(root) == _cpp(client_binary, fake_server, root) == ([c], None)

@@ -7,12 +7,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from slamreloc.datasets.poses import FrameKey
 from slamreloc.errors import InputError
-from slamreloc.geometry import Rigid3, axis_angle_to_matrix
+from slamreloc.geometry import Rigid3, axis_angle_to_matrix, read_tum_trajectory
 from slamreloc.geometry import write_tum_trajectory as write_tum
+from slamreloc.slam.external import TrajectoryOdometry
 from slamreloc.slam.metrics import ate_rmse, umeyama_se3
 from slamreloc.slam.run import kidnap_schedule
-from slamreloc.slam.trajectory import read_tum
 
 vec3 = st.tuples(*[st.floats(-3, 3, allow_nan=False)] * 3).map(np.array)
 
@@ -63,21 +64,32 @@ def test_ate_agrees_with_evo(tmp_path, align):
         evo_est.align(ref)
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, evo_est))
-    ours = ate_rmse(read_tum(tmp_path / "est.txt")[1], read_tum(tmp_path / "ref.txt")[1], align)
+    ours = ate_rmse(_poses(tmp_path / "est.txt"), _poses(tmp_path / "ref.txt"), align)
     assert ours == pytest.approx(ape.get_statistic(metrics.StatisticsType.rmse), rel=1e-5)
+
+
+def _poses(path):
+    """The camera-to-world poses of a TUM trajectory file, in file order."""
+    return [pose for _, pose in read_tum_trajectory(path, numeric_stamps=True)]
 
 
 @pytest.mark.parametrize("text, problem", [
     ("0.0 1 2 3 0 0 0\n", "expected 8 fields"),
     ("frame-1 1 2 3 0 0 0 1\n", "not a number"),
     ("0.0 1 2 x 0 0 0 1\n", "non-numeric"),
-    ("# only a comment\n", "no poses"),
 ])
 def test_malformed_tum_is_an_input_error(tmp_path, text, problem):
     path = tmp_path / "odo.txt"
     path.write_text(text)
     with pytest.raises(InputError, match=problem):
-        read_tum(path)
+        read_tum_trajectory(path, numeric_stamps=True)
+
+
+def test_odometry_file_without_poses_is_an_input_error(tmp_path):
+    path = tmp_path / "odo.txt"
+    path.write_text("# only a comment\n")
+    with pytest.raises(InputError, match="no poses"):
+        TrajectoryOdometry.from_file(path, [FrameKey("f0", None, 0.0)])
 
 
 def test_kidnap_schedule():

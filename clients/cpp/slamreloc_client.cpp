@@ -64,6 +64,7 @@
 #include <grpcpp/grpcpp.h>
 
 #include "relocalizer.grpc.pb.h"
+#include "nonprintable.inc"
 
 namespace fs = std::filesystem;
 namespace v1 = slamreloc::v1;
@@ -223,9 +224,18 @@ int utf8_char(const std::string& text, std::size_t i, char32_t& cp) {
   return n;
 }
 
+// Whether Python's str.isprintable() takes the code point `cp` (nonprintable.inc's table):
+// every name rule of the server is built on it.
+bool printable(char32_t cp) {
+  const auto* end = kNonPrintable + kNonPrintableRuns;
+  const auto* run = std::upper_bound(kNonPrintable, end, cp,
+                                     [](char32_t c, const char32_t(&r)[2]) { return c < r[0]; });
+  return run == kNonPrintable || cp > run[-1][1];
+}
+
 // Why `name` cannot name a served map (empty when it can): the server's rule
-// (`map_name_problem`): valid UTF-8, 1 to kMaxMapName characters, none of them a control,
-// format, line or space character. (Its composed-form rule is left to the server.)
+// (`map_name_problem`): valid UTF-8, 1 to kMaxMapName characters, all printable by Python's
+// rule and none a space. (Its composed-form rule is left to the server.)
 std::string map_name_problem(const std::string& name) {
   if (name.empty()) return "is empty (give a map name, or leave --map out)";
   std::size_t chars = 0;
@@ -233,10 +243,7 @@ std::string map_name_problem(const std::string& name) {
     char32_t cp = 0;
     const int n = utf8_char(name, i, cp);
     if (n == 0) return "is not valid UTF-8 text";
-    const bool bad = cp <= 0x20 || (cp >= 0x7F && cp <= 0xA0) || cp == 0xAD || cp == 0x1680 ||
-                     (cp >= 0x2000 && cp <= 0x200F) || (cp >= 0x2028 && cp <= 0x202F) ||
-                     (cp >= 0x205F && cp <= 0x206F) || cp == 0x3000 || cp == 0xFEFF;
-    if (bad) return "holds a control, format or space character: printable characters "
+    if (cp == ' ' || !printable(cp)) return "holds a control, format or space character: printable characters "
                     "without spaces only";
     i += n;
   }
@@ -477,16 +484,15 @@ std::string plain_text_problem(const std::string& text, std::size_t start, std::
 }
 
 // Why `name`, a TUM image's file stem, cannot name a frame (empty when it can): the Python
-// datasets' rule (slamreloc.types.frame_name_problem), of whose printable test this keeps the
-// control characters (C0, DEL, C1; format, private-use and unassigned characters are left to
-// the server): not empty, no control character, not absolute, and, a backslash read as a
-// slash, no '..', no empty or '.' part.
+// datasets' rule (slamreloc.types.frame_name_problem): not empty, every character printable
+// by Python's rule or a space (no control, format, private-use or unassigned character, no
+// other blank), not absolute, and, a backslash read as a slash, no '..', no empty or '.' part.
 std::string frame_name_problem(const std::string& name) {
   if (name.empty()) return "is empty";
   for (std::size_t i = 0; i < name.size();) {
     char32_t cp = 0;
     const int n = utf8_char(name, i, cp);  // the list was checked as UTF-8
-    if (cp < 0x20 || (cp >= 0x7F && cp <= 0x9F))
+    if (cp != ' ' && !printable(cp))
       return "holds a line break or another control character";
     i += n == 0 ? 1 : n;
   }

@@ -353,8 +353,11 @@ def export(
 
     s = export_map(map_dir, colmap, ply, tum, dataset)
     written = ", ".join(str(p) for p in (colmap, ply, tum) if p is not None)
-    points = (f"{s['points']} points ({s['observations']} observations, colours "
-              f"{'from the images' if s['coloured_from_images'] else 'grey: no dataset'}), "
+    colours = ("colours from the images" if s.get("coloured") == s.get("points") else
+               "grey: no image of the map's frames at hand" if not s.get("coloured") else
+               f"{s['coloured']} coloured from the images, the rest grey: their frames' "
+               "images are not at hand")
+    points = (f"{s['points']} points ({s['observations']} observations, {colours}), "
               if "points" in s else "")
     console.print(f"[green]exported[/green] {points}{s['frames']} cameras to {shown(written)}")
 

@@ -46,9 +46,16 @@ import numpy as np
 
 from slamreloc.datasets.base import Dataset
 from slamreloc.errors import InputError
+from slamreloc.geometry import (
+    MAX_COORDINATE,
+    Rigid3,
+    matrix_to_quat,
+    nearest_stamps,
+    pose_gap,
+    same_pose,
+    unit_quaternion,
+)
 from slamreloc.io.fileio import open_regular
-from slamreloc.geometry import (MAX_COORDINATE, Rigid3, matrix_to_quat, nearest_stamps,
-                                pose_gap, same_pose, unit_quaternion)
 from slamreloc.io.images import (
     check_encoded_image,
     check_image_size,
@@ -162,6 +169,8 @@ class _Bag:
         self.topics = {name: (info.msgtype or "(mixed types)", info.msgcount)
                        for name, info in reader.topics.items()}
         self._first: dict[str, Any] = {}
+        # (parent, child) of every /tf transform, once a pass has read the whole topic
+        self.tf_pairs: set[tuple[str, str]] | None = None
 
     def messages(self, topic: str) -> Iterator[tuple[float, Any]]:
         """(receive time in seconds, message) of each message on `topic`, in bag order."""
@@ -512,19 +521,91 @@ def ros_lens(distortion_model: str, d: list[float], source: str) -> tuple[str, t
     return "FULL_OPENCV", tuple(d) + (0.0,) * (8 - n)
 
 
+def _binning(msg: Any) -> tuple[int, int]:
+    """CameraInfo's (binning_x, binning_y); 0 (or a message without them) is 1, no binning."""
+    return (int(getattr(msg, "binning_x", 0) or 1), int(getattr(msg, "binning_y", 0) or 1))
+
+
+def _roi(msg: Any, source: str) -> tuple[int, int, int, int]:
+    """CameraInfo's roi (x_offset, y_offset, width, height), in full-resolution pixels; all
+    zero (or a message without one) is the full image."""
+    roi = getattr(msg, "roi", None)
+    if roi is None:
+        return 0, 0, 0, 0
+    x, y, w, h = (int(roi.x_offset), int(roi.y_offset), int(roi.width), int(roi.height))
+    if (w == 0) != (h == 0):
+        raise InputError(f"{source}: CameraInfo's roi is {w}x{h}: a window has a width and a "
+                         "height, or neither (0x0 at (0, 0): the full image)")
+    if w == 0 and (x, y) != (0, 0):
+        raise InputError(f"{source}: CameraInfo's roi at ({x}, {y}) has no size (0x0 is the "
+                         "full image, at (0, 0))")
+    return x, y, w, h
+
+
+def _delivered_size(msg: Any, size: tuple[int, int], binning: tuple[int, int],
+                    roi: tuple[int, int, int, int], source: str) -> None:
+    """Refuse a CameraInfo whose roi does not fit its width x height, whose window (the roi,
+    else width x height) is not a whole number of binned pixels, or whose delivered image
+    (the window / binning) is not of the images' `size`. Width and height 0 (size not given)
+    check the roi's window alone, if there is one."""
+    full = (int(msg.width), int(msg.height))
+    x, y, w, h = roi
+    bx, by = binning
+    plain = binning == (1, 1) and roi == (0, 0, 0, 0)
+    if plain:  # a CameraInfo of the images themselves
+        if full not in ((0, 0), size):
+            raise InputError(f"{source}: CameraInfo is for {full[0]}x{full[1]} images, the "
+                             f"images are {size[0]}x{size[1]}")
+        return
+    if w and full != (0, 0) and (x + w > full[0] or y + h > full[1]):
+        raise InputError(f"{source}: CameraInfo's roi ({w}x{h} at ({x}, {y})) does not fit "
+                         f"its {full[0]}x{full[1]} image")
+    window = (w, h) if w else full
+    if window == (0, 0):  # no size given: the images' size is not checked
+        return
+    said = (f"the {w}x{h} roi at ({x}, {y})" if w else f"its full {full[0]}x{full[1]} image") \
+        + (f" with binning_x {bx}, binning_y {by}" if (bx, by) != (1, 1) else "")
+    if window[0] % bx or window[1] % by:
+        raise InputError(f"{source}: CameraInfo's window ({said}) is not a whole number of "
+                         f"binned pixels: {window[0]}x{window[1]} does not divide by "
+                         f"{bx}x{by}")
+    expected = (window[0] // bx, window[1] // by)
+    if expected != size:
+        raise InputError(f"{source}: CameraInfo gives {expected[0]}x{expected[1]} images "
+                         f"({said}), the images are {size[0]}x{size[1]}")
+
+
 def camera_from_info(msg: Any, size: tuple[int, int], source: str) -> Camera:
-    """A `Camera` of the images' size (width, height) from a CameraInfo message."""
+    """A `Camera` of the images' size (width, height) from a CameraInfo message.
+
+    ROS (REP 104): width, height, K and D are those of the full-resolution calibration; `roi`
+    (x_offset, y_offset, width, height in full-resolution pixels; all zero: the full image)
+    is the window captured, and binning_x / binning_y (0 or 1: none) divide it, so the image
+    delivered is (roi.width or width) / binning_x by (roi.height or height) / binning_y. The
+    camera returned is that image's: fx / binning_x, fy / binning_y, and the principal point
+    by exact pixel-centre geometry in slamreloc's (OpenCV's) convention, pixel centres at
+    integer coordinates: the delivered pixel u_b covers full-resolution pixels x_offset +
+    binning_x * u_b ... + binning_x - 1, centred at u_f = x_offset + binning_x * u_b +
+    (binning_x - 1) / 2, so cx_b = (cx_f - x_offset - (binning_x - 1) / 2) / binning_x (cy
+    likewise). ROS's image_geometry uses (cx - x_offset) / binning_x, which puts the centre
+    of a binned pixel at its first full-resolution pixel: a quarter pixel off at binning 2
+    (3/8 at 4); this uses the exact form so that a point projects onto the binned pixel that
+    holds it. D is in normalized coordinates and stays. A CameraInfo whose window does not fit
+    its width x height, is not a whole number of binned pixels, or gives images of another
+    size than the bag's is refused; width and height 0 (size not given) take the images'."""
     k = [float(v) for v in _field(msg, "k")]
     d = [float(v) for v in _field(msg, "d")]
     problem = k_matrix_problem(k)
     if problem:
         raise InputError(f"{source}: {problem}")
-    if (msg.width, msg.height) not in ((0, 0), size):
-        raise InputError(f"{source}: CameraInfo is for {msg.width}x{msg.height} images, the "
-                         f"images are {size[0]}x{size[1]}")
+    binning, roi = _binning(msg), _roi(msg, source)
+    _delivered_size(msg, size, binning, roi, source)
+    (bx, by), (x0, y0) = binning, roi[:2]
+    fx, fy = k[0] / bx, k[4] / by
+    cx, cy = (k[2] - x0 - (bx - 1) / 2) / bx, (k[5] - y0 - (by - 1) / 2) / by
     model, distortion = ros_lens(msg.distortion_model, d, source)
     try:
-        return Camera(size[0], size[1], k[0], k[4], k[2], k[5], model, distortion)
+        return Camera(size[0], size[1], fx, fy, cx, cy, model, distortion)
     except InputError as err:
         raise InputError(f"{source}: {err}") from None
 
@@ -598,11 +679,14 @@ def _pose_messages(bag: _Bag, spec: str) -> Iterator[tuple[float, Any]]:
         yield from bag.messages(spec)
         return
     pair = tf_frames(spec, str(bag.path))
+    seen: set[tuple[str, str]] = set()  # every pair, for the tree check (`_tf_pairs`)
     for receive_time, msg in bag.messages(TF_TOPIC):
         for transform in msg.transforms:
-            if (_frame_id(transform.header.frame_id), _frame_id(transform.child_frame_id)) \
-                    == pair:
+            names = (_frame_id(transform.header.frame_id), _frame_id(transform.child_frame_id))
+            seen.add(names)
+            if names == pair:
                 yield receive_time, transform
+    bag.tf_pairs = seen
 
 
 def _one_frame(bag: _Bag, spec: str, field: str, frames: list[str | None]) -> str | None:
@@ -672,12 +756,14 @@ def _static_transforms(bag: _Bag) -> dict[tuple[str, str], Rigid3]:
 
 def _tf_pairs(bag: _Bag) -> list[tuple[tuple[str, str], str]]:
     """((parent, child), "/tf") of every pair the bag's /tf transforms name (none without
-    /tf): /tf and /tf_static make one tf tree."""
+    /tf): /tf and /tf_static make one tf tree. /tf is read here unless a pose's pass over it
+    (`_pose_messages`) has already gathered them."""
     if bag.topics.get(TF_TOPIC, ("",))[0] != TF_MESSAGE:
         return []
-    pairs = {(_frame_id(t.header.frame_id), _frame_id(t.child_frame_id))
-             for _, msg in bag.messages(TF_TOPIC) for t in msg.transforms}
-    return [(pair, TF_TOPIC) for pair in sorted(pairs)]
+    if bag.tf_pairs is None:
+        bag.tf_pairs = {(_frame_id(t.header.frame_id), _frame_id(t.child_frame_id))
+                        for _, msg in bag.messages(TF_TOPIC) for t in msg.transforms}
+    return [(pair, TF_TOPIC) for pair in sorted(bag.tf_pairs)]
 
 
 def _check_tree(bag: _Bag, pairs: list[tuple[tuple[str, str], str]]) -> None:
@@ -694,7 +780,7 @@ def _check_tree(bag: _Bag, pairs: list[tuple[tuple[str, str], str]]) -> None:
                              f"{parent}): a tf tree gives each frame one parent")
     loop = _loop({child: parent for child, (parent, _) in parents.items()})
     if loop:
-        topics = sorted({topic for _, topic in pairs})
+        topics = sorted({parents[child][1] for child in loop[1:]})  # those of its transforms
         said = f"{topics[0]} has" if len(topics) == 1 else " and ".join(topics) + " hold"
         raise InputError(f"{bag.path}: {said} a loop ({' -> '.join(loop)}): a tf tree has "
                          "none")

@@ -13,6 +13,7 @@ from __future__ import annotations
 import io
 import math
 import os
+import re
 import struct
 import sys
 import tempfile
@@ -61,6 +62,9 @@ class ImageHeader:
     channels: int
     bits: int  # per sample
     format: str  # PNG, JPEG, BMP, TIFF, WebP, PNM
+    # the sample value that means full intensity where the format says (a PNM's maxval, 1 to
+    # 65535; OpenCV decodes the raw samples); None: the whole range of `bits`
+    maxval: int | None = None
 
 
 def _png_chunks(data: bytes, source, what: str, verify_crc: bool):
@@ -173,7 +177,25 @@ def _jpeg_header(data: bytes, source, what: str) -> ImageHeader:
 
 _PILLOW_BOUND = threading.Lock()  # held while Pillow's own size bound is lifted
 # the first bytes of the formats read through Pillow, to name one it cannot parse
-_MAGIC = ((b"II*\0", "TIFF"), (b"MM\0*", "TIFF"), (b"PF", "PFM (PNM)"), (b"Pf", "PFM (PNM)"))
+_MAGIC = ((b"II*\0", "TIFF"), (b"MM\0*", "TIFF"), (b"PF", "PFM (PNM)"), (b"Pf", "PFM (PNM)"),
+          (b"BM", "BMP"), *((f"P{k}".encode(), "PNM") for k in range(1, 8)))
+_PNM_TOKEN = re.compile(rb"(?:\s|#[^\r\n]*)*(\S+)")  # a header token after blanks and comments
+
+
+def _pnm_maxval(data: bytes) -> int | None:
+    """The maxval of a PNM of grey or colour samples (P2, P3, P5, P6: the 4th header token),
+    None for other PNMs (bitmaps, PFM) and where it is no number (Pillow's parse refuses
+    those)."""
+    if data[:2] not in (b"P2", b"P3", b"P5", b"P6"):
+        return None
+    tokens, pos = [], 2
+    while len(tokens) < 3:
+        match = _PNM_TOKEN.match(data, pos, min(len(data), pos + 4096))
+        if match is None:
+            return None
+        tokens.append(match.group(1))
+        pos = match.end()
+    return int(tokens[2]) if tokens[2].isdigit() else None
 
 
 def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
@@ -196,11 +218,14 @@ def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
                 Image.MAX_IMAGE_PIXELS = bound
     except Exception as err:  # noqa: BLE001 - Pillow's parsers raise many kinds on bad bytes
         known = next((name for magic, name in _MAGIC if data.startswith(magic)), None)
-        if known is not None and "cannot identify" in str(err):  # e.g. float colour samples
+        unknown = "cannot identify" in str(err)
+        if known is not None:  # a format we read, in a layout or with samples we do not
+            why = ("such as 32-bit float colour" if unknown else
+                   f"{type(err).__name__}: {' '.join(str(err).split())[:80]}")
             raise InputError(f"{source}: not a readable {what} (a {known} whose layout or "
-                             "samples are not read, such as 32-bit float colour; save it with "
-                             "8 or 16 bits)") from None
-        kind = "unknown format" if "cannot identify" in str(err) else type(err).__name__
+                             f"samples are not read, {why}; save it with 8 or 16 bits)"
+                             ) from None
+        kind = "unknown format" if unknown else type(err).__name__
         raise InputError(f"{source}: not a readable {what} ({kind}; PNG, JPEG, BMP, TIFF, "
                          "WebP and PNM are read)") from None
     if fmt not in OTHER_FORMATS:
@@ -212,7 +237,8 @@ def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
     channels, bits = PILLOW_MODES.get(mode, (4, 8))
     if fmt == "PPM" and mode == "I":  # Pillow's mode for a PGM of 16-bit samples (maxval
         bits = 16                     # over 255): PNM holds no wider ones
-    return ImageHeader(width, height, channels, bits, OTHER_FORMATS[fmt])
+    return ImageHeader(width, height, channels, bits, OTHER_FORMATS[fmt],
+                       _pnm_maxval(data) if fmt == "PPM" else None)
 
 
 def encoded_header(data: bytes, source, what: str = "image") -> ImageHeader:
@@ -312,8 +338,16 @@ def _with_native_stderr(decode: Callable[[], T]) -> tuple[T, list[str]]:
 def decode_image(data: bytes, source, flags: int = cv2.IMREAD_COLOR, what: str = "image",
                  fits: Callable[[int, int, object], None] | None = None) -> np.ndarray:
     """Decode checked bytes with OpenCV (`flags` as cv2.imdecode's); the array as decoded
-    (BGR for colour). `fits(width, height, source)`: a further check of the header's size
-    before decoding (a feature extractor's `check_size`)."""
+    (BGR for colour), raw samples (a PNM's are not scaled by its maxval: depth maps hold
+    units, not intensities). `fits(width, height, source)`: a further check of the header's
+    size before decoding (a feature extractor's `check_size`)."""
+    return _decode(data, source, flags, what, fits)[0]
+
+
+def _decode(data: bytes, source, flags: int, what: str,
+            fits: Callable[[int, int, object], None] | None) -> tuple[np.ndarray, ImageHeader]:
+    """decode_image's array, and the header it was checked by. A PNM sample over the maxval
+    its header declares is an InputError: the file breaks its own format."""
     header = check_encoded_image(data, source, what)
     if header.bits > 16:  # OpenCV decodes none, or casts them to 8 bits (a float PFM: 0 or 1)
         raise InputError(f"{source}: not a readable {what} ({header.bits}-bit "
@@ -339,16 +373,21 @@ def decode_image(data: bytes, source, flags: int = cv2.IMREAD_COLOR, what: str =
     if (img.shape[1], img.shape[0]) != (header.width, header.height):
         raise InputError(f"{source}: not a readable {what} (decoded {img.shape[1]}x"
                          f"{img.shape[0]}, its header says {header.width}x{header.height})")
-    return img
+    if header.maxval is not None and int(img.max()) > header.maxval:
+        raise InputError(f"{source}: not a readable {what} (a PNM sample of {int(img.max())} "
+                         f"is over the maxval {header.maxval} its header declares)")
+    return img, header
 
 
 def decode_rgb(data: bytes, source,
                fits: Callable[[int, int, object], None] | None = None) -> np.ndarray:
-    """RGB uint8 (H, W, 3) from encoded bytes (a 16-bit image is scaled to 8 bits); `fits` as
+    """RGB uint8 (H, W, 3) from encoded bytes: samples scaled so that full intensity is 255
+    (a 16-bit image's 65535, a PNM's maxval, as the format defines them); `fits` as
     decode_image's."""
-    img = decode_image(data, source, cv2.IMREAD_COLOR, fits=fits)
-    if img.dtype != np.uint8:
-        img = cv2.convertScaleAbs(img, alpha=255.0 / 65535.0)
+    img, header = _decode(data, source, cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH, "image", fits)
+    full = header.maxval or (255 if img.dtype == np.uint8 else 65535)
+    if img.dtype != np.uint8 or full != 255:
+        img = cv2.convertScaleAbs(img, alpha=255.0 / full)
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 

@@ -47,24 +47,36 @@ class ExportPoints:
 
     xyz: np.ndarray  # (P, 3) float64, map frame, metres
     rgb: np.ndarray  # (P, 3) uint8
+    coloured: np.ndarray  # (P,) bool: coloured from an image (else grey)
     row_point: np.ndarray  # (M,) database row -> point index
     error_px: np.ndarray  # (P,) mean reprojection error over the point's observations
 
 
 def frame_images(scene_map: SceneMap, dataset=None) -> tuple[Path | None, dict[str, Path]]:
     """(dataset root, frame name -> image file), from `dataset` (a Dataset) or the one the map
-    records; (None, {}) when neither is at hand."""
+    records, and for a map a SLAM session extended, the frames it took over from the datasets
+    of its earlier sessions (a name already found is kept); (None, {}) when none is at
+    hand."""
+    from slamreloc.datasets import load_dataset
+
+    def frames_of(root) -> dict[str, Path]:
+        if root is None or not Path(root).is_dir():
+            return {}
+        try:
+            return {f.name: f.image_path for f in load_dataset(root).frames("all")}
+        except InputError:
+            return {}
+
     if dataset is None:
         root = scene_map.info.dataset_root
-        if root is None or not Path(root).is_dir():
-            return None, {}
-        from slamreloc.datasets import load_dataset
-
-        try:
-            dataset = load_dataset(root)
-        except InputError:
-            return None, {}
-    return Path(dataset.root), {f.name: f.image_path for f in dataset.frames("all")}
+        images = frames_of(root)
+        root = root if images else None
+    else:
+        root, images = Path(dataset.root), {f.name: f.image_path for f in dataset.frames("all")}
+    for earlier in reversed(scene_map.info.earlier_dataset_roots):  # the newest first
+        for name, path in frames_of(earlier).items():
+            images.setdefault(name, path)
+    return root, images
 
 
 def check_dataset_of_map(scene_map: SceneMap, dataset_dir: Path, dataset) -> None:
@@ -157,7 +169,7 @@ def export_points(scene_map: SceneMap, images: dict[str, Path],
     err = np.linalg.norm(proj - db.keypoints, axis=1)
     error_px = np.bincount(row_point, err, len(xyz)) / np.maximum(
         np.bincount(row_point, minlength=len(xyz)), 1)
-    return ExportPoints(xyz, rgb, row_point, error_px)
+    return ExportPoints(xyz, rgb, coloured, row_point, error_px)
 
 
 def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
@@ -170,9 +182,10 @@ def write_colmap(scene_map: SceneMap, out: Path, points: ExportPoints,
     cam = scene_map.camera
     names = []
     for name in db.frame_names:
-        path = images.get(name)
-        names.append(os.path.relpath(path, root) if path is not None and root is not None
-                     else name)
+        path = images.get(name)  # relative to the root where inside it (not an earlier
+        inside = path is not None and root is not None and Path(path).resolve().is_relative_to(
+            Path(root).resolve())  # session's dataset, whose images are elsewhere)
+        names.append(os.path.relpath(path, root) if inside else name)
     out.parent.mkdir(parents=True, exist_ok=True)
     held = ExitStack()  # the model's write lock, until its swap is done
     held.enter_context(folder_write_lock(out, "this COLMAP model", COLMAP_DEBRIS))
@@ -409,7 +422,7 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
     if colmap is not None or ply is not None:
         points = export_points(scene_map, images, progress)
         summary.update(points=len(points.xyz), observations=len(points.row_point),
-                       coloured_from_images=bool(images))
+                       coloured=int(points.coloured.sum()))
     with outputs_together():  # interrupted: all new, or all as they were
         if colmap is not None:
             with naming_output(colmap):

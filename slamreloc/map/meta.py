@@ -247,6 +247,18 @@ class UpdateMeta(_Record):
 
 
 @dataclass(frozen=True)
+class ExtensionMeta(_Record):
+    """"extended": what a SLAM session that extended a map (`slam --map OLD --out NEW`) took
+    over: NEW's first `n_prior_frames` frames are OLD's, whose images are in the datasets OLD
+    records (`dataset_roots`, absolute paths, oldest first); NEW's own `dataset` is the
+    session's."""
+
+    source_map: str | None = _key(_is_str)  # OLD (absolute path)
+    dataset_roots: tuple[str, ...] | None = _key(_is_strings, tuple)
+    n_prior_frames: int | None = _key(_is_int)
+
+
+@dataclass(frozen=True)
 class SurfaceMeta(_Record):
     """"surface": the fused depth surface in surface.npz (map frame)."""
 
@@ -279,6 +291,7 @@ class MapMeta(_Record):
     dataset: DatasetMeta | None = _key(_is_object, DatasetMeta._parse)
     timings_s: dict[str, Json] | None = _key(_is_object)  # seconds per mapping stage
     pseudo_label: UpdateMeta | None = _key(_is_object, UpdateMeta._parse)
+    extended: ExtensionMeta | None = _key(_is_object, ExtensionMeta._parse)
     surface: SurfaceMeta | None = _key(_is_object, SurfaceMeta._parse)
     files: dict[str, str] | None = _key(_is_object)  # file name -> SHA-256 hex (format >= 2)
     # the database's training frames, in the order of its poses (None: not recorded)
@@ -429,11 +442,30 @@ class MapMeta(_Record):
             return Path(p) if isinstance(p, str) and p and Path(p).is_absolute() else None
 
         update = self.pseudo_label.get("dataset") if self.pseudo_label else None
+        earlier = self.earlier_dataset_roots
         return {"the dataset the map records": absolute(self._recorded_root(
                     self.get("dataset"), "dataset")),
                 "the pose file the map records": absolute(self.poses_source),
                 "the dataset of the map's update": absolute(self._recorded_root(
-                    update, "pseudo_label.dataset"))}
+                    update, "pseudo_label.dataset")),
+                **{"a dataset of the map's earlier sessions"
+                   + (f" ({i + 1} of {len(earlier)})" if len(earlier) > 1 else ""): Path(root)
+                   for i, root in enumerate(earlier)}}
+
+    @property
+    def earlier_dataset_roots(self) -> list[str]:
+        """The datasets of the frames this map took over from the map a SLAM session extended
+        (`extended.dataset_roots`, checked absolute by the schema), oldest first."""
+        return list(self.extended.dataset_roots or ()) if self.extended else []
+
+    def dataset_roots(self) -> list[str]:
+        """Every dataset whose frames this map holds, oldest first: its earlier sessions',
+        its own, its update's (each once)."""
+        roots = self.earlier_dataset_roots
+        for key, path in self.recorded_inputs().items():
+            if path is not None and "pose file" not in key and str(path) not in roots:
+                roots.append(str(path))
+        return roots
 
     def _recorded_root(self, dataset: Json, where: str) -> str | None:
         """`recorded_root` of this metadata's file."""
@@ -509,6 +541,9 @@ def _check_schema(meta: dict, version: int, path) -> None:
     _check_regressor_record(reg, path)
     labels = need(meta, "labels", dict, "")
     need(labels, "n_labelled", int, "labels.")
+    # the training frames' names, one per database pose: every writer (format 1's too) lists
+    # them, and export, pseudo-label and slam --map look frames up by them
+    need(meta, "frame_names", list, "")
     for section in ("labels", "surface", "pseudo_label"):
         _check_counts(meta.get(section), section, path)
     _check_optional(labels, "labelled_fraction", "labels.", path, "a fraction in [0, 1]",
@@ -523,6 +558,13 @@ def _check_schema(meta: dict, version: int, path) -> None:
     recorded_root(dataset, "dataset", path)  # every command's rule, not only a dataset's user
     if isinstance(meta.get("pseudo_label"), dict):
         recorded_root(meta["pseudo_label"].get("dataset"), "pseudo_label.dataset", path)
+    _check_optional(meta, "extended", "", path, "an object (what a SLAM session took over)",
+                    _is_object)
+    if isinstance(meta.get("extended"), dict):
+        _check_optional(meta["extended"], "dataset_roots", "extended.", path,
+                        "a list of the datasets' absolute paths", _is_strings)
+        for i, root in enumerate(meta["extended"].get("dataset_roots") or []):
+            recorded_root({"root": root}, f"extended.dataset_roots[{i}]", path)
     if isinstance(dataset, dict):
         _check_optional(dataset, "split", "dataset.", path, "a string (the split's sequences)",
                         lambda v: isinstance(v, str))

@@ -46,7 +46,12 @@ def check_map_target(out: Path) -> None:
         entries = sorted((e for e in os.scandir(out) if not is_map_file(e)),
                          key=lambda e: e.name)
         links = [e.name for e in entries if e.is_symlink() and e.name in MAP_FILES]
-        foreign = [e.name for e in entries if e.name not in links]
+        odd = [e.name for e in entries if e.name in MAP_FILES and e.name not in links]
+        foreign = [e.name for e in entries if e.name not in MAP_FILES]
+        if odd and is_map(out):  # a map file's name on a named pipe, a folder, a device...
+            raise InputError(f"{out}: its {odd[0]!r} is {what_is_there(out / odd[0])}, not a "
+                             "map writer's file; refusing to replace it (give the map's own "
+                             "folder, or move it out)")
         if links and is_map(out):  # the map's own names, as links: a writer replaces files
             raise InputError(f"{out}: its {', '.join(map(repr, links[:3]))}"
                              f"{' ...' if len(links) > 3 else ''} "

@@ -35,7 +35,14 @@ from slamreloc.localize.guided import GuidedConfig, GuidedMatcher
 from slamreloc.localize.localizer import REGRESSOR_PNP, Localization
 from slamreloc.localize.pnp import PnPConfig, PoseEstimate, estimate_pose, refine_from
 from slamreloc.map.format import SURFACE
-from slamreloc.map.meta import CameraMeta, DatasetMeta, FeatureMeta, MapMeta, RegressorMeta
+from slamreloc.map.meta import (
+    CameraMeta,
+    DatasetMeta,
+    ExtensionMeta,
+    FeatureMeta,
+    MapMeta,
+    RegressorMeta,
+)
 from slamreloc.map.scene_map import SceneMap
 from slamreloc.map.write import save_map
 from slamreloc.regressor.model import RegressorConfig
@@ -433,6 +440,11 @@ class LiveMap:
             camera=CameraMeta.from_camera(self.camera),
             dataset=dataset,
             timings_s={"keyframes_s": round(self.t_keyframes_s, 3)},
+            # the prior map's frames come first, their images in the datasets it records
+            extended=None if self.prior is None else ExtensionMeta(
+                source_map=str(self.prior.root.resolve()),
+                dataset_roots=tuple(self.prior.info.dataset_roots()),
+                n_prior_frames=len(live.keys) - n_new),
             surface=None if surface is None else self.prior.info.surface)
         # a prior map's fused depth surface is kept (`evaluate --depth` refines on it where
         # the session's queries see its places); the session's own keyframes add none

@@ -121,19 +121,24 @@ def _live_plugins(dataset, map_dir: Path | None, out: Path, config: SlamRunConfi
 
 def _check_extension(prior, map_dir: Path, dataset) -> None:
     """InputError unless the map `map_dir` may be extended by a session of `dataset`: the
-    extended map records one dataset, the session's, so the map's own frames must come from
-    it too (the same root, or one that is no longer there: moved), or be named apart from its
-    frames (else `export`, `evaluate` and `view` would take the map's frames for these)."""
-    recorded = prior.info.dataset_root
-    if recorded is None or not recorded.exists() or recorded == dataset.root.resolve():
+    extended map records the session's dataset and, as its earlier sessions', those the map
+    records (`MapMeta.dataset_roots`); frames are looked up by name, so the map's own frames
+    must come from the session's dataset (one of those roots, or none of them is there any
+    more: moved), or be named apart from its frames (else `export`, `evaluate` and `view`
+    would take the map's frames for these)."""
+    roots = [Path(r) for r in prior.info.dataset_roots()]
+    session = dataset.root.resolve()
+    at_hand = [r for r in roots if r.exists()]
+    if not at_hand or any(r.resolve() == session for r in at_hand):
         return
     own = set(prior.info.frame_names or ())
     clash = next((f.name for f in dataset.frames("all") if f.name in own), None)
     if clash is not None:
         raise InputError(f"{dataset.root}: holds frames named as the map {map_dir}'s own (such "
-                         f"as {clash[:80]!r}), which come from another dataset ({recorded}); "
-                         "the extended map records one dataset and would take its frames for "
-                         "these: extend it with a session of its own dataset")
+                         f"as {clash[:80]!r}), which come from the map's "
+                         f"{'datasets' if len(at_hand) > 1 else 'dataset'} "
+                         f"({', '.join(map(str, at_hand))[:400]}); the extended map would take "
+                         "its frames for these: extend it with a session of one of those")
 
 
 def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = SlamRunConfig(),
