@@ -12,6 +12,7 @@ import signal
 import socket
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -40,8 +41,12 @@ def free_port() -> int:
 
 @pytest.fixture(scope="module")
 def service(small_map, scene_dir):
-    """The deployment, a stub on its gRPC port, and two test images with in-process answers."""
+    """The deployment, a stub on its gRPC port, and two test images with in-process answers.
+    The driver (this process) holds input bounds of its own, which the map replicas must hold
+    too (round 28, J3): no more pixels than the test images' and sides down to 8 pixels, while
+    the environment the replicas inherit says the defaults."""
     from slamreloc.datasets import load_dataset
+    from slamreloc.io import limits
     from slamreloc.service import ray_serve
     from slamreloc.service.localize import localize
     from slamreloc.service.maps import ServedMap
@@ -51,20 +56,30 @@ def service(small_map, scene_dir):
                 for f in frames]
     served = ServedMap.load("reference", small_map.root)
     expected = [localize(served, r) for r in requests]
+    import cv2
+
+    height, width = cv2.imdecode(np.frombuffer(requests[0].image.encoded, np.uint8),
+                                 cv2.IMREAD_UNCHANGED).shape[:2]
     port = free_port()
     t0 = time.perf_counter()
-    deployment = ray_serve.deploy({name: small_map.root for name in MAPS}, replicas=REPLICAS,
-                                  grpc_port=port, http_port=free_port(), num_cpus=2,
-                                  log_to_driver=False)
-    try:
-        print(f"\nray serve: ray.init + serve.start {deployment.ray_start_s:.1f} s, deploy "
-              f"{deployment.deploy_s:.1f} s, total {time.perf_counter() - t0:.1f} s")
-        channel = grpc.insecure_channel(f"127.0.0.1:{port}")
-        yield SimpleNamespace(stub=RelocalizerStub(channel), deployment=deployment,
-                              requests=requests, expected=expected, served=served)
-        channel.close()
-    finally:
-        ray_serve.shutdown()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("SLAMRELOC_MAX_IMAGE_PIXELS", str(limits.InputLimits().max_image_pixels))
+        mp.setenv("SLAMRELOC_MIN_IMAGE_SIDE", str(limits.InputLimits().min_image_side))
+        mp.setattr(limits, "_current", replace(limits.limits(), max_image_pixels=width * height,
+                                               min_image_side=8))
+        deployment = ray_serve.deploy({name: small_map.root for name in MAPS},
+                                      replicas=REPLICAS, grpc_port=port, http_port=free_port(),
+                                      num_cpus=2, log_to_driver=False)
+        try:
+            print(f"\nray serve: ray.init + serve.start {deployment.ray_start_s:.1f} s, deploy "
+                  f"{deployment.deploy_s:.1f} s, total {time.perf_counter() - t0:.1f} s")
+            channel = grpc.insecure_channel(f"127.0.0.1:{port}")
+            yield SimpleNamespace(stub=RelocalizerStub(channel), deployment=deployment,
+                                  requests=requests, expected=expected, served=served,
+                                  size=(width, height))
+            channel.close()
+        finally:
+            ray_serve.shutdown()
     import ray
 
     assert not ray.is_initialized()
@@ -141,6 +156,44 @@ def test_request_over_the_size_bound_is_resource_exhausted(service):
     big = pb.LocalizeRequest(map="alpha", image=pb.Image(encoded=bytes(MAX_REQUEST_BYTES + 1)))
     code, _, _ = refusal(lambda: service.stub.Localize(big, timeout=60))
     assert code == grpc.StatusCode.RESOURCE_EXHAUSTED
+
+
+def test_the_drivers_input_bounds_hold_in_every_replica(service):
+    """Round 28, J3: `slamreloc --limit max_image_pixels=1000 serve --engine ray` answered a
+    320 x 240 Localize the gRPC engine refuses: the bounds held in the driver only, the
+    replicas read their own environment. Every replica now answers as the driver's bounds
+    say (as `service.localize` in this process), lowered (a pixel more than the bound) and
+    raised (sides of 9 pixels under the default 16) alike."""
+    import cv2
+
+    from slamreloc.service.localize import localize
+
+    width, height = service.size
+    rng = np.random.default_rng(0)
+    for w, h, refused in ((width + 1, height, True), (12, 9, False)):
+        image = cv2.imencode(".png", rng.integers(0, 255, (h, w, 3), np.uint8))[1].tobytes()
+        request = pb.LocalizeRequest(image=pb.Image(encoded=image))
+        try:
+            local = localize(service.served, request)
+        except ServiceError as err:
+            local = err
+        if refused:
+            assert isinstance(local, ServiceError) and local.kind_name == "TOO_LARGE"
+            assert f"{(width + 1) * height} pixels, over the {width * height} pixels limit " \
+                "(max_image_pixels" in local.message
+        else:  # the driver's 8 pixels a side hold, not the replicas' environment's 16
+            assert not (isinstance(local, ServiceError) and "a side" in local.message)
+        for i in range(2 * REPLICAS):  # Serve spreads them over the replicas
+            call = lambda: service.stub.Localize(routed(request, MAPS[i % 2]), timeout=60)
+            if isinstance(local, ServiceError):
+                code, details, kind = refusal(call)
+                assert (code, details, kind) == (local.grpc_code, local.message,
+                                                 local.kind_name)
+            else:
+                got = call()
+                got.ClearField("timings")  # all else as in this process
+                local.ClearField("timings")
+                assert got == local
 
 
 def test_list_maps_health_and_reload(service):

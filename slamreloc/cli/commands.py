@@ -3,8 +3,8 @@ of its options come from the registries (`slamreloc.cli.choices`)."""
 
 from __future__ import annotations
 
-import re
 import os
+import re
 import sys
 from dataclasses import replace
 from functools import cache
@@ -85,9 +85,13 @@ def options(
              "(docs/formats.md, 'ROS bags')")] = None,
 ) -> None:
     """Camera relocalization with a lightweight scene-coordinate regressor."""
-    if limit:
-        from slamreloc.io.limits import parse_limits, set_limits
+    from slamreloc.io.limits import check_environment, limits, parse_limits, set_limits
 
+    # before any command: a SLAMRELOC_ variable misspelt (or a bound's value that is no
+    # number) ends it in one line, rather than being ignored or found at the first input
+    check_environment()
+    limits()
+    if limit:
         set_limits(**parse_limits(limit))
     from slamreloc.datasets.rosbag import parse_topics, set_topics
 

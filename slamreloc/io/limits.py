@@ -6,9 +6,12 @@ feature extractor checks the pixels it will work on, JSON readers check size and
 
 Raise a bound with the CLI's global option (`slamreloc --limit max_image_pixels=50000000
 localize ...`), the environment (`SLAMRELOC_MAX_IMAGE_PIXELS=50000000`), or `set_limits(...)`
-in Python: a whole number in ASCII digits (`slamreloc.io.numbers`), each bound given once. The
-defaults keep every command under ~2 GB of memory on any input (BENCHMARKS.md, "Input
-bounds"); docs/formats.md lists them.
+in Python: a whole number in ASCII digits (`slamreloc.io.numbers`), each bound given once. An
+environment variable named SLAMRELOC_ (in any case) that is neither a bound's nor one of
+`KNOWN_VARIABLES`, or spelt like one but for case and punctuation, is refused, never ignored
+(`environment_problem`). `slamreloc serve --engine ray` hands the driver's bounds to every map
+replica (`use_limits`). The defaults keep every command under ~2 GB of memory on any input
+(BENCHMARKS.md, "Input bounds"); docs/formats.md lists them.
 """
 
 from __future__ import annotations
@@ -43,20 +46,86 @@ class InputLimits:
                 raise InputError(f"limit {f.name} must be a positive integer, got {value!r}")
 
 
+BOUND_VARIABLES = {ENV_PREFIX + f.name.upper(): f.name for f in fields(InputLimits)}
+# Every other SLAMRELOC_ variable the project reads, in this one place (tests/test_round28_limits.py
+# finds each name the code reads and requires it here): any other name that starts with
+# SLAMRELOC_ in any case, or that is spelt like one of these but for case and punctuation, is
+# refused where the bounds are read (`check_environment`), never ignored.
+KNOWN_VARIABLES = {
+    "SLAMRELOC_TOKEN": "the service's token (slamreloc.service.TOKEN_ENV; the C++ client)",
+    "SLAMRELOC_TEST_CRASH_AT": "test hook: save_map kills itself at this step (map.write)",
+    "SLAMRELOC_NO_RENAME_EXCHANGE": "test hook: the two-rename fallback (io.outputs)",
+    "SLAMRELOC_DOCS_SLOW": "test suite: run the docs' slow blocks (tests/test_docs.py)",
+    "SLAMRELOC_DOCS_REALDATA": "test suite: run the docs' real-data blocks (tests/test_docs.py)",
+    "SLAMRELOC_FUZZ_SCALE": "test suite: scale of the fuzz runs (tests/test_fuzz_inputs.py)",
+    "SLAMRELOC_KILLS": "test suite: kills of the kill -9 harness (tests/test_crash_safety.py)",
+}
+
+
+def _squeezed(name: str) -> str:
+    """A name without case or punctuation (`SLAMRELOC_Max-Image_Pixels` ->
+    `slamrelocmaximagepixels`): names alike in it are one name misspelt."""
+    return "".join(c for c in name.lower() if c.isascii() and c.isalnum())
+
+
+_LOOKALIKES = {_squeezed(n): n for n in (*BOUND_VARIABLES, *KNOWN_VARIABLES)}
+
+
+def environment_problem(name: str) -> str | None:
+    """Why the environment variable `name` is refused, or None. Taken: the bounds'
+    SLAMRELOC_<NAME> (NAME in capitals, `BOUND_VARIABLES`), `KNOWN_VARIABLES`, and other
+    programs' names. Refused, as a misspelling the user believes holds: any other name that
+    starts with SLAMRELOC_ in any case; any name spelt like a bound's or a known variable's but
+    for case and punctuation (`SLAMRELOC_max_image_pixels`, a bound's name short of an
+    underscore, `SLAMRELOCTOKEN`); and a name that starts with SLAM (in any case, punctuation
+    aside) a letter or two off one (difflib's ratio of the two `_squeezed` names at least 0.85:
+    `SLAMRELCO_MAX_IMAGE_PIXELS`, `SLAM_MAX_IMAGE_PIXELS`). The problem says which bound or
+    variable the name resembles, where one is near."""
+    from difflib import get_close_matches
+
+    if name in BOUND_VARIABLES or name in KNOWN_VARIABLES:
+        return None
+    squeezed = _squeezed(name)
+    ours = name.upper().startswith(ENV_PREFIX)
+    twin = _LOOKALIKES.get(squeezed)
+    if twin is None and (ours or squeezed.startswith("slam")):
+        near = get_close_matches(squeezed, _LOOKALIKES, n=1, cutoff=0.85)
+        twin = _LOOKALIKES[near[0]] if near else None
+    if twin is None and not ours:
+        return None
+    rest = squeezed[len("slamreloc"):]
+    bound_like = twin in BOUND_VARIABLES or rest.startswith(("max", "min"))
+    what = "names no bound" if bound_like else "names no slamreloc setting"
+    if twin in BOUND_VARIABLES:
+        hint = (f"it resembles the bound {BOUND_VARIABLES[twin]}, whose variable is exactly "
+                f"{twin}")
+    elif twin is not None:
+        hint = f"it resembles {twin}, a name read exactly as spelt"
+    elif bound_like:
+        hint = f"the bounds are {', '.join(sorted(BOUND_VARIABLES))}"
+    else:
+        hint = (f"the settings are the bounds' SLAMRELOC_<NAME> (docs/formats.md, 'Bounds') "
+                f"and {', '.join(sorted(KNOWN_VARIABLES))}")
+    return f"environment variable {name[:80]} {what}: {hint}"
+
+
+def check_environment() -> None:
+    """InputError (one line naming the variable) for the first environment variable, by name,
+    that `environment_problem` refuses; the CLI checks before every command."""
+    for name in sorted(os.environ):
+        problem = environment_problem(name)
+        if problem:
+            raise InputError(problem)
+
+
 def _from_environment() -> InputLimits:
-    known = {ENV_PREFIX + f.name.upper() for f in fields(InputLimits)}
-    stray = sorted(n for n in os.environ if n.startswith((ENV_PREFIX + "MAX_",
-                                                          ENV_PREFIX + "MIN_")) and n not in known)
-    if stray:  # a misspelt bound would be ignored: the user believes it holds
-        raise InputError(f"environment variable {stray[0][:80]} names no bound (one of "
-                         f"{', '.join(sorted(known))})")
+    check_environment()  # a misspelt bound would be ignored: the user believes it holds
     overrides = {}
-    for f in fields(InputLimits):
-        name = ENV_PREFIX + f.name.upper()
+    for name, bound in BOUND_VARIABLES.items():
         text = os.environ.get(name)
         if text is None:
             continue
-        overrides[f.name] = whole_limit(text, f"environment variable {name}", f.name)
+        overrides[bound] = whole_limit(text, f"environment variable {name}", bound)
     return InputLimits(**overrides)
 
 
@@ -104,7 +173,7 @@ def bytes_text(n: int) -> str:
 
 def over_limit(name: str, amount: str | None = None) -> str:
     """The one shape of every message about a bound: `AMOUNT, over the LIMIT limit (NAME;
-    raise it with `limit` NAME=N or SLAMRELOC_NAME)`, LIMIT in pixels, bytes or a count as the
+    raise it with `limit` NAME=N or SLAMRELOC_<NAME>)`, LIMIT in pixels, bytes or a count as the
     bound's name says (`amount`: what the input needs, or None)."""
     value = getattr(limits(), name)
     shown = (pixels_text(value) if name.endswith("_pixels") else
@@ -126,9 +195,21 @@ def limits() -> InputLimits:
 
 
 def set_limits(**overrides: int) -> InputLimits:
-    """Replace some bounds (e.g. `set_limits(max_image_pixels=50_000_000)`); returns them all."""
+    """Replace some bounds (e.g. `set_limits(max_image_pixels=50_000_000)`); returns them all.
+    The others stay as `limits()` has them (the environment is read first, if not yet)."""
     global _current
     _current = replace(limits(), **overrides)
+    return _current
+
+
+def use_limits(bounds: InputLimits) -> InputLimits:
+    """Make `bounds` the bounds in force, all of them as given, without reading this process's
+    environment: how a Ray Serve map replica takes its driver's `limits()` (the driver's
+    `--limit` and SLAMRELOC_<NAME> variables), whatever its own environment says."""
+    global _current
+    if not isinstance(bounds, InputLimits):
+        raise InputError(f"bounds must be InputLimits, got {type(bounds).__name__}")
+    _current = bounds
     return _current
 
 

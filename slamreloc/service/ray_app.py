@@ -44,6 +44,7 @@ import re
 import sys
 import time
 import traceback
+from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -54,6 +55,7 @@ from ray.serve.grpc_util import RayServegRPCContext
 from slamreloc import __version__
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import resolved
+from slamreloc.io.limits import InputLimits
 from slamreloc.proto import PROTOCOL
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
@@ -95,12 +97,22 @@ def _refuse(context: RayServegRPCContext, err: ServiceError) -> None:
 @serve.deployment(ray_actor_options={"num_cpus": REPLICA_CPUS}, max_ongoing_requests=4,
                   health_check_period_s=10.0)
 class MapReplica:
-    """One replica of one map: loads it once, answers `localize` with protobuf bytes."""
+    """One replica of one map: loads it once, answers `localize` with protobuf bytes.
+    `bounds`: the input bounds (`InputLimits`' fields) it holds, as its driver had them
+    (`slamreloc --limit`, the driver's SLAMRELOC_<NAME>), whatever this process's environment
+    says; None (a Serve config file) reads them from this process's environment."""
 
-    def __init__(self, name: str, path: str, watch_s: float = WATCH_S):
+    def __init__(self, name: str, path: str, watch_s: float = WATCH_S,
+                 bounds: dict[str, int] | None = None):
         # torch and the map load only here (the router and Serve's proxy never import them)
+        from slamreloc.io.limits import limits, use_limits
         from slamreloc.service.maps import MapRegistry
 
+        # before the map is read: its JSON and arrays are read under these bounds too
+        if bounds is not None:
+            use_limits(InputLimits(**bounds))
+        else:
+            limits()  # a variable misspelt in this environment fails the replica, named
         self._registry = MapRegistry({name: Path(path)})
         self._name = name
         if watch_s > 0:
@@ -261,9 +273,11 @@ def check_maps(maps: dict[str, Path]) -> dict[str, Path]:
 
 
 def application(maps: dict[str, Path], replicas: int = 1, *, replica_cpus: float = REPLICA_CPUS,
-                token: str | None = None, watch_s: float = WATCH_S) -> Application:
+                token: str | None = None, watch_s: float = WATCH_S,
+                bounds: InputLimits | None = None) -> Application:
     """The Serve application: a `MapReplica` deployment per map (`replicas` each, `replica_cpus`
-    Ray CPUs each) behind one `Router`."""
+    Ray CPUs each) behind one `Router`. `bounds`: the input bounds every map replica holds
+    (`deploy` gives its own `limits()`); None: each replica's environment's."""
     if not 1 <= replicas <= MAX_REPLICAS:
         raise InputError(f"`replicas` {replicas}: 1 to {MAX_REPLICAS}")
     if not MIN_REPLICA_CPUS <= replica_cpus <= 64:
@@ -274,7 +288,7 @@ def application(maps: dict[str, Path], replicas: int = 1, *, replica_cpus: float
     handles = {
         name: MapReplica.options(name=f"map-{name}", num_replicas=replicas,
                                  ray_actor_options={"num_cpus": replica_cpus})
-        .bind(name, str(path), watch_s)
+        .bind(name, str(path), watch_s, None if bounds is None else asdict(bounds))
         for name, path in check_maps(maps).items()}
     return Router.options(name="router").bind(handles, token)
 

@@ -130,13 +130,18 @@ def deploy(maps: dict[str, Path], replicas: int = 1, host: str = "127.0.0.1",
     answers. `address`: a running Ray cluster ("auto" after `ray start --head`); None starts a
     local Ray instance with `num_cpus` CPUs (default: this machine's), no dashboard and a small
     object store. `host`/`http_port`: Serve's HTTP proxy (unused by this service but always
-    started); the gRPC proxy listens on all interfaces at `grpc_port`."""
+    started); the gRPC proxy listens on all interfaces at `grpc_port`. Every map replica holds
+    this process's input bounds (`slamreloc.io.limits.limits()`: `slamreloc --limit`, this
+    environment's SLAMRELOC_<NAME>, `set_limits`), whatever the replica's environment says."""
     import ray
+
+    from slamreloc.io.limits import limits
 
     global _current
     if _current is not None:
         raise InputError("already deployed in this process: shutdown() first")
-    app = application(maps, replicas, replica_cpus=replica_cpus, token=token, watch_s=watch_s)
+    app = application(maps, replicas, replica_cpus=replica_cpus, token=token, watch_s=watch_s,
+                      bounds=limits())
     if not 1 <= grpc_port <= 65535 or not 1 <= http_port <= 65535:
         raise InputError(f"ports {grpc_port}, {http_port}: 1 to 65535")
     if not (1 << 16) <= max_request_bytes <= (2 << 30) - 1:
