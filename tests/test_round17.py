@@ -236,5 +236,5 @@ def test_a_map_is_not_extended_by_another_datasets_frames_of_its_names(small_map
     last = err.strip().splitlines()[-1]
     assert code == 2 and last.startswith(f"error: {other}: holds frames named as the map "
                                          f"{small_map.root}'s own (such as 'seq-01/"), err
-    assert f"from another dataset ({scene_dir.resolve()})" in last, last
+    assert f"which come from the map's dataset ({scene_dir.resolve()})" in last, last
     assert not out.exists() and not (tmp_path / "r.json").exists()
