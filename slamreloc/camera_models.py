@@ -156,7 +156,8 @@ def _fold_in_circle(model: str, distortion: tuple[float, ...], width: int, heigh
     bad = entered & ~left & flips  # flips while inside: two directions meet there
     stuck = entered & ~left & ~flips  # still inside at the last radius: never leaves
     if not stuck.any() and not bad.any():
-        return _circle_reached(model, distortion, width, height, fx, fy, cx, cy)
+        return _circle_reached(model, distortion, width, height, fx, fy, cx, cy,
+                               radii[branch_end])
     ray = int(np.argmax(bad)) if bad.any() else int(np.argmax(stuck))
     step_at = int(branch_end[ray])
     where = rays[0][step_at, ray] * [fx, fy] + [cx, cy]
@@ -218,12 +219,17 @@ def colmap_head(model: str, fx: float, fy: float, cx: float, cy: float) -> list[
 
 
 def _circle_reached(model: str, distortion: tuple[float, ...], width: int, height: int,
-                    fx: float, fy: float, cx: float, cy: float) -> str | None:
+                    fx: float, fy: float, cx: float, cy: float,
+                    branch_radius: np.ndarray) -> str | None:
     """The last part of the fold test: every pixel of the circle inscribed in the image
     (sampled: 360 directions, 24 radii) undistorts to a direction that distorts back onto it
-    (within 0.05 px). The rays' branches (`_fold_in_circle`) keep their orientation; this
-    finds a part of the circle that none of them reaches (a lens whose radius peaks before
-    the circle's far side, seen from a principal point outside it)."""
+    (within 0.05 px) and lies on its ray's own branch (`branch_radius`: the ideal radius where
+    each of `_fold_in_circle`'s 360 rays, at angles 2 pi k / 360, first flips, or its last).
+    The branches keep their orientation; this finds a part of the circle that none of them
+    reaches (a lens whose radius peaks before the circle's far side, seen from a principal
+    point outside it), and pixels that undistortion takes past a branch's end (a strong
+    pincushion, a rational lens's pole), whose direction is then another than the lens
+    gives them."""
     centre, radius_px = np.array([(width - 1) / 2, (height - 1) / 2]), min(width, height) / 2
     angles = np.linspace(0, 2 * np.pi, 360, endpoint=False)
     radius = np.linspace(0, radius_px - 0.5, 24)[:, None]
@@ -233,7 +239,10 @@ def _circle_reached(model: str, distortion: tuple[float, ...], width: int, heigh
     with np.errstate(all="ignore"):
         ideal = undistort_normalized(model, distortion, (pixels - c) / f)
         back = distort_normalized(model, distortion, ideal) * f + c
-        miss = ~(np.hypot(*(back - pixels).T) < 0.05)
+        ray = np.arctan2(ideal[:, 1], ideal[:, 0]) / (2 * np.pi) * len(branch_radius)
+        below = np.floor(ray).astype(np.int64) % len(branch_radius)  # the two rays around it
+        reach = np.maximum(branch_radius[below], branch_radius[(below + 1) % len(branch_radius)])
+        miss = ~(np.hypot(*(back - pixels).T) < 0.05) | ~(np.hypot(*ideal.T) <= reach * 1.03)
     if not miss.any():
         return None
     where = pixels[int(np.argmax(miss))]

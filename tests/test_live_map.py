@@ -6,9 +6,11 @@ and extends it; a learned map is written crash-safely."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -201,6 +203,48 @@ def test_a_session_of_another_dataset_records_where_the_map_s_frames_are(
               "--report", work / "r4x.json")
     assert res.returncode == 2 and not (work / "map4").exists()
     assert f"which come from the map's dataset ({kidnap_scene.resolve()})" in res.stderr
+
+
+def _with_sequence(root: Path, name: str, frames_of: Path) -> None:
+    """Give the synthetic dataset `root` a sequence `name` holding the frames of the sequence
+    folder `frames_of` (as an unlabelled one)."""
+    shutil.copytree(frames_of, root / name)
+    scene = json.loads((root / "scene.json").read_text())
+    scene["sequences"][name] = "unlabelled"
+    (root / "scene.json").write_text(json.dumps(scene, indent=2))
+
+
+def test_a_name_two_of_the_map_s_datasets_hold_is_refused(live_session, kidnap_scene,
+                                                          tmp_path):
+    """Attack round 29, L1: MAP2 = the kidnap sequence of dataset B (named seq-05) extending
+    MAP1 (the kidnap scene's seq-03). Once B also holds a seq-03 of its own, a session of B
+    on MAP2 was taken: B is one of MAP2's datasets, but MAP2's seq-03 frames are the kidnap
+    scene's, and the extended map held each such name for two pictures."""
+    _, map1, work = live_session
+    b = tmp_path / "B"
+    b.mkdir()
+    for entry in kidnap_scene.iterdir():
+        if entry.name != "seq-03":
+            (shutil.copytree if entry.is_dir() else shutil.copy)(entry, b / entry.name)
+    scene = json.loads((b / "scene.json").read_text())
+    del scene["sequences"]["seq-03"]
+    (b / "scene.json").write_text(json.dumps(scene, indent=2))
+    _with_sequence(b, "seq-05", kidnap_scene / "seq-03")
+    map2 = tmp_path / "map2"
+    res = cli("slam", b, "--split", "seq-05", "--map", map1, "--out", map2, "--report",
+              tmp_path / "r2.json", "--learn-every", "10", "--save-every", "0")
+    assert res.returncode == 0, res.stderr
+    assert json.loads((map2 / "slamreloc_map.json").read_text())["extended"][
+        "dataset_roots"] == [str(kidnap_scene.resolve())]
+    _with_sequence(b, "seq-03", kidnap_scene / "seq-03")
+    res = cli("slam", b, "--split", "seq-05", "--map", map2, "--out", tmp_path / "map3",
+              "--report", tmp_path / "r3.json")
+    assert res.returncode == 2 and not (tmp_path / "map3").exists()
+    assert res.stderr.strip().splitlines()[-1] == (
+        f"error: {b}: holds frames named as the map {map2}'s own (such as "
+        f"'seq-03/frame-000000'), and so does {kidnap_scene.resolve()}, another dataset of "
+        "the map's: which one's picture is the map's frame cannot be told; extend it with a "
+        "session whose frames are named apart")
 
 
 def test_slam_in_a_learned_map_scores_in_its_frame(live_session, kidnap_scene):

@@ -981,7 +981,38 @@ std::string read_tls_ca(const fs::path& path) {
   return pem;
 }
 
-void print_result(const std::string& name, const v1::LocalizeResponse& r) {
+// An image's name as the first field of an output line, by `slamreloc localize`'s rule
+// (slamreloc.cli.jobs.line_name): as it is, or, where it holds a space, a '%', a character
+// Python does not print (control, format, line break...) or bytes that are not UTF-8, or
+// starts with '#', percent-encoded byte by byte (all but ASCII letters, digits and _.-~/),
+// so that no name splits a line's fields, reads as a comment or writes a line of its own.
+std::string line_name(const std::string& name) {
+  bool encode = !name.empty() && name[0] == '#';
+  for (std::size_t i = 0; i < name.size() && !encode;) {
+    char32_t cp = 0;
+    const int n = utf8_char(name, i, cp);
+    encode = n == 0 || cp == '%' || cp == ' ' || !printable(cp);
+    i += n == 0 ? 1 : n;
+  }
+  if (!encode) return name;
+  static const char hex[] = "0123456789ABCDEF";
+  std::string out;
+  for (const unsigned char c : name) {
+    const bool safe = (c >= 'A' && c <= 'Z') || (c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') ||
+                      c == '_' || c == '.' || c == '-' || c == '~' || c == '/';
+    if (safe) {
+      out += static_cast<char>(c);
+    } else {
+      out += '%';
+      out += hex[c >> 4];
+      out += hex[c & 0xF];
+    }
+  }
+  return out;
+}
+
+void print_result(const std::string& raw_name, const v1::LocalizeResponse& r) {
+  const std::string name = line_name(raw_name);
   if (r.localized()) {
     const v1::Transform& t = r.world_from_cam();
     std::printf("%s %.17g %.17g %.17g %.17g %.17g %.17g %.17g %u\n", name.c_str(), t.tx(), t.ty(),

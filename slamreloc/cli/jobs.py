@@ -367,5 +367,6 @@ def print_slam_summary(r: dict) -> None:
     if live:
         console.print(f"map learned: {live['n_keyframes']} keyframes, {live['n_rows']} rows, "
                       f"{len(live['rounds'])} training rounds (learner busy "
-                      f"{100 * (live['learner_share'] or 0):.0f} % of the session); written "
+                      f"{live['learner_share'] or 0:.1f}x the tracking time, on its own "
+                      "thread); written "
                       f"to {shown(live['out'])}")

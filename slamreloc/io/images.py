@@ -20,6 +20,7 @@ import tempfile
 import threading
 import zlib
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
@@ -179,7 +180,48 @@ _PILLOW_BOUND = threading.Lock()  # held while Pillow's own size bound is lifted
 # the first bytes of the formats read through Pillow, to name one it cannot parse
 _MAGIC = ((b"II*\0", "TIFF"), (b"MM\0*", "TIFF"), (b"PF", "PFM (PNM)"), (b"Pf", "PFM (PNM)"),
           (b"BM", "BMP"), *((f"P{k}".encode(), "PNM") for k in range(1, 8)))
-_PNM_TOKEN = re.compile(rb"(?:\s|#[^\r\n]*)*(\S+)")  # a header token after blanks and comments
+# a PNM token after blanks and comments (a '#' starts a comment anywhere, even glued to a token)
+_PNM_TOKEN = re.compile(rb"(?:\s|#[^\r\n]*)*([^\s#]+)")
+
+
+def _ascii_pnm(data: bytes, header: ImageHeader, source, what: str) -> np.ndarray:
+    """The raw samples of a plain (ASCII) PNM, P2 grey (H, W) or P3 colour (H, W, 3) in BGR
+    order as OpenCV gives colour, uint8 for a maxval under 256, else uint16: OpenCV scales
+    such samples to 255 and clamps those over the maxval, so it reads neither as the file
+    holds them. A sample over the maxval, a missing or extra one, or a token that is no
+    number is an InputError."""
+    pos = 2
+    for _ in range(3):  # width, height, maxval
+        pos = _PNM_TOKEN.match(data, pos).end()
+    body = re.sub(rb"#[^\r\n]*", b" ", data[pos:])
+    channels = 3 if data[:2] == b"P3" else 1
+    count = header.width * header.height * channels
+    words = body.split()
+    if len(words) != count or not all(w.isdigit() for w in words[:count]):
+        bad = next((w for w in words if not w.isdigit()), None)
+        raise InputError(f"{source}: not a readable {what} (a plain PNM "
+                         + (f"sample {bad[:20]!r} that is no whole number" if bad is not None
+                            else f"of {len(words)} samples, its header says {count}") + ")")
+    samples = np.array([int(w) for w in words], np.int64)
+    if samples.max(initial=0) > header.maxval:
+        raise InputError(f"{source}: not a readable {what} (a PNM sample of "
+                         f"{int(samples.max())} is over the maxval {header.maxval} its header "
+                         "declares)")
+    image = samples.astype(np.uint8 if header.maxval < 256 else np.uint16)
+    image = image.reshape(header.height, header.width, channels)
+    return image[..., ::-1].copy() if channels == 3 else image[..., 0]
+
+
+def _pillow_pixels(data: bytes, colour: bool) -> np.ndarray:
+    """A BMP decoded by Pillow, which reads every BMP layout its header parse takes (bit
+    fields, V4/V5 headers) where OpenCV ignores the fields' masks: BGR uint8 (H, W, 3), or
+    grey (H, W)."""
+    from PIL import Image
+
+    with _pillow_unbounded(), Image.open(io.BytesIO(data)) as img:
+        if colour:
+            return np.asarray(img.convert("RGB"))[..., ::-1].copy()
+        return np.asarray(img.convert("L"))
 
 
 def _pnm_maxval(data: bytes) -> int | None:
@@ -198,24 +240,33 @@ def _pnm_maxval(data: bytes) -> int | None:
     return int(tokens[2]) if tokens[2].isdigit() else None
 
 
-def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
+@contextmanager
+def _pillow_unbounded() -> Iterator[None]:
+    """Pillow's own size bound (2 x MAX_IMAGE_PIXELS, refused before a size can be read)
+    lifted while the block runs, one block at a time: every format's size meets
+    `check_image_size`'s one bound (`max_image_pixels`), which a user may raise."""
     import warnings
 
     from PIL import Image
 
+    with _PILLOW_BOUND, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # DecompressionBombWarning: sizes are checked by us
+        bound, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+        try:
+            yield
+        finally:
+            Image.MAX_IMAGE_PIXELS = bound
+
+
+def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
+    from PIL import Image
+
     try:
-        # Pillow refuses a header over its own bound (2 x MAX_IMAGE_PIXELS) before its size
-        # can be read: lifted here, so that every format's size meets `check_image_size`'s
-        # one bound (`max_image_pixels`), which a user may raise
-        with _PILLOW_BOUND, warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # DecompressionBombWarning: we check sizes below
-            bound, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
-            try:
-                with Image.open(io.BytesIO(data)) as img:  # parses the header, decodes nothing
-                    fmt, (width, height), mode = img.format, img.size, img.mode
-                    pages = bool(getattr(img, "is_animated", False))  # a next page: one look
-            finally:
-                Image.MAX_IMAGE_PIXELS = bound
+        with _pillow_unbounded():  # `max_image_pixels` is the one bound, checked below
+            with Image.open(io.BytesIO(data)) as img:  # parses the header, decodes nothing
+                fmt, (width, height), mode = img.format, img.size, img.mode
+                pages = bool(getattr(img, "is_animated", False))  # a next page: one look
+                tiff = _tiff_samples(img) if fmt == "TIFF" else None
     except Exception as err:  # noqa: BLE001 - Pillow's parsers raise many kinds on bad bytes
         known = next((name for magic, name in _MAGIC if data.startswith(magic)), None)
         unknown = "cannot identify" in str(err)
@@ -237,8 +288,28 @@ def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
     channels, bits = PILLOW_MODES.get(mode, (4, 8))
     if fmt == "PPM" and mode == "I":  # Pillow's mode for a PGM of 16-bit samples (maxval
         bits = 16                     # over 255): PNM holds no wider ones
+    if fmt == "TIFF" and tiff is not None:  # the file's own samples, not Pillow's widened mode
+        bits, sample_format = tiff
+        if sample_format not in (None, 1):  # 2: signed, 3: floating point
+            kind = {2: "signed", 3: "floating-point"}.get(sample_format, "other")
+            raise InputError(f"{source}: not a readable {what} (a TIFF of {bits}-bit {kind} "
+                             "samples; save it with unsigned 8 or 16 bits)")
     return ImageHeader(width, height, channels, bits, OTHER_FORMATS[fmt],
                        _pnm_maxval(data) if fmt == "PPM" else None)
+
+
+def _tiff_samples(img) -> tuple[int, int | None] | None:
+    """(bits per sample, the SampleFormat tag: 1 unsigned, 2 signed, 3 floating point, None
+    unsaid) of an open TIFF, from its tags; None where it gives no BitsPerSample."""
+    tags = getattr(img, "tag_v2", {})
+    bits = tags.get(258)
+    if not bits:
+        return None
+    bits = max(bits) if isinstance(bits, tuple) else int(bits)
+    formats = tags.get(339)
+    sample_format = (max(formats) if isinstance(formats, tuple) else formats) if formats \
+        else None
+    return int(bits), None if sample_format is None else int(sample_format)
 
 
 def encoded_header(data: bytes, source, what: str = "image") -> ImageHeader:
@@ -366,6 +437,20 @@ def _decode(data: bytes, source, flags: int, what: str,
             reason = warning.removeprefix("Corrupt JPEG data: ").rstrip(".")
             raise InputError(f"{source}: not a readable {what} (JPEG corrupt or truncated: "
                              f"{reason[:80]})")
+    elif header.format == "PNM" and data[:2] in (b"P2", b"P3") and header.maxval:
+        img = _ascii_pnm(data, header, source, what)
+        colour = flags > 0 and flags & cv2.IMREAD_COLOR
+        if colour and img.ndim == 2:
+            img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+        elif not colour and img.ndim == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    elif header.format == "BMP":
+        try:
+            img = _pillow_pixels(data, bool(flags > 0 and flags & cv2.IMREAD_COLOR))
+        except Exception as err:  # noqa: BLE001 - cut short or damaged pixel data
+            raise InputError(f"{source}: not a readable {what} (BMP pixel data: "
+                             f"{type(err).__name__}: {' '.join(str(err).split())[:80]})"
+                             ) from None
     else:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     if img is None or img.size == 0:

@@ -503,17 +503,25 @@ def recorded_root(dataset: Json, where: str, path) -> str | None:
     if not isinstance(dataset, dict):
         raise InputError(f"{path}: '{where}' must be an object, got {_short(dataset)}")
     root = dataset.get("root")
-    if root is not None and not isinstance(root, str):
-        raise InputError(f"{path}: '{where}.root' must be a string (the dataset's path), got "
-                         f"{_short(root)}")
-    if root is not None and ("\0" in root or len(root.encode("utf-8", "replace")) > 4096):
-        raise InputError(f"{path}: '{where}.root' is not a path this system can hold (a NUL "
-                         f"byte, or over 4096 bytes), got {_short(root)}")
-    if root is not None and not Path(root).is_absolute():  # "" too: no path at all
-        raise InputError(f"{path}: '{where}.root' must be an absolute path (maps record one; "
-                         "a relative one would name another dataset from each folder a "
-                         f"command runs in), got {_short(root)}")
+    if root is not None:
+        check_recorded_path(root, f"{where}.root", path)
     return root
+
+
+def check_recorded_path(root: Json, key: str, path) -> None:
+    """InputError naming the metadata file `path` and its `key` unless `root`, a dataset's
+    recorded path, is a string this system can hold (no NUL byte, at most 4096 bytes) and
+    absolute."""
+    if not isinstance(root, str):
+        raise InputError(f"{path}: '{key}' must be a string (the dataset's path), got "
+                         f"{_short(root)}")
+    if "\0" in root or len(root.encode("utf-8", "replace")) > 4096:
+        raise InputError(f"{path}: '{key}' is not a path this system can hold (a NUL byte, or "
+                         f"over 4096 bytes), got {_short(root)}")
+    if not Path(root).is_absolute():  # "" too: no path at all
+        raise InputError(f"{path}: '{key}' must be an absolute path (maps record one; a "
+                         "relative one would name another dataset from each folder a command "
+                         f"runs in), got {_short(root)}")
 
 
 def _check_schema(meta: dict, version: int, path) -> None:
@@ -564,7 +572,13 @@ def _check_schema(meta: dict, version: int, path) -> None:
         _check_optional(meta["extended"], "dataset_roots", "extended.", path,
                         "a list of the datasets' absolute paths", _is_strings)
         for i, root in enumerate(meta["extended"].get("dataset_roots") or []):
-            recorded_root({"root": root}, f"extended.dataset_roots[{i}]", path)
+            check_recorded_path(root, f"extended.dataset_roots[{i}]", path)
+        _check_optional(meta["extended"], "source_map", "extended.", path,
+                        "a string (the extended map's path)", lambda v: isinstance(v, str))
+        n_frames = len(meta["frame_names"])
+        _check_optional(meta["extended"], "n_prior_frames", "extended.", path,
+                        f"a count of at most the map's frames ({n_frames})",
+                        _in(0, n_frames, whole=True))
     if isinstance(dataset, dict):
         _check_optional(dataset, "split", "dataset.", path, "a string (the split's sequences)",
                         lambda v: isinstance(v, str))

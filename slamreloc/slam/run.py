@@ -120,25 +120,38 @@ def _live_plugins(dataset, map_dir: Path | None, out: Path, config: SlamRunConfi
 
 
 def _check_extension(prior, map_dir: Path, dataset) -> None:
-    """InputError unless the map `map_dir` may be extended by a session of `dataset`: the
+    """InputError unless the map `map_dir` may be extended by a session of `dataset`. The
     extended map records the session's dataset and, as its earlier sessions', those the map
-    records (`MapMeta.dataset_roots`); frames are looked up by name, so the map's own frames
-    must come from the session's dataset (one of those roots, or none of them is there any
-    more: moved), or be named apart from its frames (else `export`, `evaluate` and `view`
-    would take the map's frames for these)."""
-    roots = [Path(r) for r in prior.info.dataset_roots()]
-    session = dataset.root.resolve()
-    at_hand = [r for r in roots if r.exists()]
-    if not at_hand or any(r.resolve() == session for r in at_hand):
-        return
+    records (`MapMeta.dataset_roots`), and every reader looks its frames up by name in them:
+    so each name the session's dataset shares with the map's frames must be one the map took
+    from that dataset. Refused: a session of none of the map's datasets (those still at hand)
+    that shares a name with its frames, and one of them when another of them holds a shared
+    name too (which picture is the map's frame cannot be told). Datasets no longer there
+    (moved) are not compared."""
     own = set(prior.info.frame_names or ())
-    clash = next((f.name for f in dataset.frames("all") if f.name in own), None)
-    if clash is not None:
+    shared = [f.name for f in dataset.frames("all") if f.name in own]
+    if not shared:
+        return
+    session = dataset.root.resolve()
+    at_hand = [r for r in map(Path, prior.info.dataset_roots()) if r.exists()]
+    others = [r for r in at_hand if r.resolve() != session]
+    if at_hand and len(others) == len(at_hand):
         raise InputError(f"{dataset.root}: holds frames named as the map {map_dir}'s own (such "
-                         f"as {clash[:80]!r}), which come from the map's "
+                         f"as {shared[0][:80]!r}), which come from the map's "
                          f"{'datasets' if len(at_hand) > 1 else 'dataset'} "
                          f"({', '.join(map(str, at_hand))[:400]}); the extended map would take "
                          "its frames for these: extend it with a session of one of those")
+    for root in others:
+        try:
+            names = {f.name for f in load_dataset(root).frames("all")}
+        except InputError:  # not readable now: no frame of it is looked up either
+            continue
+        clash = next((n for n in shared if n in names), None)
+        if clash is not None:
+            raise InputError(f"{dataset.root}: holds frames named as the map {map_dir}'s own "
+                             f"(such as {clash[:80]!r}), and so does {root}, another dataset "
+                             "of the map's: which one's picture is the map's frame cannot be "
+                             "told; extend it with a session whose frames are named apart")
 
 
 def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = SlamRunConfig(),
