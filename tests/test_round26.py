@@ -447,8 +447,10 @@ def test_images_of_float_samples_are_refused_saying_so(tmp_path):
                                          r"bits\)$"):
         read_image(files["grey PFM"])
     with pytest.raises(InputError, match=r"c\.tif: not a readable image \(a TIFF whose layout "
-                                         r"or samples are not read, such as 32-bit float "
-                                         r"colour; save it with 8 or 16 bits\)$"):
+                                         r"or samples are not read, which its header reader "
+                                         r"cannot parse: e\.g\. float or 32-bit colour "
+                                         r"samples, 16-bit grey with alpha, or a damaged "
+                                         r"header; save it with 8 or 16 bits\)$"):
         read_image(files["colour float TIFF"])
 
 

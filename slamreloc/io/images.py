@@ -184,6 +184,25 @@ _MAGIC = ((b"II*\0", "TIFF"), (b"MM\0*", "TIFF"), (b"PF", "PFM (PNM)"), (b"Pf", 
 _PNM_TOKEN = re.compile(rb"(?:\s|#[^\r\n]*)*([^\s#]+)")
 
 
+_PLAIN_PNM_BYTES = np.zeros(256, bool)  # what a plain PNM's samples are written with
+_PLAIN_PNM_BYTES[list(b"0123456789 \t\n\v\f\r")] = True
+
+
+def _plain_bitmap_problem(data: bytes) -> str | None:
+    """Why a plain PBM's (P1) pixels are not its format's (None when they are): each is the
+    digit 0 or 1 (whitespace between them optional), comments aside."""
+    pos = 2
+    for _ in range(2):  # width, height
+        match = _PNM_TOKEN.match(data, pos)
+        if match is None:
+            return None  # Pillow's header parse refuses it
+        pos = match.end()
+    body = np.frombuffer(re.sub(rb"#[^\r\n]*", b" ", data[pos:]), np.uint8)
+    odd = np.flatnonzero(~_PLAIN_PNM_BYTES[body] | ((body >= ord("2")) & (body <= ord("9"))))
+    return None if not len(odd) else (f"a plain PBM holds {bytes(body[odd[0]:odd[0] + 1])!r} "
+                                      "among its pixels, which are 0 or 1")
+
+
 def _ascii_pnm(data: bytes, header: ImageHeader, source, what: str) -> np.ndarray:
     """The raw samples of a plain (ASCII) PNM, P2 grey (H, W) or P3 colour (H, W, 3) in BGR
     order as OpenCV gives colour, uint8 for a maxval under 256, else uint16: OpenCV scales
@@ -196,17 +215,23 @@ def _ascii_pnm(data: bytes, header: ImageHeader, source, what: str) -> np.ndarra
     body = re.sub(rb"#[^\r\n]*", b" ", data[pos:])
     channels = 3 if data[:2] == b"P3" else 1
     count = header.width * header.height * channels
-    words = body.split()
-    if len(words) != count or not all(w.isdigit() for w in words[:count]):
-        bad = next((w for w in words if not w.isdigit()), None)
-        raise InputError(f"{source}: not a readable {what} (a plain PNM "
-                         + (f"sample {bad[:20]!r} that is no whole number" if bad is not None
-                            else f"of {len(words)} samples, its header says {count}") + ")")
-    samples = np.array([int(w) for w in words], np.int64)
+    odd = np.flatnonzero(~_PLAIN_PNM_BYTES[np.frombuffer(body, np.uint8)])
+    if len(odd):  # a sign, a point, a letter...: no whole number in ASCII digits
+        raise InputError(f"{source}: not a readable {what} (a plain PNM holds "
+                         f"{body[odd[0]:odd[0] + 1]!r} among its samples, which are whole "
+                         "numbers in ASCII digits)")
+    # parsed in C, one int64 per sample (a sample of more digits than int64 holds reads as
+    # its largest value: over any maxval)
+    samples = np.fromstring(body, dtype=np.int64, sep=" ") if body.strip() else \
+        np.zeros(0, np.int64)
+    if len(samples) != count:
+        raise InputError(f"{source}: not a readable {what} (a plain PNM of {len(samples)} "
+                         f"samples, its header says {count})")
     if samples.max(initial=0) > header.maxval:
+        top = int(samples.max())
         raise InputError(f"{source}: not a readable {what} (a PNM sample of "
-                         f"{int(samples.max())} is over the maxval {header.maxval} its header "
-                         "declares)")
+                         f"{'19 or more digits' if top == np.iinfo(np.int64).max else top} is "
+                         f"over the maxval {header.maxval} its header declares)")
     image = samples.astype(np.uint8 if header.maxval < 256 else np.uint16)
     image = image.reshape(header.height, header.width, channels)
     return image[..., ::-1].copy() if channels == 3 else image[..., 0]
@@ -218,7 +243,9 @@ def _pillow_pixels(data: bytes, colour: bool) -> np.ndarray:
     grey (H, W)."""
     from PIL import Image
 
-    with _pillow_unbounded(), Image.open(io.BytesIO(data)) as img:
+    with _pillow_unbounded():  # the size is checked at open; decoding needs no lock
+        img = Image.open(io.BytesIO(data))
+    with img:
         if colour:
             return np.asarray(img.convert("RGB"))[..., ::-1].copy()
         return np.asarray(img.convert("L"))
@@ -267,11 +294,13 @@ def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
                 fmt, (width, height), mode = img.format, img.size, img.mode
                 pages = bool(getattr(img, "is_animated", False))  # a next page: one look
                 tiff = _tiff_samples(img) if fmt == "TIFF" else None
+                layout = _tiff_layout_problem(img) if fmt == "TIFF" else None
     except Exception as err:  # noqa: BLE001 - Pillow's parsers raise many kinds on bad bytes
         known = next((name for magic, name in _MAGIC if data.startswith(magic)), None)
         unknown = "cannot identify" in str(err)
         if known is not None:  # a format we read, in a layout or with samples we do not
-            why = ("such as 32-bit float colour" if unknown else
+            why = ("which its header reader cannot parse: e.g. float or 32-bit colour "
+                   "samples, 16-bit grey with alpha, or a damaged header" if unknown else
                    f"{type(err).__name__}: {' '.join(str(err).split())[:80]}")
             raise InputError(f"{source}: not a readable {what} (a {known} whose layout or "
                              f"samples are not read, {why}; save it with 8 or 16 bits)"
@@ -288,6 +317,8 @@ def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
     channels, bits = PILLOW_MODES.get(mode, (4, 8))
     if fmt == "PPM" and mode == "I":  # Pillow's mode for a PGM of 16-bit samples (maxval
         bits = 16                     # over 255): PNM holds no wider ones
+    if layout is not None:
+        raise InputError(f"{source}: not a readable {what} ({layout})")
     if fmt == "TIFF" and tiff is not None:  # the file's own samples, not Pillow's widened mode
         bits, sample_format = tiff
         if sample_format not in (None, 1):  # 2: signed, 3: floating point
@@ -296,6 +327,22 @@ def _pillow_header(data: bytes, source, what: str) -> ImageHeader:
                              "samples; save it with unsigned 8 or 16 bits)")
     return ImageHeader(width, height, channels, bits, OTHER_FORMATS[fmt],
                        _pnm_maxval(data) if fmt == "PPM" else None)
+
+
+def _tiff_layout_problem(img) -> str | None:
+    """What of an open TIFF's layout OpenCV would read otherwise than the file says (None:
+    nothing): an Orientation tag other than 1 (OpenCV rotates the pixels whatever it is
+    told, while every other format's stored pixels are read as stored), and 16-bit samples of
+    a MinIsWhite image (OpenCV does not invert them)."""
+    tags = getattr(img, "tag_v2", {})
+    if tags.get(274, 1) != 1:
+        return (f"a TIFF whose Orientation tag ({tags.get(274)}) rotates its pixels; save it "
+                "with its pixels as the camera took them (Orientation 1)")
+    bits = tags.get(258)
+    bits = max(bits) if isinstance(bits, tuple) else bits
+    if tags.get(262) == 0 and bits == 16:
+        return "a 16-bit MinIsWhite TIFF; save it MinIsBlack, or with 8 bits"
+    return None
 
 
 def _tiff_samples(img) -> tuple[int, int | None] | None:
@@ -369,7 +416,26 @@ def check_encoded_image(data: bytes, source, what: str = "image") -> ImageHeader
     return header
 
 
-def _with_native_stderr(decode: Callable[[], T]) -> tuple[T, list[str]]:
+def _opencv_tiff_line(line: str) -> bool:
+    """Whether a line OpenCV logged is about the TIFF it decodes (libtiff's errors, its own)."""
+    return line.startswith(("[ERROR", "[ WARN")) and ("grfmt_tiff" in line or "imdecode_" in line)
+
+
+def _tiff_problem(lines: list[str]) -> str | None:
+    """The first problem OpenCV logged while decoding a TIFF (libtiff's `TIFF_Error ...`, or
+    the reason it could not read the header or data), for a message; None where it logged
+    none."""
+    for line in lines:
+        text = line.split("TIFF_Error ", 1)[1] if "TIFF_Error " in line else \
+            line.split("error: (-2:Unspecified error) ", 1)[1].split(" in function")[0] \
+            if "error: (-2:Unspecified error) " in line else None
+        if text:
+            return " ".join(text.split()).rstrip(".")[:120]
+    return None
+
+
+def _with_native_stderr(decode: Callable[[], T],
+                        mine: Callable[[str], bool] | None = None) -> tuple[T, list[str]]:
     """(`decode()`, the lines native code wrote to stderr meanwhile): libjpeg says that a JPEG
     is corrupt or cut short only there (a warning, after which it returns a picture padded with
     grey). File descriptor 2 goes to a memory file for the call, one call at a time (a lock);
@@ -399,8 +465,9 @@ def _with_native_stderr(decode: Callable[[], T]) -> tuple[T, list[str]]:
             os.close(saved)
             os.close(capture)
     lines = b"".join(chunks).decode("utf-8", "replace").splitlines()
-    ours = [line for line in lines if line.startswith(LIBJPEG_WARNINGS)]
-    others = [line for line in lines if not line.startswith(LIBJPEG_WARNINGS)]
+    mine = mine or (lambda line: line.startswith(LIBJPEG_WARNINGS))
+    ours = [line for line in lines if mine(line)]
+    others = [line for line in lines if not mine(line)]
     if others:
         os.write(2, ("\n".join(others) + "\n").encode())
     return result, ours
@@ -444,6 +511,14 @@ def _decode(data: bytes, source, flags: int, what: str,
             img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
         elif not colour and img.ndim == 3:
             img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    elif header.format == "PNM" and data[:2] == b"P1" and _plain_bitmap_problem(data):
+        raise InputError(f"{source}: not a readable {what} ({_plain_bitmap_problem(data)})")
+    elif header.format == "TIFF":  # libtiff says a file is cut short only in OpenCV's log
+        img, logged = _with_native_stderr(
+            lambda: cv2.imdecode(np.frombuffer(data, np.uint8), flags), _opencv_tiff_line)
+        problem = _tiff_problem(logged)
+        if problem is not None:
+            raise InputError(f"{source}: not a readable {what} (TIFF: {problem})")
     elif header.format == "BMP":
         try:
             img = _pillow_pixels(data, bool(flags > 0 and flags & cv2.IMREAD_COLOR))
