@@ -373,7 +373,8 @@ def test_native_libraries_add_no_lines_to_the_error(small_map, tmp_path):
     cv2.imwrite(str(tiff), np.random.default_rng(0).random((240, 320), np.float32))
     fake = tmp_path / "fake.mp4"
     fake.write_text("not a video\n")
-    for argv, needle in ((["localize", str(small_map.root), str(tiff)], "32-bit TIFF samples"),
+    for argv, needle in ((["localize", str(small_map.root), str(tiff)],
+                          "32-bit floating-point samples"),
                          (["sfm", str(fake), "--out", str(tmp_path / "s")], "not a video")):
         res = subprocess.run([sys.executable, "-m", "slamreloc.cli", *argv], cwd=REPO,
                              capture_output=True, text=True, timeout=120)

@@ -15,6 +15,7 @@ import subprocess
 import unicodedata
 from concurrent import futures
 from pathlib import Path
+from urllib.parse import unquote
 
 import cv2
 import grpc
@@ -85,7 +86,8 @@ def _cpp(binary: Path, server: str, root: Path) -> tuple[list[str] | None, str |
         assert done.stderr == ""
         lines = done.stdout.splitlines()
         assert all(re.fullmatch(r"# .*: not localized \(0 inliers\)", ln) for ln in lines)
-        return [Path(ln[2:].split(": not localized")[0]).stem for ln in lines], None
+        # names as `slamreloc localize` writes them (`line_name`: percent-encoded where needed)
+        return [Path(unquote(ln[2:].split(": not localized")[0])).stem for ln in lines], None
     assert done.returncode == 2, (done.returncode, done.stdout, done.stderr)
     lines = done.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: "), done.stderr
