@@ -184,6 +184,24 @@ _MAGIC = ((b"II*\0", "TIFF"), (b"MM\0*", "TIFF"), (b"PF", "PFM (PNM)"), (b"Pf", 
 _PNM_TOKEN = re.compile(rb"(?:\s|#[^\r\n]*)*([^\s#]+)")
 
 
+def _pnm_header_tokens(data: bytes, n: int) -> tuple[list[bytes], int] | None:
+    """The first `n` header tokens after a PNM's magic (width, height[, maxval]) and the
+    offset just past them; None where the header holds fewer (Pillow's parse refuses it)."""
+    tokens, pos = [], 2
+    while len(tokens) < n:
+        match = _PNM_TOKEN.match(data, pos, min(len(data), pos + 4096))
+        if match is None:
+            return None
+        tokens.append(match.group(1))
+        pos = match.end()
+    return tokens, pos
+
+
+def _pnm_pixels_text(data: bytes, after: int) -> bytes:
+    """A plain PNM's pixel text from offset `after` (past its header), comments blanked."""
+    return re.sub(rb"#[^\r\n]*", b" ", data[after:])
+
+
 _PLAIN_PNM_BYTES = np.zeros(256, bool)  # what a plain PNM's samples are written with
 _PLAIN_PNM_BYTES[list(b"0123456789 \t\n\v\f\r")] = True
 
@@ -191,13 +209,10 @@ _PLAIN_PNM_BYTES[list(b"0123456789 \t\n\v\f\r")] = True
 def _plain_bitmap_problem(data: bytes) -> str | None:
     """Why a plain PBM's (P1) pixels are not its format's (None when they are): each is the
     digit 0 or 1 (whitespace between them optional), comments aside."""
-    pos = 2
-    for _ in range(2):  # width, height
-        match = _PNM_TOKEN.match(data, pos)
-        if match is None:
-            return None  # Pillow's header parse refuses it
-        pos = match.end()
-    body = np.frombuffer(re.sub(rb"#[^\r\n]*", b" ", data[pos:]), np.uint8)
+    head = _pnm_header_tokens(data, 2)  # width, height
+    if head is None:
+        return None
+    body = np.frombuffer(_pnm_pixels_text(data, head[1]), np.uint8)
     odd = np.flatnonzero(~_PLAIN_PNM_BYTES[body] | ((body >= ord("2")) & (body <= ord("9"))))
     return None if not len(odd) else (f"a plain PBM holds {bytes(body[odd[0]:odd[0] + 1])!r} "
                                       "among its pixels, which are 0 or 1")
@@ -209,10 +224,7 @@ def _ascii_pnm(data: bytes, header: ImageHeader, source, what: str) -> np.ndarra
     such samples to 255 and clamps those over the maxval, so it reads neither as the file
     holds them. A sample over the maxval, a missing or extra one, or a token that is no
     number is an InputError."""
-    pos = 2
-    for _ in range(3):  # width, height, maxval
-        pos = _PNM_TOKEN.match(data, pos).end()
-    body = re.sub(rb"#[^\r\n]*", b" ", data[pos:])
+    body = _pnm_pixels_text(data, _pnm_header_tokens(data, 3)[1])  # past width, height, maxval
     channels = 3 if data[:2] == b"P3" else 1
     count = header.width * header.height * channels
     odd = np.flatnonzero(~_PLAIN_PNM_BYTES[np.frombuffer(body, np.uint8)])
@@ -257,14 +269,8 @@ def _pnm_maxval(data: bytes) -> int | None:
     those)."""
     if data[:2] not in (b"P2", b"P3", b"P5", b"P6"):
         return None
-    tokens, pos = [], 2
-    while len(tokens) < 3:
-        match = _PNM_TOKEN.match(data, pos, min(len(data), pos + 4096))
-        if match is None:
-            return None
-        tokens.append(match.group(1))
-        pos = match.end()
-    return int(tokens[2]) if tokens[2].isdigit() else None
+    head = _pnm_header_tokens(data, 3)
+    return int(head[0][2]) if head is not None and head[0][2].isdigit() else None
 
 
 @contextmanager
@@ -511,8 +517,9 @@ def _decode(data: bytes, source, flags: int, what: str,
             img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
         elif not colour and img.ndim == 3:
             img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    elif header.format == "PNM" and data[:2] == b"P1" and _plain_bitmap_problem(data):
-        raise InputError(f"{source}: not a readable {what} ({_plain_bitmap_problem(data)})")
+    elif header.format == "PNM" and data[:2] == b"P1" and \
+            (problem := _plain_bitmap_problem(data)) is not None:
+        raise InputError(f"{source}: not a readable {what} ({problem})")
     elif header.format == "TIFF":  # libtiff says a file is cut short only in OpenCV's log
         img, logged = _with_native_stderr(
             lambda: cv2.imdecode(np.frombuffer(data, np.uint8), flags), _opencv_tiff_line)
