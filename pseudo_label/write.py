@@ -89,6 +89,11 @@ def write_updated_map(labels: PseudoLabels, out: Path,
     rep["new_map"] = str(out.resolve())
     info = old.info
     history = (info.pseudo_label.history if info.pseudo_label else None) or ()
+    # the datasets of the old map's own updates: the new map still holds their frames
+    earlier = [] if info.pseudo_label is None else [
+        *(info.pseudo_label.earlier_dataset_roots or ()),
+        *([] if (root := info.recorded_inputs()["the dataset of the map's update"]) is None
+          else [str(root)])]
     update = UpdateMeta(
         source_map=str(Path(old.root).resolve()), dataset=rep["dataset"],
         n_frames=rep["n_frames"], n_frames_registered=rep["n_frames_registered"],
@@ -97,7 +102,8 @@ def write_updated_map(labels: PseudoLabels, out: Path,
         n_new_points=rep["n_new_points"], update=config.update,
         provenance=f"{PROVENANCE}: source per database row (0 labelled, 1 inherited "
                    "pseudo-label, 2 triangulated from registered frames), quality weight",
-        history=(*history, str(Path(old.root).resolve())))
+        history=(*history, str(Path(old.root).resolve())),
+        earlier_dataset_roots=tuple(dict.fromkeys(earlier)) or None)
     meta = replace(
         info, labels={**info.labels, "n_labelled": int(len(db.points)),
                       "n_labelled_map": int(len(old.database.points)),

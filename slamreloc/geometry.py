@@ -8,6 +8,7 @@ Units are metres; quaternions are Hamilton, scalar-last (x, y, z, w) as in TUM f
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -362,23 +363,31 @@ def _stamp_value(text: str) -> float | None:
     return stamp if np.isfinite(stamp) and abs(stamp) <= MAX_STAMP_S else None
 
 
+STAMP_TOLERANCE_S = 1e-6  # stamps closer than this are one instant (far below any frame time)
+
+
 def unique_stamps(rows: list[tuple[int, str, Rigid3]], path) -> list[tuple[str, Rigid3]]:
     """(first column, pose) of each (line number, first column, pose) row of the TUM file
-    `path`, each timestamp once: a later row of a timestamp already read (the same number,
-    however written) is dropped where its pose is the same (`same_pose`: float noise, q or -q)
-    and an InputError `FILE:N: timestamp T repeats line M with a different pose (X m and Y deg
-    apart)` otherwise. Frame names (non-numeric first columns) are left to the caller."""
-    first_row: dict[float, tuple[int, Rigid3]] = {}
+    `path`, each instant once: a later row of a timestamp already read (the same number,
+    however written, or one within STAMP_TOLERANCE_S of it: one instant for any camera) is
+    dropped where its pose is the same (`same_pose`: float noise, q or -q) and an InputError
+    `FILE:N: timestamp T repeats line M with a different pose (X m and Y deg apart)`
+    otherwise. Frame names (non-numeric first columns) are left to the caller."""
+    cells: dict[int, list[tuple[float, int, Rigid3]]] = {}  # stamp // tolerance -> its rows
     out: list[tuple[str, Rigid3]] = []
     for line_no, first, pose in rows:
         stamp = _stamp_value(first)
         if stamp is not None:
-            seen = first_row.setdefault(stamp, (line_no, pose))
-            if seen[0] != line_no:
-                if same_pose(seen[1], pose):
+            cell = math.floor(stamp / STAMP_TOLERANCE_S)
+            seen = next((row for c in (cell - 1, cell, cell + 1) for row in cells.get(c, ())
+                         if abs(row[0] - stamp) <= STAMP_TOLERANCE_S), None)
+            if seen is not None:
+                if same_pose(seen[2], pose):
                     continue
-                raise InputError(f"{path}:{line_no}: timestamp {first[:40]} repeats line "
-                                 f"{seen[0]} with a different pose ({pose_gap(seen[1], pose)})")
+                how = "repeats" if seen[0] == stamp else "is within 1 microsecond of"
+                raise InputError(f"{path}:{line_no}: timestamp {first[:40]} {how} line "
+                                 f"{seen[1]} with a different pose ({pose_gap(seen[2], pose)})")
+            cells.setdefault(cell, []).append((stamp, line_no, pose))
         out.append((first, pose))
     return out
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -77,6 +79,21 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
     for fmt, outcomes in s["by_format"].items():
         terminalreporter.write_line(f"  {fmt}: " + ", ".join(f"{k} {v}" for k, v in
                                                              outcomes.items()))
+
+
+@pytest.fixture(scope="session")
+def client_binary(tmp_path_factory) -> Path:
+    """clients/cpp built once per test run into a temporary folder (no optimisation: the build
+    is what costs); the modules that use it skip first where the tools are missing."""
+    root = Path(__file__).resolve().parents[1]
+    build = tmp_path_factory.mktemp("cpp_build")
+    t0 = time.perf_counter()
+    for cmd in (["cmake", "-S", str(root / "clients/cpp"), "-B", str(build)],
+                ["cmake", "--build", str(build), "-j", "2"]):
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
+        assert done.returncode == 0, f"{' '.join(cmd)}:\n{done.stdout[-3000:]}{done.stderr}"
+    print(f"clients/cpp built in {time.perf_counter() - t0:.1f} s")
+    return build / "slamreloc_client"
 
 
 @pytest.fixture(scope="session")

@@ -8,7 +8,6 @@ import os
 import shutil
 import socket
 import subprocess
-import time
 from pathlib import Path
 
 import cv2
@@ -43,19 +42,6 @@ pytestmark = pytest.mark.skipif(
     bool(MISSING), reason=f"the C++ client needs {', '.join(MISSING)} (Debian: libgrpc++-dev "
     "protobuf-compiler-grpc libprotobuf-dev protobuf-compiler cmake g++ pkg-config libssl-dev; "
     "scripts/install.sh installs them as root)")
-
-
-@pytest.fixture(scope="module")
-def client_binary(tmp_path_factory) -> Path:
-    """clients/cpp built into a temporary folder (no optimisation: the build is what costs)."""
-    build = tmp_path_factory.mktemp("cpp_build")
-    t0 = time.perf_counter()
-    for cmd in (["cmake", "-S", str(ROOT / "clients/cpp"), "-B", str(build)],
-                ["cmake", "--build", str(build), "-j", "2"]):
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
-        assert done.returncode == 0, f"{' '.join(cmd)}:\n{done.stdout[-3000:]}{done.stderr}"
-    print(f"clients/cpp built in {time.perf_counter() - t0:.1f} s")
-    return build / "slamreloc_client"
 
 
 @pytest.fixture(scope="module")

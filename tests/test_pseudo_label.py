@@ -7,6 +7,7 @@ import shutil
 import subprocess
 import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -145,6 +146,13 @@ def test_cli_and_bad_inputs(updated, small_map, scene_dir, tmp_path):
     with np.load(new_map.root / PROVENANCE) as z1, np.load(again.root / PROVENANCE) as z2:
         assert np.array_equal(z2["source"][:len(z1["source"])], z1["source"])
         assert np.array_equal(z2["quality"][:len(z1["quality"])], z1["quality"])
+    # the first update's dataset stays recorded: its frames are still in the map, so it is
+    # an input of every command on the map, which never writes there
+    first = new_map.meta["pseudo_label"]["dataset"]["root"]
+    assert again.info.earlier_dataset_roots == [first] and first in again.info.dataset_roots()
+    res = cli("export", again.root, "--tum", f"{first}/poses.txt")
+    assert res.returncode == 2 and "earlier" in res.stderr, res.stderr
+    assert not (Path(first) / "poses.txt").exists()
 
 
 def test_retrain_update_chooses_precision_for_this_machine(small_map, scene_dir, tmp_path,

@@ -30,7 +30,7 @@ from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto import relocalizer_pb2_grpc as pb_grpc
 from slamreloc.proto.messages import map_name_problem
 from tests.fuzzing import run_cli_output
-from tests.test_cpp_client import MISSING, client_binary  # noqa: F401 (a fixture)
+from tests.test_cpp_client import MISSING
 
 needs_cpp = pytest.mark.skipif(
     bool(MISSING), reason=f"the C++ client needs {', '.join(MISSING)} (Debian: libgrpc++-dev "
@@ -144,7 +144,7 @@ VARIANTS = {
 
 @needs_cpp
 @pytest.mark.parametrize("name", VARIANTS)
-def test_python_and_cpp_read_rgb_txt_alike(client_binary, fake_server, tmp_path,  # noqa: F811
+def test_python_and_cpp_read_rgb_txt_alike(client_binary, fake_server, tmp_path,
                                            name):
     content, expected = VARIANTS[name]
     root = _tum_folder(tmp_path / "tum", content)
@@ -177,7 +177,7 @@ PRINTABLE = ["x", "#", "\u00e9", "\u3001", "\uff10", "\U0001f600", "%", "'", '"'
 
 
 @needs_cpp
-def test_the_two_readers_refuse_the_same_characters(client_binary, fake_server,  # noqa: F811
+def test_the_two_readers_refuse_the_same_characters(client_binary, fake_server,
                                                     tmp_path):
     """Each blank or line break other than a space, a tab and "\\n" in a file name: refused by
     both by the list rule, with one message naming line 1. Each other control character:
@@ -210,7 +210,7 @@ def test_the_two_readers_refuse_the_same_characters(client_binary, fake_server, 
     ("a\\\\b", "not a plain relative path"), ("a\\.\\b", "not a plain relative path"),
     ("\\a", "not a plain relative path"), ("..", "not a path inside the dataset"),
     ("a\\..\\b", "not a path inside the dataset")])
-def test_frame_names_follow_the_python_rule(client_binary, fake_server, tmp_path,  # noqa: F811
+def test_frame_names_follow_the_python_rule(client_binary, fake_server, tmp_path,
                                             stem, problem):
     """A TUM frame is named by its file's stem, by `frame_name_problem` (a backslash read as a
     slash): a name Python refuses, the C++ client refuses too, naming the line."""
@@ -261,7 +261,7 @@ OPTIONS = {"--server": ("127.0.0.1:1", "127.0.0.1:2"), "--map": ("a", "b"),
 @needs_cpp
 @pytest.mark.parametrize("form", ["two", "equals", "same value", "bad first value"])
 @pytest.mark.parametrize("option", OPTIONS)
-def test_an_option_given_twice_is_refused(client_binary, tmp_path, option, form):  # noqa: F811
+def test_an_option_given_twice_is_refused(client_binary, tmp_path, option, form):
     """E5: the C++ client kept the last of an option given twice; it now refuses it as the
     Python CLI does, before reading any value (`--server=X` and `--server X` alike)."""
     first, second = OPTIONS[option]
@@ -277,7 +277,7 @@ def test_an_option_given_twice_is_refused(client_binary, tmp_path, option, form)
 
 
 @needs_cpp
-def test_the_repeat_message_is_the_python_clis(client_binary, tmp_path):  # noqa: F811
+def test_the_repeat_message_is_the_python_clis(client_binary, tmp_path):
     """The same line as `slamreloc localize ... --camera A --camera B`."""
     camera_a, camera_b = OPTIONS["--camera"]
     status, _, err = run_cli_output(["localize", str(tmp_path / "map"), str(tmp_path / "x.png"),
@@ -291,7 +291,7 @@ def test_the_repeat_message_is_the_python_clis(client_binary, tmp_path):  # noqa
 
 
 @needs_cpp
-def test_options_given_once_are_still_taken(client_binary, fake_server, tmp_path):  # noqa: F811
+def test_options_given_once_are_still_taken(client_binary, fake_server, tmp_path):
     """Each option once (a value that looks like an option name included) is as before."""
     root = _tum_folder(tmp_path / "tum", b"1.0 rgb/a.png\n2.0 rgb/b.png\n")
     done = subprocess.run([str(client_binary), "--server", fake_server, "--map=--map",
@@ -323,7 +323,7 @@ NOT_PRINTABLE = ["\u00ad", "\u200b", "\u2066", "\ufeff", "\U000e0001", "\ue000",
 
 @needs_cpp
 def test_format_private_and_unassigned_characters_are_refused_alike(
-        client_binary, fake_server, tmp_path):  # noqa: F811
+        client_binary, fake_server, tmp_path):
     """A frame name or a map name holding a character that is printable to neither side's
     rule: the C++ client refuses it before sending anything, as Python does (it was left to
     the server for format, private-use and unassigned characters)."""

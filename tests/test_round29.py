@@ -26,7 +26,7 @@ from slamreloc.cli.jobs import line_name
 from slamreloc.errors import InputError
 from slamreloc.io.images import read_depth, read_image
 from tests.fuzzing import run_cli
-from tests.test_cpp_client import MISSING, client_binary  # noqa: F401 (a fixture)
+from tests.test_cpp_client import MISSING
 from tests.test_round26_cpp import fake_server  # noqa: F401 (a fixture)
 
 needs_cpp = pytest.mark.skipif(bool(MISSING), reason=f"the C++ client needs {', '.join(MISSING)}")

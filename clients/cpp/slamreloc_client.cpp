@@ -1011,6 +1011,51 @@ std::string line_name(const std::string& name) {
   return out;
 }
 
+// `text` as one error line, by the CLI's rule (slamreloc.errors.terminal_line): each character
+// Python does not print written as Python's ascii() writes it (\n, \x1b, \u200b), a byte that
+// is not UTF-8 as the surrogate Python reads it as (\udcfe), and a run without spaces longer
+// than kWordLimit characters cut in its middle, so that a file name can neither break the line
+// nor drive a terminal, and a 2 MB name still leaves the problem at the line's end.
+std::string terminal_line(const std::string& text) {
+  constexpr std::size_t kWordLimit = 300;
+  std::string line;
+  for (std::size_t start = 0; start <= text.size();) {
+    std::size_t stop = text.find(' ', start);
+    if (stop == std::string::npos) stop = text.size();
+    std::vector<std::string> word;  // the word as shown, one character per entry
+    for (std::size_t i = start; i < stop;) {
+      char32_t cp = 0;
+      const int n = utf8_char(text, i, cp);
+      char buf[16] = "";
+      if (n == 0) {
+        std::snprintf(buf, sizeof buf, "\\udc%02x", static_cast<unsigned char>(text[i]));
+      } else if (cp == '\n' || cp == '\r' || cp == '\t') {
+        std::snprintf(buf, sizeof buf, "\\%c", cp == '\n' ? 'n' : cp == '\r' ? 'r' : 't');
+      } else if (!printable(cp)) {
+        std::snprintf(buf, sizeof buf,
+                      cp < 0x100 ? "\\x%02x" : cp < 0x10000 ? "\\u%04x" : "\\U%08x",
+                      static_cast<unsigned>(cp));
+      } else {
+        word.push_back(text.substr(i, n));
+      }
+      for (const char* c = buf; *c != 0; ++c) word.emplace_back(1, *c);
+      i += n == 0 ? 1 : n;
+    }
+    const std::size_t half = kWordLimit / 2;
+    const bool cut = word.size() > kWordLimit;
+    if (start > 0) line += ' ';
+    for (std::size_t k = 0; k < word.size(); ++k) {
+      if (cut && k == half) {
+        line += "...(" + std::to_string(word.size()) + " characters)...";
+        k = word.size() - half;
+      }
+      line += word[k];
+    }
+    start = stop + 1;
+  }
+  return line;
+}
+
 void print_result(const std::string& raw_name, const v1::LocalizeResponse& r) {
   const std::string name = line_name(raw_name);
   if (r.localized()) {
@@ -1050,7 +1095,7 @@ int run(const Options& opts) {
     try {
       bytes = read_file(path, "image", kMaxImageBytes);
     } catch (const Error& err) {
-      std::fprintf(stderr, "error: %s\n", err.what());
+      std::fprintf(stderr, "error: %s\n", terminal_line(err.what()).c_str());
       status = 2;
       continue;
     }
@@ -1058,8 +1103,8 @@ int run(const Options& opts) {
       print_result(path.filename().string(),
                    localize(*stub, bytes, camera ? &*camera : nullptr, opts.call));
     } catch (const CallError& err) {
-      std::fprintf(stderr, "error: %s: server %s: %s\n", path.string().c_str(),
-                   opts.server.c_str(), err.what());
+      const std::string line = path.string() + ": server " + opts.server + ": " + err.what();
+      std::fprintf(stderr, "error: %s\n", terminal_line(line).c_str());
       if (!is_image_error(err)) return 2;
       status = 2;
     }
@@ -1076,7 +1121,7 @@ int main(int argc, char** argv) {
   try {
     return run(parse_args(argc, argv));
   } catch (const std::exception& err) {
-    std::fprintf(stderr, "error: %s\n", err.what());
+    std::fprintf(stderr, "error: %s\n", terminal_line(err.what()).c_str());
     return 2;
   }
 }

@@ -67,6 +67,10 @@ def serve(
     tls_cert: Annotated[Optional[Path], typer.Option(help="TLS certificate (PEM)")] = None,
     tls_key: Annotated[Optional[Path], typer.Option(help="TLS private key (PEM)")] = None,
     max_request_mb: Annotated[float, typer.Option(help="largest request accepted")] = 32.0,
+    max_held_mb: Annotated[Optional[float], typer.Option(
+        help="requests held at once (received, queued, answered), in MiB; more are refused "
+             "OVERLOADED at once (at least one request of --max-request-mb) [default: 256]")]
+    = None,
     watch: Annotated[float, typer.Option(
         help="seconds between checks for a map folder replaced on disk (0: only ReloadMap)")]
     = 2.0,
@@ -87,6 +91,8 @@ def serve(
     # the options in their own units (the service's config takes bytes and seconds); NaN fails
     if not 1 / 16 <= max_request_mb <= 2047:
         raise InputError(f"--max-request-mb {max_request_mb}: 0.0625 to 2047")
+    if max_held_mb is not None and not 1 / 16 <= max_held_mb <= 65536:
+        raise InputError(f"--max-held-mb {max_held_mb}: 0.0625 to 65536")
     from slamreloc.service.server import WATCH_RULE, check_seconds
 
     check_seconds(watch, "watch", **WATCH_RULE)
@@ -100,6 +106,9 @@ def serve(
         raise InputError("--max-learned-maps bounds the maps saved into --learned-maps; give "
                          "that folder, or leave it out")
     named = map_names(maps, list(name or []))
+    from slamreloc.service.maps import check_served_folders
+
+    check_served_folders(named)  # before any map is read, whichever engine reads them
     from slamreloc.service.server import read_token
 
     token = read_token(token_file)
@@ -114,7 +123,8 @@ def serve(
             raise InputError("--engine ray: learning sessions (--learned-maps) are served by "
                              "--engine grpc only")
         grpc_only = [f"--{o}" for o, v in (("workers", workers), ("max-sessions", max_sessions),
-                     ("max-learning-sessions", max_learning_sessions)) if v is not None]
+                     ("max-learning-sessions", max_learning_sessions),
+                     ("max-held-mb", max_held_mb)) if v is not None]
         if grpc_only:
             raise InputError(f"--engine ray: {', '.join(grpc_only)} applies to --engine grpc "
                              "only (Ray Serve scales a map by --replicas and serves no "
@@ -137,6 +147,8 @@ def serve(
                                if max_learning_sessions is None else max_learning_sessions),
         token=token,
         tls_cert=tls_cert, tls_key=tls_key, max_request_bytes=int(max_request_mb * (1 << 20)),
+        max_held_bytes=(ServeConfig.max_held_bytes if max_held_mb is None
+                        else int(max_held_mb * (1 << 20))),
         watch_s=watch, learned_maps=learned_maps,
         max_learned_maps=(ServeConfig.max_learned_maps if max_learned_maps is None
                           else max_learned_maps)))

@@ -18,7 +18,8 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import (file_identity, file_kind, is_link_loop, relation_on_disk,
+from slamreloc.io.fileio import (file_identity, file_kind, is_link_loop, relation,
+                                 relation_on_disk,
                                  resolved, stat_or_none)
 
 
@@ -206,7 +207,7 @@ def busy_writer(out: str | Path) -> str | None:
 WRITERS_NAME = re.compile(r"\..+\.(?:(?:tmp|old)-([1-9][0-9]*)(?:\..*)?|lock)", re.DOTALL)
 
 
-def _writers_name(name: str) -> bool:
+def is_writers_name(name: str) -> bool:
     """Whether `name` is one a writer works under beside its output (`WRITERS_NAME`, its PID
     one Linux can give)."""
     match = WRITERS_NAME.fullmatch(name)
@@ -216,6 +217,23 @@ def _writers_name(name: str) -> bool:
 # the longest of those beside NAME: `.NAME.train-checkpoint.pt`, `.NAME.names.old-PID.txt`...
 WORKING_NAME_EXTRA = 32
 MAX_OUTPUT_NAME = 255 - WORKING_NAME_EXTRA
+
+
+def linked_folders(folder: Path, limit: int = 4096) -> list[Path]:
+    """Where the symbolic links among `folder`'s entries that lead to folders resolve (a
+    dataset's sequences kept elsewhere and linked in); [] for a file or a folder that cannot
+    be listed. At most `limit` entries are looked at."""
+    found = []
+    try:
+        with os.scandir(folder) as entries:
+            for i, entry in enumerate(entries):
+                if i >= limit:
+                    break
+                if entry.is_symlink() and entry.is_dir():
+                    found.append(resolved(entry.path))
+    except OSError:
+        pass
+    return found
 
 
 def check_outputs(outputs: dict[str, str | Path | None],
@@ -241,6 +259,11 @@ def check_outputs(outputs: dict[str, str | Path | None],
     output that is itself a symbolic link is refused (the rename would
     replace the link: `/dev/stdout` is one); links among its parent folders are followed."""
     ins = {what: resolved(p) for what, p in inputs.items() if p is not None}  # loops too
+    # each input also as named (an output named through it, leaving it by a link inside it:
+    # DATASET/seq-01/x where seq-01 is a link) and the folders linked into an input folder
+    # (a sequence kept on another disk: its frames are what the command reads)
+    named = {what: Path(os.path.abspath(p)) for what, p in inputs.items() if p is not None}
+    linked = {what: linked_folders(src) for what, src in ins.items()}
     own = folders if isinstance(folders, dict) else dict.fromkeys(folders, ...)
     working = {}  # the paths each output's writer works in beside it (lock, temporaries)
     for option, out in outputs.items():
@@ -266,7 +289,7 @@ def check_outputs(outputs: dict[str, str | Path | None],
         if Path(out).name in ("", ".", ".."):  # its lock and temporaries would go inside it
             raise InputError(f"{out}: {option} must end in a name, not '.' or '..' (give the "
                              "folder's path from its parent, e.g. ../NAME)")
-        if _writers_name(Path(out).name):  # a later writer beside it would remove it
+        if is_writers_name(Path(out).name):  # a later writer beside it would remove it
             raise InputError(f"{out}: {option} is named as a writer's temporary or lock "
                              "(.NAME.tmp-PID, .NAME.old-PID, .NAME.lock), which writers "
                              "remove; give another name")
@@ -302,6 +325,13 @@ def check_outputs(outputs: dict[str, str | Path | None],
             raise InputError(busy)  # lock path its writer would refuse
         for what, src in ins.items():
             how = relation_on_disk(target, src)
+            if how is None and src.is_dir():
+                how = relation(Path(os.path.abspath(out)), named[what])
+                if how is None:
+                    link = next((f for f in linked[what] if relation(target, f)), None)
+                    if link is not None:
+                        how, src = relation(target, link), link
+                        what = f"{what}'s linked folder"
             if how is None or how == "lies inside" and not src.is_dir():
                 continue
             where = what if how == "is" else f"{what} ({src})"

@@ -54,9 +54,9 @@ class ExportPoints:
 
 def frame_images(scene_map: SceneMap, dataset=None) -> tuple[Path | None, dict[str, Path]]:
     """(dataset root, frame name -> image file), from `dataset` (a Dataset) or the one the map
-    records, and for a map a SLAM session extended, the frames it took over from the datasets
-    of its earlier sessions (a name already found is kept); (None, {}) when none is at
-    hand."""
+    records, and the frames it holds from its other datasets (`MapMeta.dataset_roots`: its
+    updates', a SLAM session's earlier sessions'; a name already found is kept); (None, {})
+    when none is at hand."""
     from slamreloc.datasets import load_dataset
 
     def frames_of(root) -> dict[str, Path]:
@@ -73,9 +73,10 @@ def frame_images(scene_map: SceneMap, dataset=None) -> tuple[Path | None, dict[s
         root = root if images else None
     else:
         root, images = Path(dataset.root), {f.name: f.image_path for f in dataset.frames("all")}
-    for earlier in reversed(scene_map.info.earlier_dataset_roots):  # the newest first
-        for name, path in frames_of(earlier).items():
-            images.setdefault(name, path)
+    for other in reversed(scene_map.info.dataset_roots()):  # the newest first
+        if root is None or Path(other) != Path(root):
+            for name, path in frames_of(other).items():
+                images.setdefault(name, path)
     return root, images
 
 

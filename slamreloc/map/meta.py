@@ -244,18 +244,24 @@ class UpdateMeta(_Record):
     update: str | None = _key(_is_str)  # finetune | retrain
     provenance: str | None = _key(_is_str)  # what provenance.npz holds (prose)
     history: tuple[str, ...] | None = _key(_is_strings, tuple)  # every map updated, oldest first
+    # the datasets of the updates before this one (absolute paths, oldest first): an update of
+    # an updated map still holds their frames
+    earlier_dataset_roots: tuple[str, ...] | None = _key(_is_strings, tuple)
 
 
 @dataclass(frozen=True)
 class ExtensionMeta(_Record):
     """"extended": what a SLAM session that extended a map (`slam --map OLD --out NEW`) took
     over: NEW's first `n_prior_frames` frames are OLD's, whose images are in the datasets OLD
-    records (`dataset_roots`, absolute paths, oldest first); NEW's own `dataset` is the
-    session's."""
+    records (`dataset_roots`, absolute paths, oldest first) and whose poses came from the pose
+    files it records (`pose_files`); NEW's own `dataset` is the session's."""
 
     source_map: str | None = _key(_is_str)  # OLD (absolute path)
     dataset_roots: tuple[str, ...] | None = _key(_is_strings, tuple)
     n_prior_frames: int | None = _key(_is_int)
+    # the pose files OLD's frames were posed from (`dataset.poses` of OLD and of the maps
+    # before it; absolute paths, oldest first): inputs of every command on NEW too
+    pose_files: tuple[str, ...] | None = _key(_is_strings, tuple)
 
 
 @dataclass(frozen=True)
@@ -443,6 +449,7 @@ class MapMeta(_Record):
 
         update = self.pseudo_label.get("dataset") if self.pseudo_label else None
         earlier = self.earlier_dataset_roots
+        poses = self.earlier_pose_files
         return {"the dataset the map records": absolute(self._recorded_root(
                     self.get("dataset"), "dataset")),
                 "the pose file the map records": absolute(self.poses_source),
@@ -450,13 +457,36 @@ class MapMeta(_Record):
                     update, "pseudo_label.dataset")),
                 **{"a dataset of the map's earlier sessions"
                    + (f" ({i + 1} of {len(earlier)})" if len(earlier) > 1 else ""): Path(root)
-                   for i, root in enumerate(earlier)}}
+                   for i, root in enumerate(earlier)},
+                **{"a pose file of the map's earlier sessions"
+                   + (f" ({i + 1} of {len(poses)})" if len(poses) > 1 else ""): Path(path)
+                   for i, path in enumerate(poses)}}
 
     @property
     def earlier_dataset_roots(self) -> list[str]:
-        """The datasets of the frames this map took over from the map a SLAM session extended
-        (`extended.dataset_roots`, checked absolute by the schema), oldest first."""
-        return list(self.extended.dataset_roots or ()) if self.extended else []
+        """The datasets of frames this map holds besides its own dataset's and its last
+        update's: those it took over from the map a SLAM session extended
+        (`extended.dataset_roots`), then those of the updates before its last
+        (`pseudo_label.earlier_dataset_roots`); absolute paths (the schema checks them),
+        oldest first, each once."""
+        roots: list[str] = []
+        for record in (self.extended.dataset_roots if self.extended else None,
+                       self.pseudo_label.earlier_dataset_roots if self.pseudo_label else None):
+            roots += [r for r in record or () if r not in roots]
+        return roots
+
+    @property
+    def earlier_pose_files(self) -> list[str]:
+        """The pose files the frames this map took over from the map a SLAM session extended
+        were posed from (`extended.pose_files`, checked absolute by the schema), oldest
+        first."""
+        return list(self.extended.pose_files or ()) if self.extended else []
+
+    def pose_files(self) -> list[str]:
+        """Every pose file this map's frames were posed from, oldest first (each once)."""
+        own = self.recorded_inputs()["the pose file the map records"]
+        files = self.earlier_pose_files
+        return files + [str(own)] if own is not None and str(own) not in files else files
 
     def dataset_roots(self) -> list[str]:
         """Every dataset whose frames this map holds, oldest first: its earlier sessions',
@@ -566,13 +596,18 @@ def _check_schema(meta: dict, version: int, path) -> None:
     recorded_root(dataset, "dataset", path)  # every command's rule, not only a dataset's user
     if isinstance(meta.get("pseudo_label"), dict):
         recorded_root(meta["pseudo_label"].get("dataset"), "pseudo_label.dataset", path)
+        _check_optional(meta["pseudo_label"], "earlier_dataset_roots", "pseudo_label.", path,
+                        "a list of the datasets' absolute paths", _is_strings)
+        for i, root in enumerate(meta["pseudo_label"].get("earlier_dataset_roots") or []):
+            check_recorded_path(root, f"pseudo_label.earlier_dataset_roots[{i}]", path)
     _check_optional(meta, "extended", "", path, "an object (what a SLAM session took over)",
                     _is_object)
     if isinstance(meta.get("extended"), dict):
-        _check_optional(meta["extended"], "dataset_roots", "extended.", path,
-                        "a list of the datasets' absolute paths", _is_strings)
-        for i, root in enumerate(meta["extended"].get("dataset_roots") or []):
-            check_recorded_path(root, f"extended.dataset_roots[{i}]", path)
+        for key in ("dataset_roots", "pose_files"):
+            _check_optional(meta["extended"], key, "extended.", path,
+                            "a list of absolute paths", _is_strings)
+            for i, root in enumerate(meta["extended"].get(key) or []):
+                check_recorded_path(root, f"extended.{key}[{i}]", path)
         _check_optional(meta["extended"], "source_map", "extended.", path,
                         "a string (the extended map's path)", lambda v: isinstance(v, str))
         n_frames = len(meta["frame_names"])

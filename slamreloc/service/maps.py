@@ -22,7 +22,8 @@ from functools import cached_property
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import CANCEL_READS, ReadCancelled, relation, resolved
+from slamreloc.io.fileio import CANCEL_READS, ReadCancelled, relation_on_disk, resolved
+from slamreloc.io.outputs import is_writers_name
 from slamreloc.localize.localizer import RegressorLocalizer
 from slamreloc.map.format import DATABASE, META, PROVENANCE
 from slamreloc.proto import relocalizer_pb2 as pb
@@ -188,6 +189,30 @@ class _Load:
             self.done.set()
 
 
+def check_served_folders(maps: dict[str, Path]) -> None:
+    """InputError, before any map is read, unless each folder to serve is one of its own:
+    not named as a writer's temporary (`.NAME.tmp-PID`, `.NAME.old-PID`: a map's readers and
+    writers remove such a folder beside NAME, or put it back as NAME, as a killed writer's),
+    and apart from every other served map's folder (not the same folder under another path,
+    a link or a bind mount, not inside it, not holding it: the reload's rule, as two names
+    would serve one folder and a session could save neither)."""
+    folders: dict[str, Path] = {}
+    for name, path in maps.items():
+        path = Path(path)
+        folder = resolved(path)  # a link's target too
+        if is_writers_name(path.name) or is_writers_name(folder.name):
+            raise InputError(f"{path}: the map {quoted(name)} is named as a writer's temporary "
+                             "(.NAME.tmp-PID, .NAME.old-PID), which the next read or write of "
+                             "NAME removes or puts back as NAME; rename it to serve it")
+        for other, other_folder in folders.items():
+            how = relation_on_disk(folder, other_folder)
+            if how:
+                raise InputError(f"{path}: the folder of the map {quoted(name)} {how} the "
+                                 f"folder of the map {quoted(other)}; serve a folder under one "
+                                 "name (a session could save under neither)")
+        folders[name] = folder
+
+
 class MapRegistry:
     """name -> ServedMap. `get` never blocks on a reload; a reload never blocks for longer
     than `load_timeout_s` (then it is refused, OVERLOADED, and the map already loaded keeps
@@ -196,6 +221,7 @@ class MapRegistry:
     another's."""
 
     def __init__(self, maps: dict[str, Path], load_timeout_s: float = 300.0):
+        check_served_folders(maps)  # before any load: a map's reader cleans beside it
         self._maps = {name: ServedMap.load(name, Path(path)) for name, path in maps.items()}
         self.load_timeout_s = load_timeout_s
         self._reload_lock = threading.Lock()  # held only to look up and to swap, never to load
@@ -311,7 +337,8 @@ class MapRegistry:
             problem = "its folder was replaced by a symbolic link"
         elif current.folder is None or folder != current.folder:
             for m in self._maps.values():
-                how = None if m.name == name else relation(folder, m.folder or resolved(m.path))
+                how = (None if m.name == name else
+                       relation_on_disk(folder, m.folder or resolved(m.path)))
                 if how:
                     problem = (f"its folder now {how} the folder of the map "
                                f"{quoted(m.name)} this server serves")

@@ -69,6 +69,8 @@ SERVICE_NAME = pb.DESCRIPTOR.services_by_name["Relocalizer"].full_name
 
 MAX_SESSION_KEYFRAMES = 500  # a learning session's map: ~1000 rows, 3-4 MB of memory each
 MIN_WATCH_S = 0.01  # the shortest `watch_s`: a check of every map folder per interval
+STOP_WAIT_S = 10.0  # how long a stop waits for the calls it cancelled (seconds)
+SMALL_REQUEST_BYTES = 1 << 16  # a request this small is not counted in `max_held_bytes`
 
 
 @dataclass(frozen=True)
@@ -84,6 +86,9 @@ class ServeConfig:
     tls_cert: Path | None = None  # PEM files; both or neither
     tls_key: Path | None = None
     max_request_bytes: int = 32 << 20
+    # bytes of requests over SMALL_REQUEST_BYTES the server holds at once (received, queued or
+    # being answered; at least one whole request whatever this says); more: OVERLOADED at once
+    max_held_bytes: int = 256 << 20
     watch_s: float = 2.0  # reload maps whose folder was replaced; 0: only on ReloadMap
     load_timeout_s: float = 300.0  # a reload reading a map folder longer is refused (OVERLOADED)
     max_reloads: int = 4  # ReloadMap calls waiting for a load at once; more: OVERLOADED
@@ -117,6 +122,8 @@ class ServeConfig:
             raise InputError(f"`max_reloads` {self.max_reloads}: 1 to 256")
         if not 0 <= self.max_queued <= 4096:
             raise InputError(f"`max_queued` {self.max_queued}: 0 to 4096")
+        if not (1 << 16) <= self.max_held_bytes <= (64 << 30):
+            raise InputError(f"`max_held_bytes` {self.max_held_bytes}: 65536 to {64 << 30}")
         if not (1 << 16) <= self.max_request_bytes <= (2 << 30) - 1:
             raise InputError(f"`max_request_bytes` {self.max_request_bytes}: 65536 to "
                              f"{(2 << 30) - 1}")
@@ -250,6 +257,7 @@ class RelocalizerService:
         self.sessions = 0  # open (SessionOpen answered)
         self.opening = 0  # streams waiting for or checking their SessionOpen
         self.localizing = 0  # Localize calls running or waiting for a worker
+        self.held_bytes = 0  # bytes of the requests over SMALL_REQUEST_BYTES being handled
         self.requests = 0
         self._save_lock = threading.Lock()  # one learned map written and registered at a time
         self.stopping = threading.Event()  # set by `RunningServer.stop`: no save starts writing
@@ -275,6 +283,27 @@ class RelocalizerService:
                 + config.max_reloads + 4)
 
     # ---- plumbing ------------------------------------------------------------------------
+    @contextmanager
+    def _holding(self, body: bytes) -> Iterator[None]:
+        """Count a request's bytes while it is handled: OVERLOADED at once where they would
+        take the requests held past `max_held_bytes` (one request is always taken, and a
+        small one - Health, ListMaps, a session's save - is never counted). A request's
+        memory is its bytes, the message parsed from them and, while a worker has it, the
+        decoded image: many large requests at once must not take the server's memory."""
+        size = len(body) if len(body) > SMALL_REQUEST_BYTES else 0
+        limit = max(self.config.max_held_bytes, self.config.max_request_bytes)
+        with self._count_lock:
+            if size and self.held_bytes and self.held_bytes + size > limit:
+                raise ServiceError(pb.OVERLOADED, f"the server holds {self.held_bytes >> 20} "
+                                   f"MiB of requests, and this one's {size >> 20} MiB would "
+                                   f"pass the {limit >> 20} MiB it takes at once: try again")
+            self.held_bytes += size
+        try:
+            yield
+        finally:
+            with self._count_lock:
+                self.held_bytes -= size
+
     def _refuse(self, context: grpc.ServicerContext, err: ServiceError):
         context.set_trailing_metadata(((ERROR_METADATA_KEY, err.kind_name),))
         context.abort(err.grpc_code, err.message)
@@ -296,7 +325,8 @@ class RelocalizerService:
             try:
                 if not self._authorized(context):
                     raise ServiceError(pb.UNAUTHENTICATED, "missing or wrong token")
-                return handle(parse_message(parse, body), context)
+                with self._holding(body):
+                    return handle(parse_message(parse, body), context)
             except ServiceError as err:
                 self._refuse(context, err)
             except Exception as err:  # noqa: BLE001 - answer, log, and keep serving
@@ -467,43 +497,48 @@ class RelocalizerService:
             self.sessions += 1
             state["opened"] = True
 
+    def _open_session(self, msg: pb.SessionRequest, kind: str | None, state: dict) -> Session:
+        """The session a stream's first message opens (its SessionOpen), counted as open."""
+        if kind != "open":
+            raise ServiceError(pb.BAD_REQUEST, "a session starts with SessionOpen, got "
+                               f"{_session_message(kind)}")
+        learn = msg.open.learn or (not msg.open.map and not self.registry.names)
+        if learn and msg.open.map:
+            raise ServiceError(pb.BAD_REQUEST, "open.learn: a learning session starts with no "
+                               f"map, got map {quoted(msg.open.map)}")
+        if learn:
+            self._reserve_learning(state)
+        try:
+            session = Session(None if learn else self.registry.get(msg.open.map), msg.open,
+                              self.config.live)
+            self._opened(state)
+        except BaseException:
+            self._unreserve_learning(state)
+            raise
+        if session.learning:
+            state["session"] = session
+            self._unreserve_learning(state, opened=session)
+        return session
+
     def _session(self, requests, context, key: int, state: dict):
         session = None
         for body in requests:
             self.deadlines.disarm(key)  # a message: no deadline while it is processed
             try:
-                msg = parse_message(pb.SessionRequest, body)
-                kind = msg.WhichOneof("message")
-                if session is None:
-                    if kind != "open":
-                        raise ServiceError(pb.BAD_REQUEST, "a session starts with SessionOpen, "
-                                           f"got {_session_message(kind)}")
-                    learn = msg.open.learn or (not msg.open.map and not self.registry.names)
-                    if learn and msg.open.map:
-                        raise ServiceError(pb.BAD_REQUEST, "open.learn: a learning session "
-                                           f"starts with no map, got map {quoted(msg.open.map)}")
-                    if learn:
-                        self._reserve_learning(state)
-                    try:
-                        opening = Session(None if learn else self.registry.get(msg.open.map),
-                                          msg.open, self.config.live)
-                        self._opened(state)
-                    except BaseException:
-                        self._unreserve_learning(state)
-                        raise
-                    session = opening
-                    if session.learning:
-                        state["session"] = session
-                        self._unreserve_learning(state, opened=session)
-                    update = pb.SessionUpdate(opened=session.opened())
-                elif kind == "save":  # no worker slot: a save computes no localization
-                    update = pb.SessionUpdate(saved=self._save(session, msg.save, context))
-                elif kind != "frame":
-                    raise ServiceError(pb.BAD_REQUEST, "a frame expected, got "
-                                       f"{_session_message(kind)}")
-                else:
-                    with self._worker(context, counted=False):
-                        update = pb.SessionUpdate(frame=session.frame(msg.frame))
+                with self._holding(body):  # a frame's bytes count while it is handled
+                    msg = parse_message(pb.SessionRequest, body)
+                    kind = msg.WhichOneof("message")
+                    if session is None:
+                        session = self._open_session(msg, kind, state)
+                        update = pb.SessionUpdate(opened=session.opened())
+                    elif kind == "save":  # no worker slot: a save computes no localization
+                        update = pb.SessionUpdate(saved=self._save(session, msg.save, context))
+                    elif kind != "frame":
+                        raise ServiceError(pb.BAD_REQUEST, "a frame expected, got "
+                                           f"{_session_message(kind)}")
+                    else:
+                        with self._worker(context, counted=False):
+                            update = pb.SessionUpdate(frame=session.frame(msg.frame))
             except ServiceError as err:
                 if session is None:  # nothing to carry on with
                     self._refuse(context, err)
@@ -1050,13 +1085,18 @@ class RunningServer:
     def address(self) -> str:
         return listen_address(self.host, self.port)
 
-    def stop(self, grace_s: float | None = 1.0) -> None:
+    def stop(self, grace_s: float | None = 1.0) -> bool:
         """Stop serving - the watch and any map load too, waited for - and give the process
         back the thread counts it had before. A learned map being written is finished (and
-        logged) first; a save that has not begun writing is refused."""
+        logged) first; a save that has not begun writing is refused. Calls still running
+        after `grace_s` are cancelled, and waited for STOP_WAIT_S more: returns whether they
+        all ended (False: some thread of gRPC's still holds one, logged)."""
         self.service.finish_saves()
         self.registry.close()
-        self.server.stop(grace_s).wait()
+        ended = self.server.stop(grace_s).wait((grace_s or 0.0) + STOP_WAIT_S)
+        if not ended:
+            _log(f"calls still running {(grace_s or 0.0) + STOP_WAIT_S:g} s after the stop "
+                 "were left behind")
         self.service.deadlines.close()
         with self.service._count_lock:
             learning = list(self.service.learning)
@@ -1065,6 +1105,7 @@ class RunningServer:
         if self.threads_before is not None:
             set_threads(*self.threads_before)
             self.threads_before = None
+        return ended
 
 
 def set_threads(torch_threads: int, cv2_threads: int) -> None:
@@ -1171,5 +1212,8 @@ def serve_forever(maps: dict[str, Path], config: ServeConfig) -> None:
     while not stop.wait(1.0):
         pass
     _log("stopping")
-    running.stop(grace_s=2.0)
+    if not running.stop(grace_s=2.0):  # a call gRPC never ended: its thread would hold the
+        sys.stdout.flush()  # interpreter's exit, which joins every thread, for ever
+        sys.stderr.flush()
+        os._exit(0)
 

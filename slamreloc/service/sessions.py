@@ -127,6 +127,12 @@ class Session:
             if msg.depth.HasField("depth_camera"):
                 raise ServiceError(pb.BAD_DEPTH, "frame.depth: the depth camera is given once, "
                                    "in SessionOpen.depth_camera")
+            units = msg.depth.units_per_metre
+            if units and self.depth_units and units != self.depth_units:
+                raise ServiceError(pb.BAD_DEPTH, f"frame.depth.units_per_metre {units:g} differs "
+                                   "from SessionOpen.depth_units_per_metre "
+                                   f"{self.depth_units:g}: give the units once (in "
+                                   "SessionOpen, or in every frame with none there)")
             depth = depth_from_msg(msg.depth, (w, h) if self.depth_camera is None else None,
                                    self.depth_units, "frame.depth")
             if self.depth_camera is not None:

@@ -444,6 +444,7 @@ class LiveMap:
             extended=None if self.prior is None else ExtensionMeta(
                 source_map=str(self.prior.root.resolve()),
                 dataset_roots=tuple(self.prior.info.dataset_roots()),
+                pose_files=tuple(self.prior.info.pose_files()) or None,
                 n_prior_frames=len(live.keys) - n_new),
             surface=None if surface is None else self.prior.info.surface)
         # a prior map's fused depth surface is kept (`evaluate --depth` refines on it where
