@@ -12,6 +12,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -366,28 +367,49 @@ def _stamp_value(text: str) -> float | None:
 STAMP_TOLERANCE_S = 1e-6  # stamps closer than this are one instant (far below any frame time)
 
 
+class Instants:
+    """What was read at each instant so far: stamps (seconds) within STAMP_TOLERANCE_S of each
+    other are one instant, the one rule of every reader of stamped data (TUM files and lists,
+    bag topics) for "given twice"."""
+
+    def __init__(self) -> None:
+        self._cells: dict[int, list[tuple[float, Any]]] = {}
+
+    def setdefault(self, stamp: float, value: Any) -> tuple[float, Any]:
+        """(stamp, value) first read at the instant of `stamp`; where none was, `stamp` and
+        `value`, now kept."""
+        cell = math.floor(stamp / STAMP_TOLERANCE_S)
+        for c in (cell - 1, cell, cell + 1):
+            for row in self._cells.get(c, ()):
+                if abs(row[0] - stamp) <= STAMP_TOLERANCE_S:
+                    return row
+        self._cells.setdefault(cell, []).append((stamp, value))
+        return stamp, value
+
+
+def same_instant_words(first: float, again: float) -> str:
+    """How a stamp read again stands to the first of its instant, for a refusal."""
+    return "repeats" if first == again else "is within 1 microsecond of"
+
+
 def unique_stamps(rows: list[tuple[int, str, Rigid3]], path) -> list[tuple[str, Rigid3]]:
     """(first column, pose) of each (line number, first column, pose) row of the TUM file
-    `path`, each instant once: a later row of a timestamp already read (the same number,
-    however written, or one within STAMP_TOLERANCE_S of it: one instant for any camera) is
-    dropped where its pose is the same (`same_pose`: float noise, q or -q) and an InputError
+    `path`, each instant once (`Instants`): a later row of an instant already read is dropped
+    where its pose is the same (`same_pose`: float noise, q or -q) and an InputError
     `FILE:N: timestamp T repeats line M with a different pose (X m and Y deg apart)`
     otherwise. Frame names (non-numeric first columns) are left to the caller."""
-    cells: dict[int, list[tuple[float, int, Rigid3]]] = {}  # stamp // tolerance -> its rows
+    instants = Instants()
     out: list[tuple[str, Rigid3]] = []
     for line_no, first, pose in rows:
         stamp = _stamp_value(first)
         if stamp is not None:
-            cell = math.floor(stamp / STAMP_TOLERANCE_S)
-            seen = next((row for c in (cell - 1, cell, cell + 1) for row in cells.get(c, ())
-                         if abs(row[0] - stamp) <= STAMP_TOLERANCE_S), None)
-            if seen is not None:
-                if same_pose(seen[2], pose):
+            seen_stamp, (seen_line, seen_pose) = instants.setdefault(stamp, (line_no, pose))
+            if seen_line != line_no:
+                if same_pose(seen_pose, pose):
                     continue
-                how = "repeats" if seen[0] == stamp else "is within 1 microsecond of"
-                raise InputError(f"{path}:{line_no}: timestamp {first[:40]} {how} line "
-                                 f"{seen[1]} with a different pose ({pose_gap(seen[2], pose)})")
-            cells.setdefault(cell, []).append((stamp, line_no, pose))
+                raise InputError(f"{path}:{line_no}: timestamp {first[:40]} "
+                                 f"{same_instant_words(seen_stamp, stamp)} line {seen_line} "
+                                 f"with a different pose ({pose_gap(seen_pose, pose)})")
         out.append((first, pose))
     return out
 

@@ -425,10 +425,11 @@ def collect_images(source: Path, images_dir: Path, config: SfmConfig,
 
 def _looks_like_dataset(root: Path) -> bool:
     from slamreloc.datasets.colmap import is_colmap
+    from slamreloc.datasets.rosbag import is_rosbag
     from slamreloc.datasets.sevenscenes import is_sevenscenes
     from slamreloc.datasets.tum import is_tum
 
-    if (root / "metadata.yaml").is_file():  # a ROS 2 bag
+    if is_rosbag(root):  # a ROS 2 bag folder (its reader names a metadata.yaml it cannot read)
         return True
     return is_tum(root) or is_colmap(root) or is_sevenscenes(root)
 

@@ -242,3 +242,126 @@ def test_two_poses_of_one_instant_are_refused_whatever_their_stamps(tmp_path, ga
         read_poses(path)
     path.write_text(f"0 0 0 0 0 0 0 1\n{gap} 0 0 0 0 0 0 1\n0.033333333 0.01 0 0 0 0 0 1\n")
     assert len(read_poses(path)) == 2  # the same pose twice: read once
+
+
+# ---- round 32: around round 31's fixes ------------------------------------------------------
+import dataclasses  # noqa: E402
+
+from slamreloc.datasets.rosbag import load_rosbag  # noqa: E402
+from slamreloc.geometry import Rigid3  # noqa: E402
+from tests.rosbag_support import (  # noqa: E402,F401 - automatic_topics: a fixture
+    INFO_TOPIC,
+    Messages,
+    automatic_topics,
+    first_test_frames,
+    frame_stamp,
+    write_bag,
+)
+
+
+def test_outputs_into_a_folder_a_deeper_link_of_an_input_leads_to_are_refused(tiny_scene,
+                                                                              tmp_path):
+    """Q1: round 31 looked at links directly inside an input only: a dataset whose frame
+    files are links into a store of images took a map written into that store."""
+    store, ds = tmp_path / "store", tmp_path / "ds"
+    shutil.copytree(tiny_scene, ds)
+    store.mkdir()
+    for f in sorted((ds / "seq-01").glob("*.color.png")):
+        f.rename(store / f.name)
+        f.symlink_to(store / f.name)
+    before = _digest(store)
+    code, err = run_cli(["map", str(ds), "--out", str(store / "mapin"), "--arch", "tiny",
+                         "--epochs", "1"])
+    assert code == 2 and "linked folder" in err and "which this command only reads" in err, err
+    assert _digest(store) == before
+
+
+@pytest.fixture(scope="module")
+def bag_scene(scene_dir):
+    return first_test_frames(scene_dir, 4)
+
+
+def test_an_uncalibrated_camera_info_is_said_to_be_one(bag_scene, tmp_path):
+    """Q2: ROS's uncalibrated CameraInfo (K all zero) was refused as "(no skew)"."""
+    dataset, frames = bag_scene
+    msgs = Messages(2)
+    info = [dataclasses.replace(msgs.camera_info(frame_stamp(f), f.camera), k=np.zeros(9))
+            for f in frames]
+    bag = write_bag(dataset, frames, tmp_path / "bag", camera_info=False,
+                    extra={INFO_TOPIC: info})
+    with pytest.raises(InputError, match="K is all zero, which says the camera is not "
+                                         "calibrated"):
+        load_rosbag(bag)
+
+
+def test_a_bag_folder_s_metadata_that_is_no_file_is_named(bag_scene, tmp_path):
+    """Q3: a ROS 2 bag folder whose metadata.yaml is a named pipe was "not a dataset"."""
+    dataset, frames = bag_scene
+    bag = write_bag(dataset, frames, tmp_path / "bag")
+    (bag / "metadata.yaml").unlink()
+    os.mkfifo(bag / "metadata.yaml")
+    code, err = run_cli(["sfm", str(bag), "--out", str(tmp_path / "out")])
+    assert code == 2 and "metadata.yaml: ROS bag metadata is not a regular file (a named " \
+        "pipe)" in err, err
+
+
+def test_two_poses_of_one_instant_in_a_bag_are_refused(bag_scene, tmp_path):
+    """Q4: a pose topic giving frame 0 two poses 1 m apart, 0.8 microseconds apart, was read
+    as their midpoint; a TUM file with the same rows is refused. One rule: refused."""
+    dataset, frames = bag_scene
+    msgs = Messages(2)
+    t0 = frame_stamp(frames[0])
+    moved = Rigid3(np.eye(3), np.array([1.0, 0, 0])) @ frames[0].world_from_cam
+    poses = [msgs.pose_stamped(t0 - 4e-7, "map", frames[0].world_from_cam),
+             msgs.pose_stamped(t0 + 4e-7, "map", moved)]
+    poses += [msgs.pose_stamped(frame_stamp(f), "map", f.world_from_cam) for f in frames[1:]]
+    bag = write_bag(dataset, frames, tmp_path / "bag", poses=None, extra={"/pose": poses})
+    with pytest.raises(InputError, match="one instant .*carry different poses"):
+        load_rosbag(bag)
+
+
+def test_a_session_s_depth_units_are_compared_as_numbers_and_not_for_metres(tiny_map):
+    """Q5: 1 / float32(0.001) units (a RealSense depth scale) were refused against 1000 as
+    "1000 differs from 1000"; FLOAT32_METRES depth with units given was refused or taken by
+    the session's units. Units equal to within a millionth are the same; metres take none."""
+    running = start_server({"m": tiny_map}, ServeConfig(port=0, watch_s=0))
+    try:
+        channel = grpc.insecure_channel(running.address)
+        stub = pb_grpc.RelocalizerStub(channel)
+        mm = np.full((48, 64), 2000, "<u2").tobytes()
+        metres = np.full((48, 64), 2.0, "<f4").tobytes()
+        sent = [(pb.Depth.UINT16, mm, 1 / float(np.float32(0.001))),
+                (pb.Depth.FLOAT32_METRES, metres, 1000.0), (pb.Depth.FLOAT32_METRES, metres, 0)]
+        frames = []
+        for encoding, data, units in sent:
+            frame = pb.SessionFrame(image=image_msg(_png(64, 48)), timestamp=len(frames))
+            frame.depth.CopyFrom(pb.Depth(encoding=encoding, width=64, height=48, data=data,
+                                          units_per_metre=units))
+            frames.append(pb.SessionRequest(frame=frame))
+        opening = pb.SessionRequest(open=pb.SessionOpen(map="m", odometry="auto",
+                                                        depth_units_per_metre=1000))
+        updates = list(stub.Session(iter([opening, *frames]), timeout=120))
+        channel.close()
+    finally:
+        running.stop()
+    answers = [u for u in updates if u.HasField("frame") or u.HasField("error")]
+    assert [u.HasField("frame") for u in answers] == [True, False, True], updates
+    assert "given with FLOAT32_METRES depth, which is in metres" in answers[1].error.message
+
+
+def test_learned_maps_on_a_second_name_of_a_served_map_s_folder_are_refused(tiny_map,
+                                                                          tmp_path):
+    """Q7: --learned-maps given as a bind mount of the served map's folder was taken (the
+    plain path is refused), and a save wrote into the served map."""
+    folder, mount = tmp_path / "lm", tmp_path / "mnt"
+    shutil.copytree(tiny_map, folder / "q")
+    mount.mkdir()
+    if subprocess.run(["mount", "--bind", str(folder), str(mount)], capture_output=True,
+                      check=False).returncode != 0:
+        pytest.skip("bind mounts need root (mount --bind)")
+    try:
+        code, err = run_cli(["serve", str(folder / "q"), "--learned-maps", str(mount / "q"),
+                             "--port", "0"])
+    finally:
+        subprocess.run(["umount", str(mount)], check=False)
+    assert code == 2 and "--learned-maps is the folder of the served map" in err, err

@@ -776,10 +776,10 @@ def test_answers_are_not_bounded_by_the_request_limit(tiny_map, tmp_path):
     """Finding 2: with a 64 KB request bound, ListMaps of 300 maps with long names (~74 KB)
     is answered whole."""
     maps = {}
-    for i in range(300):
-        link = tmp_path / f"l{i}"
-        link.symlink_to(tiny_map)
-        maps[f"{i:03d}" + "n" * 120] = link
+    for i in range(300):  # a folder of its own each: one folder is served under one name
+        copy = tmp_path / f"m{i}"
+        shutil.copytree(tiny_map, copy)
+        maps[f"{i:03d}" + "n" * 120] = copy
     running = start_server(maps, ServeConfig(port=0, watch_s=0, max_request_bytes=65536))
     try:
         status, _, body, _ = _call(running.address, "ListMaps", pb.ListMapsRequest())

@@ -18,7 +18,8 @@ A bag is a ROS 1 `.bag` file, a ROS 2 bag folder (with `metadata.yaml`) or a ROS
   frame is composed with the `/tf_static` chain from that frame to the image's when there is
   one. A pose topic's messages all name one world frame (header.frame_id) and one child
   frame, and `/tf_static` is a tree (each frame one parent, no loop); else the bag is refused.
-- Repeated stamps: two messages of one image, depth or pose topic with the same stamp are one
+- Repeated stamps: two messages of one image, depth or pose topic at one instant (stamps
+  within a microsecond: `geometry.Instants`, every stamped reader's rule) are one
   message twice when they hold the same image bytes or the same pose (`geometry.same_pose`:
   within float noise), and are read once; otherwise the bag is refused, naming the topic and
   the stamp (which of the two is the camera's is not for slamreloc to guess).
@@ -32,6 +33,7 @@ from __future__ import annotations
 
 import atexit
 import hashlib
+import os
 import shutil
 import tempfile
 import warnings
@@ -48,6 +50,8 @@ from slamreloc.datasets.base import Dataset
 from slamreloc.errors import InputError
 from slamreloc.geometry import (
     MAX_COORDINATE,
+    STAMP_TOLERANCE_S,
+    Instants,
     Rigid3,
     matrix_to_quat,
     nearest_stamps,
@@ -153,8 +157,8 @@ def tf_frames(spec: str, source: str) -> tuple[str, str]:
 def is_rosbag(path: Path) -> bool:
     """A ROS 1 `.bag` file, a ROS 2 bag folder (with metadata.yaml) or a `.db3`/`.mcap` file."""
     path = Path(path)
-    if path.is_dir():
-        return (path / "metadata.yaml").is_file()
+    if path.is_dir():  # whatever metadata.yaml is: a pipe or a folder there is named so
+        return os.path.lexists(path / "metadata.yaml")
     return path.is_file() and path.suffix in (".bag", ".db3", ".mcap")
 
 
@@ -213,6 +217,8 @@ def _open_bag(path: Path) -> Iterator[_Bag]:
         raise InputError(f"{path}: not a ROS bag (a .bag file, a ROS 2 bag folder with "
                          "metadata.yaml, or a .db3/.mcap file)")
     # every file of the bag is a regular file: a named pipe or a device would block the reader
+    if path.is_dir():
+        open_regular(path / "metadata.yaml", "ROS bag metadata").close()
     for part in [path] if not path.is_dir() else sorted(path.iterdir()):
         if not part.is_dir():
             open_regular(part, "ROS bag file").close()
@@ -463,7 +469,7 @@ def _extract(bag: _Bag, topic: str, folder: Path, make_file: FileMaker,
     """Write each message of `topic` to `folder` as a file; all must be `size` pixels."""
     folder.mkdir()
     stills: list[_Still] = []
-    seen: dict[float, tuple[int, bytes]] = {}  # stamp -> (first message, its file's digest)
+    seen = Instants()  # each instant's first (message, its file's digest)
     for i, (receive_time, msg) in enumerate(bag.messages(topic)):
         source = f"{bag.path}: {what} topic {topic}, message {i}"
         data, suffix, got = make_file(msg, source)
@@ -473,17 +479,24 @@ def _extract(bag: _Bag, topic: str, folder: Path, make_file: FileMaker,
                                                        "images)" if what == "depth" else ""))
         stamp = _stamp(msg.header, receive_time)
         digest = hashlib.sha256(data).digest()
-        first, first_digest = seen.setdefault(stamp, (i, digest))
-        if first != i:  # a repeated stamp: the same message again is read once
+        first_stamp, (first, first_digest) = seen.setdefault(stamp, (i, digest))
+        if first != i:  # one instant again: the same message again is read once
             if first_digest != digest:
                 raise InputError(f"{bag.path}: {what} topic {topic}: messages {first} and {i} "
-                                 f"are both stamped {stamp:.6f} s but hold different "
+                                 f"are {_stamped_words(first_stamp, stamp)} but hold different "
                                  f"{'depth maps' if what == 'depth' else 'images'}")
             continue
         path = folder / f"{len(stills):06d}{suffix}"
         path.write_bytes(data)
         stills.append(_Still(stamp, path))
     return stills
+
+
+def _stamped_words(first: float, again: float) -> str:
+    """How two messages of one instant (`geometry.Instants`) are stamped, for a refusal."""
+    if first == again:
+        return f"both stamped {first:.6f} s"
+    return f"stamped {first:.9f} and {again:.9f} s, one instant (within 1 microsecond)"
 
 
 @contextmanager
@@ -722,14 +735,15 @@ def _read_pose_track(bag: _Bag, spec: str) -> PoseTrack:
     _one_frame(bag, spec, "header.frame_id", parents)
     child = _one_frame(bag, spec, "child_frame_id", children)
     kept: list[int] = []  # message indices, by stamp, the first of each stamp
-    for i in np.argsort(stamps, kind="stable").tolist():
-        first = kept[-1] if kept and stamps[kept[-1]] == stamps[i] else None
+    for i in np.argsort(stamps, kind="stable").tolist():  # one instant: within 1 us
+        first = (kept[-1] if kept and stamps[i] - stamps[kept[-1]] <= STAMP_TOLERANCE_S
+                 else None)
         if first is None:
             kept.append(i)
         elif not same_pose(poses[first], poses[i]):
-            raise InputError(f"{bag.path}: pose {spec}: messages {first} and {i} are both "
-                             f"stamped {stamps[i]:.6f} s but carry different poses "
-                             f"({pose_gap(poses[first], poses[i])})")
+            raise InputError(f"{bag.path}: pose {spec}: messages {first} and {i} are "
+                             f"{_stamped_words(stamps[first], stamps[i])} but carry different "
+                             f"poses ({pose_gap(poses[first], poses[i])})")
     return PoseTrack(np.asarray(stamps)[kept], [poses[i] for i in kept], child)
 
 

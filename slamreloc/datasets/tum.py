@@ -16,7 +16,7 @@ from slamreloc.datasets.base import Dataset
 from slamreloc.datasets.io import check_frame_files, image_size, read_intrinsics, read_text
 from slamreloc.errors import InputError
 from slamreloc.io.fileio import optional_file, plain_lines
-from slamreloc.geometry import parse_stamp, read_tum_trajectory
+from slamreloc.geometry import Instants, parse_stamp, read_tum_trajectory, same_instant_words
 from slamreloc.types import Camera, Frame
 
 MAX_DT = 0.02  # seconds
@@ -35,7 +35,7 @@ def _read_list(path: Path, n_fields: int) -> list[list[str]]:
     C++ client reads rgb.txt by it too): lines end at "\\n", fields are separated by spaces or
     tabs, any other control character or blank is an InputError naming the line."""
     rows = []
-    seen: dict[float, tuple[int, str]] = {}  # stamp -> (its first line, its file)
+    seen = Instants()  # each instant's first (line, file)
     last: tuple[float, int] | None = None  # the latest stamp so far, and its line
     for i, line in plain_lines(read_text(path, "list"), path, "list"):
         if not line.strip() or line.lstrip().startswith("#"):
@@ -47,10 +47,11 @@ def _read_list(path: Path, n_fields: int) -> list[list[str]]:
         rel = PurePosixPath(parts[1])
         if rel.is_absolute() or ".." in rel.parts:
             raise InputError(f"{path}:{i}: {parts[1][:80]!r} points outside the dataset folder")
-        first, listed = seen.setdefault(stamp, (i, parts[1]))
+        first_stamp, (first, listed) = seen.setdefault(stamp, (i, parts[1]))
         if first != i:
             if listed != parts[1]:
-                raise InputError(f"{path}:{i}: timestamp {parts[0]} repeats line {first} with "
+                raise InputError(f"{path}:{i}: timestamp {parts[0]} "
+                                 f"{same_instant_words(first_stamp, stamp)} line {first} with "
                                  f"another file ({parts[1][:80]!r}, not {listed[:80]!r})")
             continue
         if last is not None and stamp < last[0]:

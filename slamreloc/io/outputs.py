@@ -219,21 +219,34 @@ WORKING_NAME_EXTRA = 32
 MAX_OUTPUT_NAME = 255 - WORKING_NAME_EXTRA
 
 
-def linked_folders(folder: Path, limit: int = 4096) -> list[Path]:
-    """Where the symbolic links among `folder`'s entries that lead to folders resolve (a
-    dataset's sequences kept elsewhere and linked in); [] for a file or a folder that cannot
-    be listed. At most `limit` entries are looked at."""
-    found = []
-    try:
-        with os.scandir(folder) as entries:
-            for i, entry in enumerate(entries):
-                if i >= limit:
-                    break
-                if entry.is_symlink() and entry.is_dir():
-                    found.append(resolved(entry.path))
-    except OSError:
-        pass
-    return found
+LINK_WALK_ENTRIES = 200_000  # entries of an input folder looked at for links (a 7-Scenes
+# scene of 7 x 1000 frames holds ~21 000)
+
+
+def linked_folders(folder: Path, limit: int = LINK_WALK_ENTRIES) -> list[Path]:
+    """The folders outside `folder` that its symbolic links lead to, at any depth (not
+    followed further): where a linked folder resolves (a dataset's sequence, a COLMAP
+    dataset's images/SEQ kept on another disk), and the folder holding each linked file (a
+    dataset whose frame files are links into a store of images). [] for a file or a folder
+    that cannot be listed; at most `limit` entries are looked at."""
+    found: set[Path] = set()
+    pending, seen = [Path(folder)], 0
+    while pending and seen < limit:
+        try:
+            with os.scandir(pending.pop()) as entries:
+                for entry in entries:
+                    seen += 1
+                    if seen > limit:
+                        break
+                    if entry.is_symlink():
+                        target = resolved(entry.path)
+                        found.add(target if entry.is_dir() else target.parent)
+                    elif entry.is_dir(follow_symlinks=False):
+                        pending.append(Path(entry.path))
+        except OSError:
+            continue
+    root = resolved(folder)
+    return sorted(f for f in found if not f.is_relative_to(root))
 
 
 def check_outputs(outputs: dict[str, str | Path | None],

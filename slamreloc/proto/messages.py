@@ -290,7 +290,12 @@ def depth_from_msg(msg: pb.Depth, registered_size: tuple[int, int] | None,
     height), which depth registered to it must have; None for depth of its own camera."""
     units = msg.units_per_metre or units_per_metre or 1000.0
     try:
-        problem = depth_units_problem(units)
+        if msg.encoding == pb.Depth.FLOAT32_METRES and msg.units_per_metre != 0:
+            raise InputError(f"units_per_metre {msg.units_per_metre:.10g} given with "
+                             "FLOAT32_METRES depth, which is in metres: units apply to UINT16 "
+                             "and PNG16 depth only (leave it 0)")
+        problem = (None if msg.encoding == pb.Depth.FLOAT32_METRES
+                   else depth_units_problem(units))
         if problem:
             raise InputError(f"units_per_metre {problem}")
         if msg.encoding != pb.Depth.PNG16 and msg.encoding not in DEPTH_ITEM_BYTES:

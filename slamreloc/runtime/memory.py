@@ -6,6 +6,11 @@ tensors) come from the heap, and the pose graph's small long-lived nodes allocat
 keep the heap from shrinking: in the long-run benchmark (BENCHMARKS.md, "Long runs") the SLAM
 process grew many times faster than what it holds. `malloc_trim(0)` returns every free page of
 the heap, for well under a millisecond.
+
+A server's threads each get a malloc arena of their own, which reserves 64 MB of address space
+(untouched: not resident) on first use: `limit_malloc_arenas` keeps them to a few, so the
+server's address space stays near what it holds (a host that caps address space, `ulimit -v`,
+counts the reservations).
 """
 
 from __future__ import annotations
@@ -28,3 +33,17 @@ def release_free_memory() -> bool:
     """Return free heap pages to the operating system; False where the C library cannot."""
     fn = _malloc_trim()
     return bool(fn(0)) if fn is not None else False
+
+
+M_ARENA_MAX = -8  # glibc's mallopt parameter
+
+
+def limit_malloc_arenas(n: int = 2) -> bool:
+    """At most `n` malloc arenas for the threads started from now on (glibc `mallopt`); False
+    where the C library has no such setting."""
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    return bool(mallopt(M_ARENA_MAX, n))

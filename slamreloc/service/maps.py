@@ -22,7 +22,7 @@ from functools import cached_property
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import CANCEL_READS, ReadCancelled, relation_on_disk, resolved
+from slamreloc.io.fileio import CANCEL_READS, ReadCancelled, relation, relation_on_disk, resolved
 from slamreloc.io.outputs import is_writers_name
 from slamreloc.localize.localizer import RegressorLocalizer
 from slamreloc.map.format import DATABASE, META, PROVENANCE
@@ -337,8 +337,7 @@ class MapRegistry:
             problem = "its folder was replaced by a symbolic link"
         elif current.folder is None or folder != current.folder:
             for m in self._maps.values():
-                how = (None if m.name == name else
-                       relation_on_disk(folder, m.folder or resolved(m.path)))
+                how = None if m.name == name else relation(folder, m.folder or resolved(m.path))
                 if how:
                     problem = (f"its folder now {how} the folder of the map "
                                f"{quoted(m.name)} this server serves")

@@ -43,7 +43,7 @@ from google.protobuf.message import DecodeError
 from slamreloc import __version__
 from slamreloc.errors import InputError, OutOfMemory, is_out_of_memory
 from slamreloc.io.address import bind_problem, check_host, is_loopback, listen_address
-from slamreloc.io.fileio import relation, resolved
+from slamreloc.io.fileio import relation, relation_on_disk, resolved
 from slamreloc.io.pem import certificates_der, read_pem
 from slamreloc.map.format import META
 from slamreloc.map.lock import clean_maps_folder, map_write_lock
@@ -70,6 +70,7 @@ SERVICE_NAME = pb.DESCRIPTOR.services_by_name["Relocalizer"].full_name
 MAX_SESSION_KEYFRAMES = 500  # a learning session's map: ~1000 rows, 3-4 MB of memory each
 MIN_WATCH_S = 0.01  # the shortest `watch_s`: a check of every map folder per interval
 STOP_WAIT_S = 10.0  # how long a stop waits for the calls it cancelled (seconds)
+STREAMS_PER_CONNECTION = 16  # calls one connection has open at once (HTTP/2's setting)
 SMALL_REQUEST_BYTES = 1 << 16  # a request this small is not counted in `max_held_bytes`
 
 
@@ -778,7 +779,7 @@ def learned_maps_problem(folder: Path, maps: list) -> str | None:
         for what, p in inputs.items():
             if p is None:
                 continue
-            how = relation(where, resolved(p))
+            how = relation_on_disk(where, resolved(p))  # a bind mount is the same folder
             if how in ("is", "lies inside"):
                 said = what if how == "is" else f"{what}, {p}"
                 return (f"{folder}: `learned_maps` {how} {said}: a "
@@ -1156,7 +1157,13 @@ def start_server(maps: dict[str, Path], config: ServeConfig = ServeConfig()) -> 
     # many maps) is the server's own and must reach the client whole
     options = [("grpc.max_receive_message_length", config.max_request_bytes),
                ("grpc.max_send_message_length", -1),
-               ("grpc.so_reuseport", 0)]
+               ("grpc.so_reuseport", 0),
+               # a call waiting for a thread buffers no more than HTTP/2's first window (64
+               # KiB), not a window grown to megabytes by bandwidth probes: the bytes of the
+               # requests received stay those the handlers hold (`max_held_bytes`)
+               ("grpc.http2.bdp_probe", 0),
+               # a client's calls beyond these wait on its side of the connection, not here
+               ("grpc.max_concurrent_streams", STREAMS_PER_CONNECTION)]
     pool = futures.ThreadPoolExecutor(RelocalizerService.pool_size(config),
                                       thread_name_prefix="slamreloc-serve")
     server = grpc.server(pool, handlers=[service.handler()], options=options)
@@ -1199,6 +1206,9 @@ def _listens_without_tls(address: str) -> bool:
 
 def serve_forever(maps: dict[str, Path], config: ServeConfig) -> None:
     """`slamreloc serve`: start, say where, serve until SIGINT / SIGTERM."""
+    from slamreloc.runtime.memory import limit_malloc_arenas
+
+    limit_malloc_arenas()  # before the pool's threads: each would reserve 64 MB of its own
     running = start_server(maps, config)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import time
 import uuid
 
@@ -128,10 +129,11 @@ class Session:
                 raise ServiceError(pb.BAD_DEPTH, "frame.depth: the depth camera is given once, "
                                    "in SessionOpen.depth_camera")
             units = msg.depth.units_per_metre
-            if units and self.depth_units and units != self.depth_units:
-                raise ServiceError(pb.BAD_DEPTH, f"frame.depth.units_per_metre {units:g} differs "
-                                   "from SessionOpen.depth_units_per_metre "
-                                   f"{self.depth_units:g}: give the units once (in "
+            if (units and self.depth_units and msg.depth.encoding != pb.Depth.FLOAT32_METRES
+                    and not math.isclose(units, self.depth_units, rel_tol=1e-6)):
+                raise ServiceError(pb.BAD_DEPTH, f"frame.depth.units_per_metre {units:.10g} "
+                                   "differs from SessionOpen.depth_units_per_metre "
+                                   f"{self.depth_units:.10g}: give the units once (in "
                                    "SessionOpen, or in every frame with none there)")
             depth = depth_from_msg(msg.depth, (w, h) if self.depth_camera is None else None,
                                    self.depth_units, "frame.depth")
