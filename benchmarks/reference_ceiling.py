@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from slamreloc.datasets import load_dataset
-from slamreloc.geometry import Rigid3, align_poses, pose_error
+from slamreloc.geometry import align_poses, pose_error
 from slamreloc.slam.metrics import ate_rmse
 
 SFM = "sfm_pgt/poses.txt"

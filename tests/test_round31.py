@@ -92,26 +92,35 @@ def _png(width: int, height: int, seed: int = 0) -> bytes:
     return cv2.imencode(".png", rng.integers(0, 255, (height, width, 3), np.uint8))[1].tobytes()
 
 
-def test_a_frame_s_depth_units_must_match_the_session_s(tiny_map):
-    """N2: a frame's Depth.units_per_metre silently overrode SessionOpen's: a session opened at
-    5000 units a metre ran as one at 1000. A frame's own value must now equal the session's."""
+def _session_updates(tiny_map: Path, open_units: float,
+                     depths: list[tuple[int, bytes, float]]) -> list:
+    """The updates of one session on a server of `tiny_map`, opened with `open_units` depth
+    units a metre, sent one 64x48 frame per (encoding, data, units_per_metre) of `depths`."""
     running = start_server({"m": tiny_map}, ServeConfig(port=0, watch_s=0))
     try:
         channel = grpc.insecure_channel(running.address)
-        stub = pb_grpc.RelocalizerStub(channel)
-        depth = np.full((48, 64), 5000, "<u2")
         frames = []
-        for units in (1000.0, 5000.0, 0.0):
+        for encoding, data, units in depths:
             frame = pb.SessionFrame(image=image_msg(_png(64, 48)), timestamp=len(frames))
-            frame.depth.CopyFrom(pb.Depth(encoding=pb.Depth.UINT16, width=64, height=48,
-                                          data=depth.tobytes(), units_per_metre=units))
+            frame.depth.CopyFrom(pb.Depth(encoding=encoding, width=64, height=48, data=data,
+                                          units_per_metre=units))
             frames.append(pb.SessionRequest(frame=frame))
         opening = pb.SessionRequest(open=pb.SessionOpen(map="m", odometry="auto",
-                                                        depth_units_per_metre=5000))
-        updates = list(stub.Session(iter([opening, *frames]), timeout=120))
+                                                        depth_units_per_metre=open_units))
+        updates = list(pb_grpc.RelocalizerStub(channel).Session(iter([opening, *frames]),
+                                                                timeout=120))
         channel.close()
     finally:
         running.stop()
+    return updates
+
+
+def test_a_frame_s_depth_units_must_match_the_session_s(tiny_map):
+    """N2: a frame's Depth.units_per_metre silently overrode SessionOpen's: a session opened at
+    5000 units a metre ran as one at 1000. A frame's own value must now equal the session's."""
+    depth = np.full((48, 64), 5000, "<u2").tobytes()
+    updates = _session_updates(tiny_map, 5000, [(pb.Depth.UINT16, depth, units)
+                                                for units in (1000.0, 5000.0, 0.0)])
     errors = [u.error for u in updates if u.HasField("error")]
     assert len(errors) == 1 and errors[0].kind == pb.BAD_DEPTH, updates
     assert "units_per_metre 1000 differs from SessionOpen.depth_units_per_metre 5000" in \
@@ -324,26 +333,11 @@ def test_a_session_s_depth_units_are_compared_as_numbers_and_not_for_metres(tiny
     """Q5: 1 / float32(0.001) units (a RealSense depth scale) were refused against 1000 as
     "1000 differs from 1000"; FLOAT32_METRES depth with units given was refused or taken by
     the session's units. Units equal to within a millionth are the same; metres take none."""
-    running = start_server({"m": tiny_map}, ServeConfig(port=0, watch_s=0))
-    try:
-        channel = grpc.insecure_channel(running.address)
-        stub = pb_grpc.RelocalizerStub(channel)
-        mm = np.full((48, 64), 2000, "<u2").tobytes()
-        metres = np.full((48, 64), 2.0, "<f4").tobytes()
-        sent = [(pb.Depth.UINT16, mm, 1 / float(np.float32(0.001))),
-                (pb.Depth.FLOAT32_METRES, metres, 1000.0), (pb.Depth.FLOAT32_METRES, metres, 0)]
-        frames = []
-        for encoding, data, units in sent:
-            frame = pb.SessionFrame(image=image_msg(_png(64, 48)), timestamp=len(frames))
-            frame.depth.CopyFrom(pb.Depth(encoding=encoding, width=64, height=48, data=data,
-                                          units_per_metre=units))
-            frames.append(pb.SessionRequest(frame=frame))
-        opening = pb.SessionRequest(open=pb.SessionOpen(map="m", odometry="auto",
-                                                        depth_units_per_metre=1000))
-        updates = list(stub.Session(iter([opening, *frames]), timeout=120))
-        channel.close()
-    finally:
-        running.stop()
+    mm = np.full((48, 64), 2000, "<u2").tobytes()
+    metres = np.full((48, 64), 2.0, "<f4").tobytes()
+    updates = _session_updates(tiny_map, 1000, [
+        (pb.Depth.UINT16, mm, 1 / float(np.float32(0.001))),
+        (pb.Depth.FLOAT32_METRES, metres, 1000.0), (pb.Depth.FLOAT32_METRES, metres, 0)])
     answers = [u for u in updates if u.HasField("frame") or u.HasField("error")]
     assert [u.HasField("frame") for u in answers] == [True, False, True], updates
     assert "given with FLOAT32_METRES depth, which is in metres" in answers[1].error.message
