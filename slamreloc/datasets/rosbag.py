@@ -50,7 +50,6 @@ from slamreloc.datasets.base import Dataset
 from slamreloc.errors import InputError
 from slamreloc.geometry import (
     MAX_COORDINATE,
-    STAMP_TOLERANCE_S,
     Instants,
     Rigid3,
     matrix_to_quat,
@@ -734,11 +733,11 @@ def _read_pose_track(bag: _Bag, spec: str) -> PoseTrack:
         raise InputError(f"{bag.path}: pose {spec} has no messages")
     _one_frame(bag, spec, "header.frame_id", parents)
     child = _one_frame(bag, spec, "child_frame_id", children)
-    kept: list[int] = []  # message indices, by stamp, the first of each stamp
-    for i in np.argsort(stamps, kind="stable").tolist():  # one instant: within 1 us
-        first = (kept[-1] if kept and stamps[i] - stamps[kept[-1]] <= STAMP_TOLERANCE_S
-                 else None)
-        if first is None:
+    kept: list[int] = []  # message indices, by stamp, the first of each instant
+    instants = Instants()
+    for i in np.argsort(stamps, kind="stable").tolist():
+        first = instants.setdefault(stamps[i], i)[1]
+        if first == i:
             kept.append(i)
         elif not same_pose(poses[first], poses[i]):
             raise InputError(f"{bag.path}: pose {spec}: messages {first} and {i} are "

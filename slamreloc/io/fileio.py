@@ -283,14 +283,17 @@ def relation(a: Path, b: Path) -> str | None:
     return None
 
 
-def relation_on_disk(a: Path, b: Path) -> str | None:
+def relation_on_disk(a: Path, b: Path, ids_a: list | None = None,
+                     ids_b: list | None = None) -> str | None:
     """`relation`, told by the names and by what they are on disk now (device and inode of
     each existing folder on the way), so a second name for the same folder (a bind mount, a
-    hard link) is no way around it: an output aimed at an input."""
+    hard link) is no way around it: an output aimed at an input. `ids_a`, `ids_b`: the
+    paths' `disk_identities`, where the caller compares one path with many."""
     how = relation(a, b)
     if how is not None:
         return how
-    ids_a, ids_b = _identities(a), _identities(b)
+    ids_a = disk_identities(a) if ids_a is None else ids_a
+    ids_b = disk_identities(b) if ids_b is None else ids_b
     if not ids_a or not ids_b:
         return None
     if ids_a[0][0] == 0 and ids_b[0][0] == 0 and ids_a[0][1] == ids_b[0][1]:
@@ -302,7 +305,7 @@ def relation_on_disk(a: Path, b: Path) -> str | None:
     return None
 
 
-def _identities(path: Path) -> list[tuple[int, tuple[int, int]]]:
+def disk_identities(path: Path) -> list[tuple[int, tuple[int, int]]]:
     """(how many names up from `path`, (device, inode)) of `path` and of each of its existing
     parents, nearest first; [] where none can be read."""
     out = []

@@ -22,7 +22,8 @@ from functools import cached_property
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import CANCEL_READS, ReadCancelled, relation, relation_on_disk, resolved
+from slamreloc.io.fileio import (CANCEL_READS, ReadCancelled, disk_identities, relation,
+                                 relation_on_disk, resolved)
 from slamreloc.io.outputs import is_writers_name
 from slamreloc.localize.localizer import RegressorLocalizer
 from slamreloc.map.format import DATABASE, META, PROVENANCE
@@ -196,7 +197,7 @@ def check_served_folders(maps: dict[str, Path]) -> None:
     and apart from every other served map's folder (not the same folder under another path,
     a link or a bind mount, not inside it, not holding it: the reload's rule, as two names
     would serve one folder and a session could save neither)."""
-    folders: dict[str, Path] = {}
+    folders: dict[str, tuple[Path, list]] = {}  # name -> (folder, its disk identities)
     for name, path in maps.items():
         path = Path(path)
         folder = resolved(path)  # a link's target too
@@ -204,13 +205,14 @@ def check_served_folders(maps: dict[str, Path]) -> None:
             raise InputError(f"{path}: the map {quoted(name)} is named as a writer's temporary "
                              "(.NAME.tmp-PID, .NAME.old-PID), which the next read or write of "
                              "NAME removes or puts back as NAME; rename it to serve it")
-        for other, other_folder in folders.items():
-            how = relation_on_disk(folder, other_folder)
+        ids = disk_identities(folder)  # once per folder: many maps are compared pairwise
+        for other, (other_folder, other_ids) in folders.items():
+            how = relation_on_disk(folder, other_folder, ids, other_ids)
             if how:
                 raise InputError(f"{path}: the folder of the map {quoted(name)} {how} the "
                                  f"folder of the map {quoted(other)}; serve a folder under one "
                                  "name (a session could save under neither)")
-        folders[name] = folder
+        folders[name] = (folder, ids)
 
 
 class MapRegistry:
