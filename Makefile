@@ -8,7 +8,7 @@ demo: install
 	slamreloc demo --workdir slamreloc-demo
 
 test: install
-	$(PYTHON) -m pytest -q --durations=25
+	$(PYTHON) -m pytest -q -n 2 --dist loadfile --durations=25
 
 bench: install
 	$(PYTHON) benchmarks/run_benchmark.py ../shared/data/7scenes_redkitchen --out BENCHMARKS-latest.md

@@ -378,13 +378,24 @@ class Instants:
     def setdefault(self, stamp: float, value: Any) -> tuple[float, Any]:
         """(stamp, value) first read at the instant of `stamp`; where none was, `stamp` and
         `value`, now kept."""
+        row = self.get(stamp)
+        if row[0] is not None:
+            return row
+        self._cells.setdefault(math.floor(stamp / STAMP_TOLERANCE_S), []).append((stamp, value))
+        return stamp, value
+
+    def get(self, stamp: float) -> tuple[float | None, Any]:
+        """(stamp, value) read at the instant of `stamp`, or (None, None)."""
         cell = math.floor(stamp / STAMP_TOLERANCE_S)
         for c in (cell - 1, cell, cell + 1):
             for row in self._cells.get(c, ()):
                 if abs(row[0] - stamp) <= STAMP_TOLERANCE_S:
                     return row
-        self._cells.setdefault(cell, []).append((stamp, value))
-        return stamp, value
+        return None, None
+
+    def rows(self) -> list[tuple[float, Any]]:
+        """Every (stamp, value) kept, in no particular order."""
+        return [row for cell in self._cells.values() for row in cell]
 
 
 def same_instant_words(first: float, again: float) -> str:
@@ -494,16 +505,28 @@ class TumTrajectory:
     numeric: bool = False  # every first column is a number (names, if any, from the sidecar)
 
 
-def read_names_sidecar(path) -> dict[str, str]:
-    """`stamp name` lines -> {stamp formatted as '%.6f': name}; InputError on a bad line."""
+def read_names_sidecar(path) -> list[tuple[float, str]]:
+    """`stamp name` lines -> (stamp seconds, name) per instant, in the file's order. Lines and
+    fields by TUM's line rule (`plain_lines`, as the trajectory beside it); stamps within
+    STAMP_TOLERANCE_S are one instant (`Instants`): one named twice alike is read once, with
+    two names an InputError naming both lines. InputError on a bad line."""
     path = Path(path)
-    table = {}
-    for i, line in _content_lines(path, "frame names file"):
+    instants = Instants()
+    out: list[tuple[float, str]] = []
+    for i, line in _content_lines(path, "frame names file", plain=True):
         parts = line.split(maxsplit=1)
         if len(parts) != 2:
             raise InputError(f"{path}:{i}: expected 'stamp name', got {line.strip()[:80]!r}")
-        table[f"{parse_stamp(parts[0], f'{path}:{i}'):.6f}"] = parts[1].strip()
-    return table
+        stamp, name = parse_stamp(parts[0], f"{path}:{i}"), parts[1].strip()
+        first, (line_no, first_name) = instants.setdefault(stamp, (i, name))
+        if line_no != i:
+            if first_name == name:
+                continue
+            raise InputError(f"{path}:{i}: stamp {parts[0][:40]} "
+                             f"{same_instant_words(first, stamp)} line {line_no} with another "
+                             f"name ({escaped(name)[:80]}, not {escaped(first_name)[:80]})")
+        out.append((stamp, name))
+    return out
 
 
 def read_named_trajectory(path) -> TumTrajectory:
@@ -522,17 +545,21 @@ def read_named_trajectory(path) -> TumTrajectory:
     sidecar = names_sidecar(path)
     numeric = bool(rows) and all(n is None for n in names)
     if numeric and os.path.lexists(sidecar):  # given: it names every pose, and only those
-        table = read_names_sidecar(sidecar)  # (a FIFO, a folder: refused, naming it)
-        keys = [f"{s:.6f}" for s in stamps]
-        missing = next((k for k in keys if k not in table), None)
-        if missing is not None:
-            raise InputError(f"{sidecar}: names no frame for the stamp {missing} of {path} (a "
-                             "trajectory's names file has one line per pose)")
-        extra = len(set(table) - set(keys))
+        table = Instants()  # the sidecar's instants (a FIFO, a folder: refused, naming it)
+        for stamp, name in read_names_sidecar(sidecar):
+            table.setdefault(stamp, [name, False])
+        names = []
+        for stamp in stamps:
+            found, row = table.get(stamp)
+            if found is None:
+                raise InputError(f"{sidecar}: names no frame for the stamp {stamp:.6f} of {path} "
+                                 "(a trajectory's names file has one line per pose)")
+            names.append(row[0])
+            row[1] = True
+        extra = sum(not row[1] for _, row in table.rows())
         if extra:
             raise InputError(f"{sidecar}: names {extra} stamp(s) that {path} has no pose for "
                              "(a trajectory's names file has one line per pose)")
-        names = [table[k] for k in keys]
     return TumTrajectory(np.array(stamps, dtype=np.float64), names, [p for _, p in rows],
                          numeric)
 

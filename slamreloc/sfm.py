@@ -113,6 +113,7 @@ MIN_TRACKED = 20  # points; fewer cannot measure parallax
 # sequence's frames, 13 cm apart: 10-19 % from one to the next)
 MIN_MOTION = 0.05
 DIAGNOSED_PAIRS = 30  # matched pairs measured for the error, widest and neighbouring each
+MIN_PAIR_INLIERS = 15  # a pair counts as matched with this many verified inlier matches
 
 
 @dataclass(frozen=True)
@@ -635,7 +636,13 @@ def run_sfm(source: Path, out: Path, config: SfmConfig = SfmConfig(),
                              "folder of images has none (leave it out)")
     # a second writer fails at once, not late; a full disk names the output; a failed run
     # leaves no folder it made
-    with folder_write_lock(out, "this dataset", SFM_DEBRIS), naming_output(out):
+    from slamreloc.datasets.rosbag import GUESS, camera_in_place_of_info
+
+    # a bag without a calibrated CameraInfo: `camera` gives the model or the intrinsics SfM
+    # starts from (a guess of the images' size stands in for the bag's, which is never kept)
+    stand_in = GUESS if config.camera.strip() else None
+    with folder_write_lock(out, "this dataset", SFM_DEBRIS), naming_output(out), \
+            camera_in_place_of_info(stand_in):
         return _run_into(source, out, config, progress)
 
 
@@ -727,6 +734,7 @@ def _run(source: Path, root: Path, config: SfmConfig, progress: bool) -> dict:
         rec, other_models = _map(database, images_dir, Path(work) / "sparse", inp.names,
                                  mapper, fixed, progress)
         timings["mapping_s"] = time.perf_counter() - t0
+        matches = match_counts(database)
         registered = [] if rec is None else sorted(im.name for im in rec.images.values()
                                                     if im.has_pose)
         share = len(registered) / len(inp.names)
@@ -758,7 +766,7 @@ def _run(source: Path, root: Path, config: SfmConfig, progress: bool) -> dict:
         "input": str(source), "input_kind": inp.kind, **inp.notes,
         "matching": matching, "exact_matching": exact, "mapper": mapper,
         "intrinsics_fixed": fixed,
-        "n_images": len(inp.names), "n_registered": len(registered),
+        "n_images": len(inp.names), "matches": matches, "n_registered": len(registered),
         "unregistered": unregistered, "n_other_models": other_models,
         "n_points": int(rec.num_points3D()),
         "mean_track_length": float(rec.compute_mean_track_length()),
@@ -771,6 +779,18 @@ def _run(source: Path, root: Path, config: SfmConfig, progress: bool) -> dict:
     }
     write_json(root / SFM_JSON, summary)
     return summary
+
+
+def match_counts(database: Path) -> dict:
+    """The matching stage in two numbers: `n_verified_pairs` (image pairs with a verified
+    geometry of 15 inlier matches or more) and `n_inlier_matches` (their inlier matches in
+    all). Exact matching and seeded verification make both independent of the thread count."""
+    import pycolmap
+
+    with pycolmap.Database.open(str(database)) as db:
+        counts = [len(g.inlier_matches) for g in db.read_two_view_geometries()[1]]
+    verified = [n for n in counts if n >= MIN_PAIR_INLIERS]
+    return {"n_verified_pairs": len(verified), "n_inlier_matches": int(sum(verified))}
 
 
 def pair_parallax(database: Path, names: list[str]) -> dict:
@@ -788,7 +808,7 @@ def pair_parallax(database: Path, names: list[str]) -> dict:
         order = {name: i for i, name in enumerate(names)}
         pairs = []
         for pair_id, geometry in zip(*db.read_two_view_geometries()):
-            if len(geometry.inlier_matches) >= 15:
+            if len(geometry.inlier_matches) >= MIN_PAIR_INLIERS:
                 a, b = (images[i] for i in pycolmap.pair_id_to_image_pair(pair_id))
                 pairs.append((abs(order.get(a.name, 0) - order.get(b.name, 0)), a, b,
                               geometry.inlier_matches))

@@ -217,8 +217,7 @@ def k_matrix_problem(k) -> str | None:
     if not np.all(np.isfinite(k)):
         return "K must be finite numbers"
     if not np.any(k):  # ROS's CameraInfo of a camera not calibrated yet
-        return ("K is all zero, which says the camera is not calibrated: calibrate it, or "
-                "give its intrinsics where the command takes them (`--camera`)")
+        return "K is all zero, which says the camera is not calibrated"
     if k[0, 1] != 0 or k[1, 0] != 0 or list(k[2]) != [0.0, 0.0, 1.0]:
         return "K must be [[fx 0 cx] [0 fy cy] [0 0 1]] (no skew)"
     return None

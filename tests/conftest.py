@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import shutil
 import subprocess
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -42,29 +45,100 @@ def needs(path: Path):
     return pytest.mark.skipif(not path.is_dir(), reason=f"real data not found at {path}")
 
 
+def built_once(tmp_path_factory, key: str, leaf: str, build: Callable[[Path], object]) -> Path:
+    """The folder `leaf` (under a temporary folder `key`) that `build(folder)` fills, built
+    once per test run: by this process alone, or under pytest-xdist by the first worker that
+    needs it (the others wait on its lock, then read the same folder). The tests only read it."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if worker is None:
+        folder = tmp_path_factory.mktemp(key) / leaf
+        build(folder)
+        return folder
+    from filelock import FileLock
+
+    shared = tmp_path_factory.getbasetemp().parent  # the run's root, above each worker's
+    folder, done = shared / key / leaf, shared / f"{key}.done"
+    with FileLock(str(shared / f"{key}.lock")):
+        if not done.exists():
+            shutil.rmtree(folder.parent, ignore_errors=True)
+            folder.parent.mkdir()
+            build(folder)
+            done.touch()
+    return folder
+
+
 @pytest.fixture(scope="session")
 def scene_dir(tmp_path_factory) -> Path:
-    return render_scene(tmp_path_factory.mktemp("synthetic") / "scene", SMALL_SCENE)
+    return built_once(tmp_path_factory, "synthetic", "scene",
+                      lambda out: render_scene(out, SMALL_SCENE))
 
 
 @pytest.fixture(scope="session")
 def small_map(scene_dir, tmp_path_factory):
     from slamreloc.datasets import load_dataset
     from slamreloc.map.build import build_map
+    from slamreloc.map.scene_map import SceneMap
 
-    out = tmp_path_factory.mktemp("maps") / "small_map"
-    return build_map(load_dataset(scene_dir), out, "train", SMALL_MAP, progress=False)
+    folder = built_once(tmp_path_factory, "maps", "small_map", lambda out: build_map(
+        load_dataset(scene_dir), out, "train", SMALL_MAP, progress=False))
+    return SceneMap.load(folder)
 
 
 def small_map_config(**train) -> MapConfig:
     return replace(SMALL_MAP, train=replace(SMALL_MAP.train, **train))
 
 
+def pytest_configure(config):
+    """Under pytest-xdist, each worker (and each command it starts) takes its share of the
+    cores: two workers of two threads on two cores made every test that trains or extracts
+    take turns with the other worker's, no faster in all than one process."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
+    if workers > 1:
+        import torch
+
+        share = str(max(1, (os.cpu_count() or 1) // workers))
+        os.environ["OMP_NUM_THREADS"] = share
+        torch.set_num_threads(int(share))
+
+
+def _fuzz_counts_folder(config) -> Path:
+    """Where each pytest-xdist worker leaves its fuzz counts for the terminal summary."""
+    root = config._tmp_path_factory.getbasetemp()  # the session's (the workers' lie inside)
+    return (root.parent if os.environ.get("PYTEST_XDIST_WORKER") else root) / "fuzz_counts"
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """A pytest-xdist worker writes what tests/fuzzing.py counted, for the summary."""
+    import json
+    import sys
+
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    fuzzing = sys.modules.get("tests.fuzzing")
+    if worker is None or fuzzing is None:
+        return
+    folder = _fuzz_counts_folder(session.config)
+    folder.mkdir(exist_ok=True)
+    (folder / f"{worker}.json").write_text(json.dumps({
+        "kills": fuzzing.KILL_REPORTS,
+        "counts": [[fmt, outcome, n] for (fmt, outcome), n in fuzzing.COUNTS.items()]}))
+
+
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
-    """Print how many fuzz cases ran (tests/fuzzing.py counts them), when any did."""
+    """Print how many fuzz cases ran (tests/fuzzing.py counts them), when any did: this
+    process's, or under pytest-xdist its workers' together."""
+    import json
     import sys
 
     fuzzing = sys.modules.get("tests.fuzzing")
+    folder = _fuzz_counts_folder(config)
+    if folder.is_dir():  # the workers' (xdist): into this process's tallies
+        import tests.fuzzing as fuzzing
+
+        for part in sorted(folder.glob("gw*.json")):
+            data = json.loads(part.read_text())
+            fuzzing.KILL_REPORTS.extend(data["kills"])
+            for fmt, outcome, n in data["counts"]:
+                fuzzing.COUNTS[fmt, outcome] += n
     if fuzzing is None:
         return
     for r in fuzzing.KILL_REPORTS:
@@ -86,14 +160,16 @@ def client_binary(tmp_path_factory) -> Path:
     """clients/cpp built once per test run into a temporary folder (no optimisation: the build
     is what costs); the modules that use it skip first where the tools are missing."""
     root = Path(__file__).resolve().parents[1]
-    build = tmp_path_factory.mktemp("cpp_build")
-    t0 = time.perf_counter()
-    for cmd in (["cmake", "-S", str(root / "clients/cpp"), "-B", str(build)],
-                ["cmake", "--build", str(build), "-j", "2"]):
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
-        assert done.returncode == 0, f"{' '.join(cmd)}:\n{done.stdout[-3000:]}{done.stderr}"
-    print(f"clients/cpp built in {time.perf_counter() - t0:.1f} s")
-    return build / "slamreloc_client"
+
+    def build(folder: Path) -> None:
+        t0 = time.perf_counter()
+        for cmd in (["cmake", "-S", str(root / "clients/cpp"), "-B", str(folder)],
+                    ["cmake", "--build", str(folder), "-j", "2"]):
+            done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
+            assert done.returncode == 0, f"{' '.join(cmd)}:\n{done.stdout[-3000:]}{done.stderr}"
+        print(f"clients/cpp built in {time.perf_counter() - t0:.1f} s")
+
+    return built_once(tmp_path_factory, "cpp", "build", build) / "slamreloc_client"
 
 
 @pytest.fixture(scope="session")
@@ -110,4 +186,4 @@ def kidnap_scene(tmp_path_factory):
     """The small scene's room with a 120-frame kidnap sequence (the fixture scene has 30);
     used by the SLAM tests of both modules, rendered once."""
     config = replace(SMALL_SCENE, n_map=2, n_query=2, n_kidnap=120, n_unlabelled=2)
-    return render_scene(tmp_path_factory.mktemp("kidnap") / "scene", config)
+    return built_once(tmp_path_factory, "kidnap", "scene", lambda out: render_scene(out, config))

@@ -171,8 +171,12 @@ from slamreloc.map.scene_map import SceneMap  # noqa: E402
 
 @pytest.fixture(scope="module")
 def tiny_scene(scene_dir, tmp_path_factory) -> Path:
-    """The first 6 frames of the small scene's map sequence: a dataset mapped in seconds."""
-    out = tmp_path_factory.mktemp("round31_scene") / "ds"
+    return six_frames(scene_dir, tmp_path_factory.mktemp("round31_scene") / "ds")
+
+
+def six_frames(scene_dir: Path, out: Path) -> Path:
+    """The first 6 frames of the small scene's map sequence, copied into the dataset `out`:
+    a dataset mapped in seconds."""
     (out / "seq-01").mkdir(parents=True)
     for name in ("TrainSplit.txt", "intrinsics.txt", "scene.json"):
         shutil.copy(scene_dir / name, out / name)

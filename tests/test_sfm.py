@@ -119,9 +119,10 @@ def test_video_is_sampled_and_reconstructed(scene_dir, tmp_path):
     assert summary["n_registered"] >= 0.8 * summary["n_images"]
     assert sorted(p.name for p in (out / "images" / "walk").iterdir())[0] == "frame-000000.jpg"
     # the same video again, on one OpenMP thread (what a server in the same process leaves
-    # behind): the same matches, so the same images registered (COLMAP's faiss-based matcher
-    # once registered 21 images here instead of 29) and the same points, up to the few that
-    # multi-threaded bundle adjustment's float rounding can move across a filter threshold
+    # behind): the same matches (COLMAP's faiss-based matcher once gave other matches here,
+    # and 21 images registered instead of 29). What the mapper makes of them is not compared
+    # image for image: multi-threaded bundle adjustment rounds differently from run to run,
+    # and on a busy machine the first images once failed to register in one run of two
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -130,8 +131,10 @@ def test_video_is_sampled_and_reconstructed(scene_dir, tmp_path):
         torch.set_num_threads(threads)
     assert status == 0, err
     again = json.loads((tmp_path / "again" / "sfm.json").read_text())
-    assert summary["exact_matching"] and again["unregistered"] == summary["unregistered"]
-    assert abs(again["n_points"] - summary["n_points"]) <= 0.002 * summary["n_points"]
+    assert summary["exact_matching"] and again["exact_matching"]
+    assert summary["matches"]["n_verified_pairs"] >= summary["n_images"] - 1
+    assert again["matches"] == summary["matches"]
+    assert again["n_registered"] >= 0.8 * again["n_images"]
 
 
 def _one_line_error(args, *expected, after_work: bool = False):

@@ -109,6 +109,7 @@ constexpr std::uintmax_t kMaxImageBytes = 64u << 20;   // the client's gRPC mess
 constexpr std::uintmax_t kMaxListBytes = 1u << 30;     // rgb.txt, as the Python TUM reader
 constexpr double kMinTimeoutS = 0.001, kMaxTimeoutS = 1e6;  // proto.messages.CLIENT_TIMEOUT_S
 constexpr double kMaxStampS = 1e12;  // slamreloc.geometry.MAX_STAMP_S
+constexpr double kStampToleranceS = 1e-6;  // slamreloc.geometry.STAMP_TOLERANCE_S
 
 std::string one_line(std::string text) {
   std::replace(text.begin(), text.end(), '\n', ' ');
@@ -582,13 +583,16 @@ std::vector<fs::path> sequence_images(const fs::path& dir) {
       const fs::path rel(file);
       if (rel.is_absolute() || std::find(rel.begin(), rel.end(), "..") != rel.end())
         throw Error(where + ": '" + file.substr(0, 80) + "' points outside the dataset folder");
-      const auto [first, added] = seen.emplace(t, std::make_pair(n, file));
-      if (!added) {
+      // stamps within kStampToleranceS are one instant, as every Python reader has it
+      const auto first = seen.lower_bound(t - kStampToleranceS);
+      if (first != seen.end() && first->first <= t + kStampToleranceS) {
         if (first->second.second != file)
-          throw Error(where + ": timestamp " + stamp + " repeats line " +
+          throw Error(where + ": timestamp " + stamp +
+                      (first->first == t ? " repeats line " : " is within 1 microsecond of line ") +
                       std::to_string(first->second.first) + " with another file");
         continue;  // the same row twice: read once
       }
+      seen.emplace(t, std::make_pair(n, file));
       if (last_n > 0 && t < last_t)
         throw Error(where + ": timestamp " + stamp + " is earlier than line " +
                     std::to_string(last_n) + "'s; the frames must be listed in time order");

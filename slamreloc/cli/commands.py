@@ -198,11 +198,14 @@ def localize(
     images: Annotated[list[Path], typer.Argument(
         metavar="IMAGE", help="image files, or ROS bags (each frame, with the bag's camera)")],
     intrinsics: Annotated[Optional[tuple[float, float, float, float]], typer.Option(
-        help="FX FY CX CY in pixels, pinhole (default: the map's camera, scaled to the image)")]
+        metavar="FX FY CX CY",
+        help="four numbers in pixels, pinhole (default: the map's camera, scaled to the "
+             "image)")]
     = None,
     camera: Annotated[Optional[str], typer.Option(
         help="a COLMAP camera string, any lens model: \"OPENCV 640 480 fx fy cx cy k1 k2 p1 "
-             "p2\" (as in cameras.txt; scaled to an image of another size)")] = None,
+             "p2\" (as in cameras.txt; scaled to an image of another size); for a ROS bag "
+             "without a calibrated CameraInfo, its camera")] = None,
     method: Annotated[Method, typer.Option()] = Method.regressor,
     guided: Annotated[Optional[bool], typer.Option(help=GUIDED_HELP)] = None,
 ) -> None:
@@ -225,21 +228,25 @@ def localize(
     if sys.stdout is None:  # started with its standard output closed (`>&-`)
         raise InputError("standard output is closed: the poses would be lost (send them to "
                          "a file or a pipe)")
+    from slamreloc.datasets.rosbag import camera_in_place_of_info
+
     errors = 0
-    for line, status in jobs.localize(map_dir, images, query_camera, method.value,
-                                       guided_choice(method, guided)):
-        if status == "error":
-            errors += 1
-            typer.echo(terminal_line(with_flags(line)), err=True)  # a name's ESC or break
-            continue
-        try:
-            with naming_output("standard output"):  # a full disk, a closed pipe: said so
-                typer.echo(line)
-                sys.stdout.flush()
-        except BrokenPipeError:  # (click would end quietly with status 1)
-            sys.stdout = open(os.devnull, "w")  # nothing more goes to the closed pipe
-            raise InputError("standard output: the pipe's reader has closed it; the poses "
-                             "that follow would be lost") from None
+    stand_in = query_camera if camera is not None else None  # for a bag without CameraInfo
+    with camera_in_place_of_info(stand_in):
+        for line, status in jobs.localize(map_dir, images, query_camera, method.value,
+                                           guided_choice(method, guided)):
+            if status == "error":
+                errors += 1
+                typer.echo(terminal_line(with_flags(line)), err=True)  # a name's ESC or break
+                continue
+            try:
+                with naming_output("standard output"):  # a full disk, a closed pipe: said so
+                    typer.echo(line)
+                    sys.stdout.flush()
+            except BrokenPipeError:  # (click would end quietly with status 1)
+                sys.stdout = open(os.devnull, "w")  # nothing more goes to the closed pipe
+                raise InputError("standard output: the pipe's reader has closed it; the poses "
+                                 "that follow would be lost") from None
     if errors:
         raise typer.Exit(2)
 
@@ -292,7 +299,8 @@ def sfm(
     camera: Annotated[str, typer.Option(
         help="a COLMAP model (SIMPLE_RADIAL, OPENCV, OPENCV_FISHEYE, ...; intrinsics "
              "estimated) or a camera string \"OPENCV 640 480 fx fy cx cy k1 k2 p1 p2\" "
-             "(starting intrinsics); default: the dataset's camera, else SIMPLE_RADIAL")] = "",
+             "(starting intrinsics); default: the dataset's camera, else SIMPLE_RADIAL; "
+             "needed for a ROS bag without a calibrated CameraInfo")] = "",
     fix_intrinsics: Annotated[bool, typer.Option(
         "--fix-intrinsics", help="keep the --camera string's intrinsics fixed")] = False,
     matching: Annotated[Matching, typer.Option(

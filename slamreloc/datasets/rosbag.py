@@ -609,7 +609,8 @@ def camera_from_info(msg: Any, size: tuple[int, int], source: str) -> Camera:
     d = [float(v) for v in _field(msg, "d")]
     problem = k_matrix_problem(k)
     if problem:
-        raise InputError(f"{source}: {problem}")
+        calibrate = f": calibrate it ({STAND_IN_HELP})" if not any(k) else ""
+        raise InputError(f"{source}: {problem}{calibrate}")
     binning, roi = _binning(msg), _roi(msg, source)
     _delivered_size(msg, size, binning, roi, source)
     (bx, by), (x0, y0) = binning, roi[:2]
@@ -626,16 +627,48 @@ def _intrinsics(camera: Camera) -> str:
     return " ".join(f"{v:g}" for v in (camera.fx, camera.fy, camera.cx, camera.cy))
 
 
+GUESS = "guess"  # `camera_in_place_of_info`: a pinhole guess of the images' size
+STAND_IN_HELP = "`sfm` and `localize` take `--camera` in its place"
+_stand_in: Camera | str | None = None
+
+
+@contextmanager
+def camera_in_place_of_info(camera: Camera | str | None) -> Iterator[None]:
+    """While inside, a bag whose image topic has no CameraInfo, or an uncalibrated one (K all
+    zero), is read with `camera` (the user's `--camera`, fitted to the images' size by
+    `Camera.for_image`; GUESS: a pinhole of focal 1.2 x the longer side, centred, COLMAP's
+    own first guess, for SfM to refine) instead of being refused. None: refused."""
+    global _stand_in
+    before, _stand_in = _stand_in, camera
+    try:
+        yield
+    finally:
+        _stand_in = before
+
+
+def _stand_in_camera(size: tuple[int, int], source: str) -> Camera:
+    if _stand_in == GUESS:
+        f = 1.2 * max(size)
+        return Camera(size[0], size[1], f, f, size[0] / 2, size[1] / 2)
+    return _stand_in.for_image(*size, f"`--camera` for {source}")
+
+
 def _camera(bag: _Bag, topic: str | None, image: str, size: tuple[int, int]) -> Camera:
     if topic is None:
+        if _stand_in is not None:
+            return _stand_in_camera(size, f"{bag.path}: image topic {image}")
         expected = "/".join(("", _namespace(image), "camera_info")).replace("//", "/")
         others = _of_type(bag, CAMERA_INFO)
         there = (f" (the bag's CameraInfo topics, {', '.join(others)}, are of other cameras "
                  "or several)" if others else "")
         raise InputError(f"{bag.path}: no sensor_msgs/CameraInfo for image topic {image}"
                          f"{there}: add {expected} to the bag, or name one with `topic` "
-                         "camera_info=NAME")
+                         f"camera_info=NAME ({STAND_IN_HELP})")
     source = f"{bag.path}: camera_info topic {topic}"
+    first = bag.first(topic)
+    if first is not None and not np.any(np.asarray(_field(first, "k"), np.float64)):
+        if _stand_in is not None:  # ROS's uncalibrated camera, and the user gave one
+            return _stand_in_camera(size, source)
     camera = None
     for i, (_, msg) in enumerate(bag.messages(topic)):  # one camera for the whole bag
         this = camera_from_info(msg, size, f"{source}, message {i}" if i else source)

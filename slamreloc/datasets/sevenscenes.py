@@ -25,7 +25,7 @@ from slamreloc.datasets.io import (
 )
 from slamreloc.errors import InputError
 from slamreloc.geometry import Rigid3
-from slamreloc.io.fileio import optional_file, read_bytes
+from slamreloc.io.fileio import file_kind, optional_file, read_bytes
 from slamreloc.io.jsonio import parse_json
 from slamreloc.types import Camera, Frame
 
@@ -127,8 +127,11 @@ def _is_image(path: Path) -> bool:
     if path.suffix.lower() not in IMAGE_SUFFIXES:
         return False
     if not path.is_file():
-        raise InputError(f"{path}: named as a colour image but not a file (a folder or a "
-                         "broken link)")
+        try:
+            kind = file_kind(os.stat(path).st_mode)
+        except OSError:
+            kind = "a broken link" if os.path.islink(path) else "not readable"
+        raise InputError(f"{path}: named as a colour image but not a regular file ({kind})")
     return True
 
 

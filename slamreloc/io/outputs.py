@@ -15,12 +15,12 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import (file_identity, file_kind, is_link_loop, relation,
-                                 relation_on_disk,
-                                 resolved, stat_or_none)
+from slamreloc.io.fileio import (disk_identities, file_identity, file_kind, is_link_loop,
+                                 relation, relation_on_disk, resolved, stat_or_none)
 
 
 def _own_test(value) -> tuple:
@@ -223,30 +223,49 @@ LINK_WALK_ENTRIES = 200_000  # entries of an input folder looked at for links (a
 # scene of 7 x 1000 frames holds ~21 000)
 
 
-def linked_folders(folder: Path, limit: int = LINK_WALK_ENTRIES) -> list[Path]:
-    """The folders outside `folder` that its symbolic links lead to, at any depth (not
-    followed further): where a linked folder resolves (a dataset's sequence, a COLMAP
-    dataset's images/SEQ kept on another disk), and the folder holding each linked file (a
-    dataset whose frame files are links into a store of images). [] for a file or a folder
-    that cannot be listed; at most `limit` entries are looked at."""
+@dataclass
+class InputReach:
+    """Where a command that reads an input folder reads: `linked`, the folders outside it that
+    its symbolic links lead to (a linked folder, the folder holding a linked file), and
+    `folders`, (device, inode) -> a path, of every folder walked inside it or through its
+    links (a bind-mounted sequence is the same folder on disk as its source)."""
+
+    linked: list[Path]
+    folders: dict[tuple[int, int], Path]
+
+
+def input_reach(folder: Path, limit: int = LINK_WALK_ENTRIES) -> InputReach:
+    """`InputReach` of `folder`, walked at any depth and through the folders its links lead
+    to, each folder once (a loop of links ends); at most `limit` entries are looked at. Empty
+    for a file or a folder that cannot be listed."""
     found: set[Path] = set()
+    folders: dict[tuple[int, int], Path] = {}
     pending, seen = [Path(folder)], 0
     while pending and seen < limit:
+        here = pending.pop()
         try:
-            with os.scandir(pending.pop()) as entries:
+            st = os.stat(here)
+            if not stat.S_ISDIR(st.st_mode) or (st.st_dev, st.st_ino) in folders:
+                continue
+            folders[st.st_dev, st.st_ino] = here
+            with os.scandir(here) as entries:
                 for entry in entries:
                     seen += 1
                     if seen > limit:
                         break
                     if entry.is_symlink():
                         target = resolved(entry.path)
-                        found.add(target if entry.is_dir() else target.parent)
+                        if entry.is_dir():  # walked too: a link inside it leads further
+                            found.add(target)
+                            pending.append(Path(entry.path))
+                        else:
+                            found.add(target.parent)
                     elif entry.is_dir(follow_symlinks=False):
                         pending.append(Path(entry.path))
         except OSError:
             continue
     root = resolved(folder)
-    return sorted(f for f in found if not f.is_relative_to(root))
+    return InputReach(sorted(f for f in found if not f.is_relative_to(root)), folders)
 
 
 def check_outputs(outputs: dict[str, str | Path | None],
@@ -276,7 +295,7 @@ def check_outputs(outputs: dict[str, str | Path | None],
     # DATASET/seq-01/x where seq-01 is a link) and the folders linked into an input folder
     # (a sequence kept on another disk: its frames are what the command reads)
     named = {what: Path(os.path.abspath(p)) for what, p in inputs.items() if p is not None}
-    linked = {what: linked_folders(src) for what, src in ins.items()}
+    reach = {what: input_reach(src) for what, src in ins.items()}
     own = folders if isinstance(folders, dict) else dict.fromkeys(folders, ...)
     working = {}  # the paths each output's writer works in beside it (lock, temporaries)
     for option, out in outputs.items():
@@ -336,15 +355,25 @@ def check_outputs(outputs: dict[str, str | Path | None],
         busy = busy_writer(out) or (lock_file_problem(out) if option in own else None)
         if busy is not None:  # a map (or sfm dataset) being written there right now, or a
             raise InputError(busy)  # lock path its writer would refuse
+        on_disk = disk_identities(target)
         for what, src in ins.items():
             how = relation_on_disk(target, src)
             if how is None and src.is_dir():
                 how = relation(Path(os.path.abspath(out)), named[what])
                 if how is None:
-                    link = next((f for f in linked[what] if relation(target, f)), None)
+                    link = next((f for f in reach[what].linked if relation(target, f)), None)
                     if link is not None:
                         how, src = relation(target, link), link
                         what = f"{what}'s linked folder"
+                if how is None:  # a folder inside the input under another name (a bind mount)
+                    up, inside = next(((up, reach[what].folders[i]) for up, i in on_disk
+                                       if i in reach[what].folders), (None, None))
+                    if inside is not None:
+                        raise InputError(
+                            f"{out}: {option} lies inside {(target, *target.parents)[up]}, "
+                            f"which is {what}'s folder {inside} under another name (the same "
+                            "folder on disk), which this command only reads; write it "
+                            "elsewhere")
             if how is None or how == "lies inside" and not src.is_dir():
                 continue
             where = what if how == "is" else f"{what} ({src})"

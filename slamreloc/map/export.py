@@ -56,7 +56,9 @@ def frame_images(scene_map: SceneMap, dataset=None) -> tuple[Path | None, dict[s
     """(dataset root, frame name -> image file), from `dataset` (a Dataset) or the one the map
     records, and the frames it holds from its other datasets (`MapMeta.dataset_roots`: its
     updates', a SLAM session's earlier sessions'; a name already found is kept); (None, {})
-    when none is at hand."""
+    when none is at hand (moved or deleted). A recorded dataset that is there but cannot be
+    read (an image gone, a named pipe) is an InputError naming it: the colours are not
+    silently dropped."""
     from slamreloc.datasets import load_dataset
 
     def frames_of(root) -> dict[str, Path]:
@@ -64,8 +66,10 @@ def frame_images(scene_map: SceneMap, dataset=None) -> tuple[Path | None, dict[s
             return {}
         try:
             return {f.name: f.image_path for f in load_dataset(root).frames("all")}
-        except InputError:
-            return {}
+        except InputError as err:
+            raise InputError(f"{err} (in {root}, a dataset the map records, read for the "
+                             "points' colours: repair it, or give the map's images with "
+                             "`--dataset`)") from None
 
     if dataset is None:
         root = scene_map.info.dataset_root
@@ -417,7 +421,8 @@ def export_map(map_dir: Path, colmap: Path | None = None, ply: Path | None = Non
 
         dataset = load_dataset(dataset_dir)
         check_dataset_of_map(scene_map, dataset_dir, dataset)
-    root, images = frame_images(scene_map, dataset)
+    root, images = (frame_images(scene_map, dataset) if colmap is not None or ply is not None
+                    else (None, {}))  # the images colour the points only
     summary = {"frames": len(scene_map.database.frame_names)}
     points = None
     if colmap is not None or ply is not None:

@@ -88,7 +88,7 @@ def train_regressor(model: SceneCoordinateRegressor, descriptors: np.ndarray, po
     y = torch.as_tensor(points, dtype=torch.float32, device=dev)
     w = (torch.ones(len(x), device=dev) if weights is None else
          torch.as_tensor(weights, dtype=torch.float32, device=dev))
-    model.to(dev)
+    model.to(dev).requires_grad_(True)  # a model published for inference is frozen
     if not fine_tune:
         model.set_normalisation(x, y)
     x = model.normalise_input(x)

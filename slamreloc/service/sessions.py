@@ -25,7 +25,7 @@ import time
 import uuid
 
 from slamreloc.errors import InputError
-from slamreloc.geometry import check_stamp
+from slamreloc.geometry import STAMP_TOLERANCE_S, check_stamp
 from slamreloc.io.images import depth_units_problem
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
@@ -186,9 +186,11 @@ class Session:
             raise ServiceError(pb.BAD_REQUEST, f"frame.timestamp: {stamp:.17g} s after "
                                f"{self.n_frames} frames without one (0); a session gives "
                                "every frame's timestamp, or none")
-        if stamp <= last and not (stamp == 0 and unstamped):
+        if stamp <= last + STAMP_TOLERANCE_S and not (stamp == 0 and unstamped):
+            within = " (within 1 microsecond: one instant)" if stamp > last else ""
             raise ServiceError(pb.BAD_REQUEST, f"frame.timestamp: {stamp:.17g} s is not after "
-                               f"the previous frame's {last:.17g} s (timestamps must increase)")
+                               f"the previous frame's {last:.17g} s{within} (timestamps must "
+                               "increase)")
 
     def _events(self, events) -> list[pb.SessionEvent]:
         out = []

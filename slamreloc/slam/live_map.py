@@ -20,6 +20,7 @@ frame in multi-session); poses are world_from_cam, points in metres.
 
 from __future__ import annotations
 
+import copy
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -157,7 +158,9 @@ class LiveMap:
             self.camera = None
         self.learner = BackgroundLearner(
             model_config, config.learner,
-            initial=None if prior is None else prior.regressor.eval().requires_grad_(False),
+            # a copy: the caller's map (trained again later, say) is left as it was
+            initial=None if prior is None else
+            copy.deepcopy(prior.regressor).eval().requires_grad_(False),
             initial_rows=self.store.n_rows)
         self.surface = None  # no fused surface: the relocalization plugin's ICP does not run
         self.backend = None
