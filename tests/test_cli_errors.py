@@ -164,7 +164,8 @@ def test_the_same_errors_name_the_fields_in_python():
 
     with pytest.raises(InputError, match="^`scale` and `scale_from_depth`: give one of them$"):
         SfmConfig(scale=2.0, scale_from_depth=True)
-    with pytest.raises(InputError, match="^`port` 70000: not a TCP port$"):
+    with pytest.raises(InputError, match=r"^`port` 70000: not a TCP port \(0 for any free "
+                                         r"one, or 1 to 65535\)$"):
         ServeConfig(port=70000).check()
     with pytest.raises(InputError, match="^`watch_s` nan: seconds between checks"):
         ServeConfig(watch_s=float("nan")).check()

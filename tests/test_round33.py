@@ -125,9 +125,9 @@ def test_outputs_into_a_folder_linked_from_a_linked_folder_are_refused(tiny_scen
     assert _digest(store) == before
 
 
-def test_outputs_into_a_bind_mounted_folder_of_an_input_are_refused(tiny_scene, tmp_path):
-    """R2: a dataset whose sequence folder is a bind mount of another folder: outputs named
-    in that folder were written among the frames (a bind mount is no link)."""
+def _bind_mounted_sequence(tiny_scene: Path, tmp_path: Path) -> tuple[Path, Path]:
+    """(ext, ds): a copy of `tiny_scene` as `ds` whose seq-01 is a bind mount of ext/seq-01
+    (the caller unmounts it); skipped where bind mounts are not allowed."""
     ext, ds = tmp_path / "ext", tmp_path / "ds"
     shutil.copytree(tiny_scene, ds)
     ext.mkdir()
@@ -136,6 +136,13 @@ def test_outputs_into_a_bind_mounted_folder_of_an_input_are_refused(tiny_scene, 
     if subprocess.run(["mount", "--bind", str(ext / "seq-01"), str(ds / "seq-01")],
                       capture_output=True, check=False).returncode != 0:
         pytest.skip("bind mounts need root (mount --bind)")
+    return ext, ds
+
+
+def test_outputs_into_a_bind_mounted_folder_of_an_input_are_refused(tiny_scene, tmp_path):
+    """R2: a dataset whose sequence folder is a bind mount of another folder: outputs named
+    in that folder were written among the frames (a bind mount is no link)."""
+    ext, ds = _bind_mounted_sequence(tiny_scene, tmp_path)
     try:
         before = _digest(ext)
         code, err = run_cli(["map", str(ds), "--out", str(ext / "seq-01" / "mapin"),
@@ -143,7 +150,7 @@ def test_outputs_into_a_bind_mounted_folder_of_an_input_are_refused(tiny_scene, 
         after = _digest(ext)
     finally:
         subprocess.run(["umount", str(ds / "seq-01")], check=False)
-    assert code == 2 and "under another name (the same folder on disk)" in err, err
+    assert code == 2 and "the dataset's bind-mounted folder" in err, err
     assert after == before
 
 
@@ -225,3 +232,53 @@ def test_a_live_map_leaves_its_prior_trainable(tiny_map):
     stats = train_regressor(model, db.descriptors, db.points, TrainConfig(epochs=1),
                             device="cpu", progress=False, fine_tune=True)
     assert np.isfinite(stats["final_loss_m"])
+
+
+# ---- round 34: around round 33's fixes -------------------------------------------------------
+def test_a_bind_mount_inside_an_input_is_found_whatever_the_walk_s_size(tiny_scene, tmp_path):
+    """S1: the walk that found a bind-mounted sequence by its disk identity stopped after its
+    entry limit, and a plain folder of 201 000 files listed after the sequence used it up. The
+    bind mounts inside an input come from the mount table now, not from the walk."""
+    from slamreloc.io.outputs import input_reach
+
+    ext, ds = _bind_mounted_sequence(tiny_scene, tmp_path)
+    try:
+        reach = input_reach(ds, limit=1)  # the walk sees one entry only
+    finally:
+        subprocess.run(["umount", str(ds / "seq-01")], check=False)
+    assert reach.mounted == [(ext / "seq-01").resolve()]
+
+
+def test_a_bag_of_calibrated_and_uncalibrated_camera_infos_is_refused(scene_dir, tmp_path):
+    """S2: a bag whose CameraInfo messages are first uncalibrated then calibrated took
+    `--camera` and skipped the bag's own calibration; the other order advised `--camera`,
+    which it then refused. Two cameras in one bag are refused either way, with or without
+    `--camera`."""
+    import dataclasses
+
+    from slamreloc.datasets.rosbag import camera_in_place_of_info, load_rosbag
+    from slamreloc.types import Camera
+    from tests.rosbag_support import INFO_TOPIC, Messages, first_test_frames, frame_stamp
+    from tests.rosbag_support import write_bag
+
+    dataset, frames = first_test_frames(scene_dir, 2)
+    for zero_first in (True, False):
+        info = [Messages(2).camera_info(frame_stamp(f), f.camera) for f in frames]
+        k = 0 if zero_first else 1
+        info[k] = dataclasses.replace(info[k], k=np.zeros(9))
+        bag = write_bag(dataset, frames, tmp_path / f"bag{k}", camera_info=False,
+                        extra={INFO_TOPIC: info})
+        for given in (None, Camera(320, 240, 262.5, 262.5, 159.5, 119.5)):
+            with camera_in_place_of_info(given), pytest.raises(
+                    InputError, match="message 1 is .* one camera per bag"):
+                load_rosbag(bag)
+
+
+def test_serve_on_ray_names_its_port_by_the_rule_of_every_server():
+    """S3: `serve --engine ray --port 70000` said "ports 70000, 8000: 1 to 65535", naming no
+    option and a port the user never gave."""
+    pytest.importorskip("ray")
+    from slamreloc.service.ray_serve import serve_forever
+
+    with pytest.raises(InputError, match=r"^`port` 70000: not a TCP port \(0 for any free "):
+        serve_forever({}, port=70000)

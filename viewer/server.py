@@ -42,12 +42,12 @@ def check_address(host: str, port: int) -> None:
     any free one, as `serve --port 0`), before anything is read. A port in use is viser's to
     handle (it moves to the next one); an address that is not this machine's would have it
     try port after port for ever."""
-    from slamreloc.io.address import bind_problem, check_host
+    from slamreloc.io.address import bind_problem, check_host, port_problem
 
     check_host(host)
     _viser_binds(host)
-    if not 0 <= port <= 65535:  # serve's rule (`ServeConfig.check`): 0 takes any free port
-        raise InputError(f"`port` {port}: not a TCP port")
+    if (problem := port_problem(port)) is not None:  # serve's rule: 0 takes any free port
+        raise problem
     refusal = bind_problem(host, 0)
     if refusal is not None:
         raise refusal

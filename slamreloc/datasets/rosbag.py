@@ -665,10 +665,18 @@ def _camera(bag: _Bag, topic: str | None, image: str, size: tuple[int, int]) -> 
                          f"{there}: add {expected} to the bag, or name one with `topic` "
                          f"camera_info=NAME ({STAND_IN_HELP})")
     source = f"{bag.path}: camera_info topic {topic}"
-    first = bag.first(topic)
-    if first is not None and not np.any(np.asarray(_field(first, "k"), np.float64)):
-        if _stand_in is not None:  # ROS's uncalibrated camera, and the user gave one
-            return _stand_in_camera(size, source)
+    # ROS's uncalibrated camera (K all zero) in every message, or in none: a bag that changes
+    # from one to the other describes two cameras, whatever `--camera` says
+    uncalibrated = [not np.any(np.asarray(_field(msg, "k"), np.float64))
+                    for _, msg in bag.messages(topic)]
+    if any(uncalibrated) and not all(uncalibrated):
+        i = uncalibrated.index(not uncalibrated[0])
+        said = ("uncalibrated (K all zero), message 0 calibrated" if uncalibrated[i] else
+                "calibrated, message 0 uncalibrated (K all zero)")
+        raise InputError(f"{source}: message {i} is {said}: one camera per bag (split the bag "
+                         "where it changes)")
+    if uncalibrated and _stand_in is not None:  # and the user gave the camera
+        return _stand_in_camera(size, source)
     camera = None
     for i, (_, msg) in enumerate(bag.messages(topic)):  # one camera for the whole bag
         this = camera_from_info(msg, size, f"{source}, message {i}" if i else source)

@@ -89,6 +89,16 @@ def is_loopback(host: str) -> bool:
     return ip.is_loopback or (mapped is not None and mapped.is_loopback)
 
 
+def port_problem(port: int, option: str = "`port`", any_free: bool = True
+                 ) -> InputError | None:
+    """The one rule of a TCP port to listen on, for every server here: 1 to 65535, or 0 (any
+    free port, where `any_free`). An InputError naming `option`, or None."""
+    if (0 if any_free else 1) <= port <= 65535:
+        return None
+    free = "0 for any free one, or " if any_free else ""
+    return InputError(f"{option} {port}: not a TCP port ({free}1 to 65535)")
+
+
 def listen_address(host: str, port: int) -> str:
     """gRPC's `host:port`, an IPv6 literal in brackets ("[::1]:50051")."""
     bare = _bare(host)

@@ -13,9 +13,10 @@ import stat
 import tempfile
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from slamreloc.errors import InputError
@@ -219,30 +220,91 @@ WORKING_NAME_EXTRA = 32
 MAX_OUTPUT_NAME = 255 - WORKING_NAME_EXTRA
 
 
-LINK_WALK_ENTRIES = 200_000  # entries of an input folder looked at for links (a 7-Scenes
+LINK_WALK_ENTRIES = 1_000_000  # entries of an input folder looked at for links (a 7-Scenes
 # scene of 7 x 1000 frames holds ~21 000)
+LINK_WALK_S = 5.0  # and seconds at most (about 1 s for a million plain entries)
 
 
 @dataclass
 class InputReach:
     """Where a command that reads an input folder reads: `linked`, the folders outside it that
-    its symbolic links lead to (a linked folder, the folder holding a linked file), and
-    `folders`, (device, inode) -> a path, of every folder walked inside it or through its
-    links (a bind-mounted sequence is the same folder on disk as its source)."""
+    its symbolic links lead to (a linked folder, the folder holding a linked file);
+    `mounted`, the sources of the folders bind-mounted inside it; and `folders`, (device,
+    inode) -> a path, of every folder walked inside it or through its links (a bind-mounted
+    sequence is the same folder on disk as its source)."""
 
     linked: list[Path]
     folders: dict[tuple[int, int], Path]
+    mounted: list[Path] = field(default_factory=list)  # `bind_mount_sources`
 
 
-def input_reach(folder: Path, limit: int = LINK_WALK_ENTRIES) -> InputReach:
-    """`InputReach` of `folder`, walked at any depth and through the folders its links lead
-    to, each folder once (a loop of links ends); at most `limit` entries are looked at. Empty
-    for a file or a folder that cannot be listed."""
+def _octal_unescaped(field: str) -> str:
+    """A /proc/self/mountinfo path field as the path (blanks, tabs, line breaks and
+    backslashes are written there as octal escapes)."""
+    return re.sub(r"\\([0-7]{3})", lambda m: chr(int(m.group(1), 8)), field)
+
+
+def bind_mount_sources(folder: Path) -> list[Path]:
+    """The folders mounted at or inside `folder` under another name (bind mounts, on Linux),
+    as this process sees them: where each one's files are found outside `folder`. Read from
+    the mount table, so no walk of `folder` is needed. [] where there is no mount table."""
+    try:
+        with open("/proc/self/mountinfo", encoding="utf-8", errors="replace") as table:
+            rows = [line.split() for line in table]
+    except OSError:
+        return []
+    mounts = [(r[2], _octal_unescaped(r[3]), _octal_unescaped(r[4])) for r in rows if len(r) > 4]
+    root = resolved(folder)
+    out = []
+    for device, source_root, point in mounts:
+        if not Path(point).is_relative_to(root):
+            continue
+        # where the same device's `source_root` is reachable: a mount of it whose own root
+        # holds `source_root` (the device's whole file system at /, typically)
+        for other_device, other_root, other_point in mounts:
+            if other_device == device and other_point != point and \
+                    Path(source_root).is_relative_to(other_root):
+                source = Path(other_point) / Path(source_root).relative_to(other_root)
+                if not source.is_relative_to(root):
+                    out.append(source)
+                break
+    return out
+
+
+def _link_target(path: str) -> Path:
+    """Where the symbolic link `path` leads, resolved by the kernel in one call (Linux: the
+    path of an O_PATH descriptor of it) rather than one path part at a time; a link to
+    nothing: its text joined to its folder."""
+    try:
+        fd = os.open(path, getattr(os, "O_PATH", os.O_RDONLY) | os.O_CLOEXEC)
+    except OSError:
+        try:
+            return Path(os.path.normpath(os.path.join(os.path.dirname(path),
+                                                      os.readlink(path))))
+        except OSError:
+            return Path(os.path.abspath(path))
+    try:
+        return Path(os.readlink(f"/proc/self/fd/{fd}"))
+    except OSError:
+        return resolved(path)
+    finally:
+        os.close(fd)
+
+
+def input_reach(folder: Path, limit: int = LINK_WALK_ENTRIES,
+                time_s: float = LINK_WALK_S) -> InputReach:
+    """`InputReach` of `folder`, walked breadth first at any depth and through the folders
+    its links lead to, each folder once (a loop of links ends), plus the sources of the
+    folders bind-mounted inside it (`bind_mount_sources`, from the mount table: complete
+    whatever the walk's size). The walk looks at `limit` entries at most, for `time_s`
+    seconds at most: links beyond that are not followed. Empty for a file or a folder that
+    cannot be listed."""
     found: set[Path] = set()
     folders: dict[tuple[int, int], Path] = {}
-    pending, seen = [Path(folder)], 0
-    while pending and seen < limit:
-        here = pending.pop()
+    pending, seen = deque([Path(folder)]), 0
+    stop_at = time.monotonic() + time_s
+    while pending and seen < limit and time.monotonic() < stop_at:
+        here = pending.popleft()
         try:
             st = os.stat(here)
             if not stat.S_ISDIR(st.st_mode) or (st.st_dev, st.st_ino) in folders:
@@ -251,10 +313,10 @@ def input_reach(folder: Path, limit: int = LINK_WALK_ENTRIES) -> InputReach:
             with os.scandir(here) as entries:
                 for entry in entries:
                     seen += 1
-                    if seen > limit:
+                    if seen > limit or seen % 1024 == 0 and time.monotonic() >= stop_at:
                         break
                     if entry.is_symlink():
-                        target = resolved(entry.path)
+                        target = _link_target(entry.path)
                         if entry.is_dir():  # walked too: a link inside it leads further
                             found.add(target)
                             pending.append(Path(entry.path))
@@ -265,7 +327,8 @@ def input_reach(folder: Path, limit: int = LINK_WALK_ENTRIES) -> InputReach:
         except OSError:
             continue
     root = resolved(folder)
-    return InputReach(sorted(f for f in found if not f.is_relative_to(root)), folders)
+    mounted = bind_mount_sources(folder) if Path(folder).is_dir() else []
+    return InputReach(sorted(f for f in found if not f.is_relative_to(root)), folders, mounted)
 
 
 def check_outputs(outputs: dict[str, str | Path | None],
@@ -362,9 +425,13 @@ def check_outputs(outputs: dict[str, str | Path | None],
                 how = relation(Path(os.path.abspath(out)), named[what])
                 if how is None:
                     link = next((f for f in reach[what].linked if relation(target, f)), None)
+                    mount = next((f for f in reach[what].mounted if relation(target, f)), None)
                     if link is not None:
                         how, src = relation(target, link), link
                         what = f"{what}'s linked folder"
+                    elif mount is not None:
+                        how, src = relation(target, mount), mount
+                        what = f"{what}'s bind-mounted folder"
                 if how is None:  # a folder inside the input under another name (a bind mount)
                     up, inside = next(((up, reach[what].folders[i]) for up, i in on_disk
                                        if i in reach[what].folders), (None, None))

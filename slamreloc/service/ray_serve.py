@@ -18,6 +18,7 @@ import grpc
 from ray import serve
 
 from slamreloc.errors import InputError
+from slamreloc.io.address import port_problem
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.service.ray_app import (
     APP_NAME,
@@ -120,7 +121,7 @@ def _check_cpus(need: float) -> None:
 
 
 def deploy(maps: dict[str, Path], replicas: int = 1, host: str = "127.0.0.1",
-           grpc_port: int = 9000, *, http_port: int = 8000, address: str | None = None,
+           grpc_port: int = 9000, *, http_port: int | None = None, address: str | None = None,
            num_cpus: int | None = None, replica_cpus: float = REPLICA_CPUS,
            token: str | None = None, watch_s: float = WATCH_S,
            object_store_bytes: int = OBJECT_STORE_BYTES,
@@ -130,7 +131,8 @@ def deploy(maps: dict[str, Path], replicas: int = 1, host: str = "127.0.0.1",
     answers. `address`: a running Ray cluster ("auto" after `ray start --head`); None starts a
     local Ray instance with `num_cpus` CPUs (default: this machine's), no dashboard and a small
     object store. `host`/`http_port`: Serve's HTTP proxy (unused by this service but always
-    started); the gRPC proxy listens on all interfaces at `grpc_port`. Every map replica holds
+    started; None: a free port, so that another program's 8000 never stops the service); the
+    gRPC proxy listens on all interfaces at `grpc_port`. Every map replica holds
     this process's input bounds (`slamreloc.io.limits.limits()`: `slamreloc --limit`, this
     environment's SLAMRELOC_<NAME>, `set_limits`), whatever the replica's environment says."""
     import ray
@@ -142,14 +144,17 @@ def deploy(maps: dict[str, Path], replicas: int = 1, host: str = "127.0.0.1",
         raise InputError("already deployed in this process: shutdown() first")
     app = application(maps, replicas, replica_cpus=replica_cpus, token=token, watch_s=watch_s,
                       bounds=limits())
-    if not 1 <= grpc_port <= 65535 or not 1 <= http_port <= 65535:
-        raise InputError(f"ports {grpc_port}, {http_port}: 1 to 65535")
+    http_port = free_port() if http_port is None else http_port
+    for option, port in (("`port`", grpc_port), ("`http_port`", http_port)):
+        if (problem := port_problem(port, option, any_free=False)) is not None:
+            raise problem
     if not (1 << 16) <= max_request_bytes <= (2 << 30) - 1:
         raise InputError("max_request_bytes: 64 KiB to 2 GiB - 1")
     if address is None:
-        for port in (grpc_port, http_port):
+        for option, port in (("`port`", grpc_port),
+                             ("`http_port` (Ray Serve's HTTP proxy, unused here)", http_port)):
             if not _port_free(port):
-                raise InputError(f"cannot listen on port {port}: in use")
+                raise InputError(f"{option} {port}: cannot listen there: the port is in use")
     t0 = time.perf_counter()
     started_ray = False
     if not ray.is_initialized():
@@ -220,6 +225,8 @@ def serve_forever(maps: dict[str, Path], replicas: int = 1, host: str = "127.0.0
     largest request taken."""
     import signal
 
+    if (problem := port_problem(port)) is not None:
+        raise problem
     port = port or free_port()
     previous = signal.signal(signal.SIGTERM, _interrupt)
     try:

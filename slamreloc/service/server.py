@@ -42,7 +42,8 @@ from google.protobuf.message import DecodeError
 
 from slamreloc import __version__
 from slamreloc.errors import InputError, OutOfMemory, is_out_of_memory
-from slamreloc.io.address import bind_problem, check_host, is_loopback, listen_address
+from slamreloc.io.address import (bind_problem, check_host, is_loopback, listen_address,
+                                  port_problem)
 from slamreloc.io.fileio import relation, relation_on_disk, resolved
 from slamreloc.io.pem import certificates_der, read_pem
 from slamreloc.map.format import META
@@ -109,8 +110,8 @@ class ServeConfig:
     def check(self) -> None:
         """InputError for a configuration that must not run (a non-local bind without a token,
         half a TLS pair, a token gRPC cannot carry, out-of-range numbers)."""
-        if not 0 <= self.port <= 65535:
-            raise InputError(f"`port` {self.port}: not a TCP port")
+        if (problem := port_problem(self.port)) is not None:
+            raise problem
         if not 1 <= self.workers <= 256:
             raise InputError(f"`workers` {self.workers}: 1 to 256")
         if not 1 <= self.max_sessions <= 4096:
