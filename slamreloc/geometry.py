@@ -393,10 +393,6 @@ class Instants:
                     return row
         return None, None
 
-    def rows(self) -> list[tuple[float, Any]]:
-        """Every (stamp, value) kept, in no particular order."""
-        return [row for cell in self._cells.values() for row in cell]
-
 
 def same_instant_words(first: float, again: float) -> str:
     """How a stamp read again stands to the first of its instant, for a refusal."""
@@ -545,18 +541,19 @@ def read_named_trajectory(path) -> TumTrajectory:
     sidecar = names_sidecar(path)
     numeric = bool(rows) and all(n is None for n in names)
     if numeric and os.path.lexists(sidecar):  # given: it names every pose, and only those
-        table = Instants()  # the sidecar's instants (a FIFO, a folder: refused, naming it)
-        for stamp, name in read_names_sidecar(sidecar):
-            table.setdefault(stamp, [name, False])
-        names = []
+        listed = read_names_sidecar(sidecar)  # one row per instant (a FIFO: refused)
+        table = Instants()
+        for stamp, name in listed:
+            table.setdefault(stamp, name)
+        names, matched = [], set()
         for stamp in stamps:
-            found, row = table.get(stamp)
-            if found is None:
+            first, name = table.get(stamp)
+            if first is None:
                 raise InputError(f"{sidecar}: names no frame for the stamp {stamp:.6f} of {path} "
                                  "(a trajectory's names file has one line per pose)")
-            names.append(row[0])
-            row[1] = True
-        extra = sum(not row[1] for _, row in table.rows())
+            names.append(name)
+            matched.add(first)
+        extra = len(listed) - len(matched)
         if extra:
             raise InputError(f"{sidecar}: names {extra} stamp(s) that {path} has no pose for "
                              "(a trajectory's names file has one line per pose)")

@@ -665,20 +665,20 @@ def _camera(bag: _Bag, topic: str | None, image: str, size: tuple[int, int]) -> 
                          f"{there}: add {expected} to the bag, or name one with `topic` "
                          f"camera_info=NAME ({STAND_IN_HELP})")
     source = f"{bag.path}: camera_info topic {topic}"
-    # ROS's uncalibrated camera (K all zero) in every message, or in none: a bag that changes
-    # from one to the other describes two cameras, whatever `--camera` says
-    uncalibrated = [not np.any(np.asarray(_field(msg, "k"), np.float64))
-                    for _, msg in bag.messages(topic)]
-    if any(uncalibrated) and not all(uncalibrated):
-        i = uncalibrated.index(not uncalibrated[0])
-        said = ("uncalibrated (K all zero), message 0 calibrated" if uncalibrated[i] else
-                "calibrated, message 0 uncalibrated (K all zero)")
-        raise InputError(f"{source}: message {i} is {said}: one camera per bag (split the bag "
-                         "where it changes)")
-    if uncalibrated and _stand_in is not None:  # and the user gave the camera
-        return _stand_in_camera(size, source)
-    camera = None
+    camera, first_uncalibrated = None, None
     for i, (_, msg) in enumerate(bag.messages(topic)):  # one camera for the whole bag
+        # ROS's uncalibrated camera (K all zero) in every message, or in none: a bag that
+        # changes from one to the other describes two cameras, whatever `--camera` says
+        uncalibrated = not np.any(np.asarray(_field(msg, "k"), np.float64))
+        if first_uncalibrated is None:
+            first_uncalibrated = uncalibrated
+        elif uncalibrated != first_uncalibrated:
+            said = ("uncalibrated (K all zero), message 0 calibrated" if uncalibrated else
+                    "calibrated, message 0 uncalibrated (K all zero)")
+            raise InputError(f"{source}: message {i} is {said}: one camera per bag (split the "
+                             "bag where it changes)")
+        if uncalibrated:
+            continue  # refused below unless the user gave the camera
         this = camera_from_info(msg, size, f"{source}, message {i}" if i else source)
         if camera is None:
             camera = this
@@ -687,8 +687,12 @@ def _camera(bag: _Bag, topic: str | None, image: str, size: tuple[int, int]) -> 
                              f"(fx fy cx cy {_intrinsics(this)} against "
                              f"{_intrinsics(camera)}, or its distortion): one camera per bag "
                              "(split the bag where it changes)")
-    if camera is None:
+    if first_uncalibrated is None:
         raise InputError(f"{source} has no messages")
+    if first_uncalibrated:
+        if _stand_in is not None:
+            return _stand_in_camera(size, source)
+        camera_from_info(bag.first(topic), size, source)  # refused: "calibrate it"
     return camera
 
 

@@ -122,20 +122,29 @@ def lock_record_or_empty(fd: int) -> bool:
             and what.endswith(b"\n") and what[:-1].decode("ascii", "replace") in LOCK_HOLDERS)
 
 
-def is_mount_point(path: str | Path) -> bool:
-    """Whether `path` is a mount point: another file system (`os.path.ismount`) or a bind
-    mount of the same one, which only the mount table (/proc/self/mountinfo) tells."""
-    if os.path.ismount(path):
-        return True
+def mount_table() -> list[tuple[str, str, str]]:
+    """(device "major:minor", the mounted folder's path within the device, the mount point)
+    of each mount this process sees (/proc/self/mountinfo, its octal escapes of blanks, tabs,
+    line breaks and backslashes undone); [] where there is no mount table."""
     try:
         with open("/proc/self/mountinfo", encoding="utf-8", errors="replace") as table:
-            points = {line.split()[4] for line in table if len(line.split()) > 4}
-    except OSError:  # no /proc: what ismount said
-        return False
+            rows = [line.split() for line in table]
+    except OSError:
+        return []
+
+    def unescaped(text: str) -> str:
+        return re.sub(r"\\([0-7]{3})", lambda m: chr(int(m.group(1), 8)), text)
+
+    return [(r[2], unescaped(r[3]), unescaped(r[4])) for r in rows if len(r) > 4]
+
+
+def is_mount_point(path: str | Path) -> bool:
+    """Whether `path` is a mount point: another file system (`os.path.ismount`) or a bind
+    mount of the same one, which only the mount table tells."""
+    if os.path.ismount(path):
+        return True
     where = os.path.realpath(path)
-    # the table writes a blank, a tab, a line break and a backslash as octal escapes
-    escaped = "".join(f"\\{ord(c):03o}" if c in " \t\n\\" else c for c in where)
-    return escaped in points
+    return any(point == where for _, _, point in mount_table())
 
 
 def lock_file_refusal(out: str | Path, info: os.stat_result, fd: int | None = None
@@ -238,22 +247,11 @@ class InputReach:
     mounted: list[Path] = field(default_factory=list)  # `bind_mount_sources`
 
 
-def _octal_unescaped(field: str) -> str:
-    """A /proc/self/mountinfo path field as the path (blanks, tabs, line breaks and
-    backslashes are written there as octal escapes)."""
-    return re.sub(r"\\([0-7]{3})", lambda m: chr(int(m.group(1), 8)), field)
-
-
 def bind_mount_sources(folder: Path) -> list[Path]:
     """The folders mounted at or inside `folder` under another name (bind mounts, on Linux),
     as this process sees them: where each one's files are found outside `folder`. Read from
     the mount table, so no walk of `folder` is needed. [] where there is no mount table."""
-    try:
-        with open("/proc/self/mountinfo", encoding="utf-8", errors="replace") as table:
-            rows = [line.split() for line in table]
-    except OSError:
-        return []
-    mounts = [(r[2], _octal_unescaped(r[3]), _octal_unescaped(r[4])) for r in rows if len(r) > 4]
+    mounts = mount_table()
     root = resolved(folder)
     out = []
     for device, source_root, point in mounts:
