@@ -38,11 +38,11 @@ from slamreloc.pseudo_label.write import PseudoLabels, base_provenance, write_up
 
 from slamreloc.datasets import Dataset
 from slamreloc.errors import InputError
-from slamreloc.io.fileio import resolved
 from slamreloc.features.extract import extract_frames
 from slamreloc.features import make_extractor
 from slamreloc.map.labels import LabelConfig
 from slamreloc.map.format import LABELLED, NEW, PSEUDO
+from slamreloc.map.joining import check_joining, refuse_held
 from slamreloc.map.lock import map_write_lock
 from slamreloc.map.write import check_map_target
 from slamreloc.rgbd import registered_depths
@@ -69,31 +69,6 @@ def _truth_poses(dataset: Dataset, frames: list[Frame], truth: Dataset | None
     return (poses if all(p is not None for p in poses) else None), source
 
 
-def _refuse_own_frames(old: SceneMap, dataset: Dataset, split: str, frames: list) -> None:
-    """InputError when any frame of the split is one the map was built from (its recorded
-    dataset and split, not a later update's): it would be registered against its own labels
-    and come back as a "pseudo-label" at 0 cm, twice in the new map, with nothing learned.
-    A sequence an update already added may be pseudo-labelled again (each observation is
-    kept)."""
-    record = old.info.dataset
-    built = old.info.dataset_root
-    if built is None or record is None or not isinstance(record.split, str):
-        return
-    if resolved(built) != resolved(dataset.root):  # a recorded path may be a link loop
-        return
-    try:
-        own = {f.name for f in dataset.frames(record.split)}
-    except InputError:  # a split the dataset no longer has: nothing to compare with
-        return
-    built_from = [f.name for f in frames if f.name in own]
-    if built_from:  # registered against their own labels: a self-scored, doubled frame
-        which = ("only frames" if len(built_from) == len(frames) else
-                 f"{len(built_from)} frames (such as {built_from[0]!r})")
-        raise InputError(f"{dataset.root}: split '{split}' holds {which} the map was built "
-                         f"from (its split '{record.split}'): pseudo-labelling learns frames a "
-                         "map lacks (choose a split without them)")
-
-
 def pseudo_label(old: SceneMap, dataset: Dataset, split: str | None = None,
                  config: PseudoLabelConfig = PseudoLabelConfig(), truth: Dataset | None = None,
                  progress: bool = True) -> PseudoLabels:
@@ -108,7 +83,8 @@ def pseudo_label(old: SceneMap, dataset: Dataset, split: str | None = None,
     if len(frames_in) < 2:
         raise InputError(f"{dataset.root}: split '{split}' has {len(frames_in)} frames; "
                          "pseudo-labelling needs a sequence")
-    _refuse_own_frames(old, dataset, split, frames_in)
+    check_joining(old, old.root, dataset, frames_in)  # one camera, names apart
+    refuse_held(old, old.root, dataset, frames_in)  # each frame once
     frames = _frames_for_registration(frames_in)
     truth_world_from_cam, reference = _truth_poses(dataset, frames_in, truth)
     timings = {}

@@ -9,7 +9,6 @@ import json
 import shutil
 import subprocess
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -21,9 +20,7 @@ from slamreloc.geometry import Rigid3, axis_angle_to_matrix, pose_error
 from slamreloc.slam.backend import BackendConfig, SlamBackend
 from slamreloc.slam.keyframes import KeyframeRows
 from slamreloc.slam.live_map import LiveMap, LiveMapConfig
-from slamreloc.synthetic import render_scene
 from slamreloc.types import Camera
-from tests.conftest import SMALL_SCENE
 
 LIVE = ["--split", "kidnap", "--kidnap-every", "30", "--kidnap-skip", "10"]
 
@@ -159,6 +156,8 @@ def test_loop_closure_moves_labels_with_keyframes(drift_deg, drift_m):
 
 
 def test_second_session_anchors_in_the_first_map_and_extends_it(live_session, kidnap_scene):
+    """The first session's frames again: it anchors in MAP1 and extends it by the frames MAP1
+    does not hold (its keyframes are not added twice); MAP1 is left as it was."""
     r1, map1, work = live_session
     map2 = work / "map2"
     before = {p.name: p.read_bytes() for p in map1.iterdir() if p.is_file()}
@@ -182,9 +181,9 @@ def test_a_session_of_another_dataset_records_where_the_map_s_frames_are(
     the datasets of the frames it took over (`extended`)."""
     r1, map1, work = live_session
     map3 = work / "map3"
-    # the room again, without a kidnap sequence: no frame is named as MAP1's (seq-03/...)
-    other = render_scene(tmp_path / "other", replace(SMALL_SCENE, n_kidnap=0, n_unlabelled=0))
-    res = cli("slam", other, "--split", "train", "--map", map1, "--out", map3,
+    # the kidnap path again, renamed: no frame is named as MAP1's (seq-03/...)
+    other = _renamed_copy(kidnap_scene, tmp_path / "other")
+    res = cli("slam", other, "--split", "seq-05", "--map", map1, "--out", map3,
               "--report", work / "r3x.json", "--save-every", "0")
     assert res.returncode == 0, res.stderr
     meta = json.loads((map3 / "slamreloc_map.json").read_text())
@@ -214,6 +213,20 @@ def _with_sequence(root: Path, name: str, frames_of: Path) -> None:
     (root / "scene.json").write_text(json.dumps(scene, indent=2))
 
 
+def _renamed_copy(scene: Path, b: Path) -> Path:
+    """A copy of the kidnap scene `scene` at `b` whose kidnap sequence is named seq-05, not
+    seq-03: the same pictures, none named as a frame of a map learned from `scene`."""
+    b.mkdir()
+    for entry in scene.iterdir():
+        if entry.name != "seq-03":
+            (shutil.copytree if entry.is_dir() else shutil.copy)(entry, b / entry.name)
+    scene_json = json.loads((b / "scene.json").read_text())
+    del scene_json["sequences"]["seq-03"]
+    (b / "scene.json").write_text(json.dumps(scene_json, indent=2))
+    _with_sequence(b, "seq-05", scene / "seq-03")
+    return b
+
+
 def test_a_name_two_of_the_map_s_datasets_hold_is_refused(live_session, kidnap_scene,
                                                           tmp_path):
     """Attack round 29, L1: MAP2 = the kidnap sequence of dataset B (named seq-05) extending
@@ -221,15 +234,7 @@ def test_a_name_two_of_the_map_s_datasets_hold_is_refused(live_session, kidnap_s
     on MAP2 was taken: B is one of MAP2's datasets, but MAP2's seq-03 frames are the kidnap
     scene's, and the extended map held each such name for two pictures."""
     _, map1, work = live_session
-    b = tmp_path / "B"
-    b.mkdir()
-    for entry in kidnap_scene.iterdir():
-        if entry.name != "seq-03":
-            (shutil.copytree if entry.is_dir() else shutil.copy)(entry, b / entry.name)
-    scene = json.loads((b / "scene.json").read_text())
-    del scene["sequences"]["seq-03"]
-    (b / "scene.json").write_text(json.dumps(scene, indent=2))
-    _with_sequence(b, "seq-05", kidnap_scene / "seq-03")
+    b = _renamed_copy(kidnap_scene, tmp_path / "B")
     map2 = tmp_path / "map2"
     res = cli("slam", b, "--split", "seq-05", "--map", map1, "--out", map2, "--report",
               tmp_path / "r2.json", "--learn-every", "10", "--save-every", "0")
@@ -243,8 +248,8 @@ def test_a_name_two_of_the_map_s_datasets_hold_is_refused(live_session, kidnap_s
     assert res.stderr.strip().splitlines()[-1] == (
         f"error: {b}: holds frames named as the map {map2}'s own (such as "
         f"'seq-03/frame-000000'), and so does {kidnap_scene.resolve()}, another dataset of "
-        "the map's: which one's picture is the map's frame cannot be told; extend it with a "
-        "session whose frames are named apart")
+        "the map's: which one's picture is the map's frame cannot be told; extend it with "
+        "frames named apart")
 
 
 def test_slam_in_a_learned_map_scores_in_its_frame(live_session, kidnap_scene):

@@ -26,13 +26,13 @@ def cli(*args):
                           capture_output=True, text=True)
 
 
-def unposed_copy(scene_dir, dst):
-    """The unlabelled sequence with its pose files left out (the truth stays in scene_dir)."""
+def unposed_copy(scene_dir, dst, role="unlabelled"):
+    """The sequence of `role` with its pose files left out (the truth stays in scene_dir)."""
     dst.mkdir()
     for name in ("scene.json", "intrinsics.txt"):
         shutil.copy(scene_dir / name, dst / name)
     ds = load_dataset(scene_dir)
-    seq = ds.resolve_split("unlabelled")[0]
+    seq = ds.resolve_split(role)[0]
     (dst / seq).mkdir()
     for f in ds.sequences[seq]:
         for p in (f.image_path, f.depth_path):
@@ -134,9 +134,16 @@ def test_cli_and_bad_inputs(updated, small_map, scene_dir, tmp_path):
         lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
         assert res.returncode == 2 and len(lines) == 1 and message in lines[0], res.stderr
     assert not (tmp_path / "r.json").exists()
-    # a second update, from the updated map, through the CLI: provenance carries over
+    # a second update, from the updated map, through the CLI: provenance carries over. Its
+    # sequence is one the map lacks, from a dataset naming no frame as the map's others do
+    # (scene_dir names the first update's seq-04 frames too: refused, a map holds each once)
     res = cli("pseudo-label", new_map.root, scene_dir, "--out", tmp_path / "again", "--report",
-              tmp_path / "r.json", "--rounds", "1", "--epochs", "1")
+              tmp_path / "r.json", "--split", "seq-02")
+    assert res.returncode == 2 and "another dataset of the map's" in res.stderr, res.stderr
+    second = unposed_copy(scene_dir, tmp_path / "second", "query")
+    res = cli("pseudo-label", new_map.root, second, "--out", tmp_path / "again", "--report",
+              tmp_path / "r.json", "--rounds", "1", "--epochs", "1", "--split", "seq-02",
+              "--truth", scene_dir)
     assert res.returncode == 0, res.stderr
     rep = json.loads((tmp_path / "r.json").read_text())
     for key in ("n_frames", "n_frames_registered", "n_pseudo_labels", "n_new_points",

@@ -209,7 +209,7 @@ def test_pseudo_label_refuses_a_split_holding_any_of_the_maps_frames(small_map, 
     one_line_exit_2(["pseudo-label", str(small_map.root), str(scene_dir), "--split",
                      "seq-01,seq-04", "--out", str(tmp_path / "new"), "--report",
                      str(tmp_path / "r.json"), "--rounds", "1", "--epochs", "1"],
-                    "split 'seq-01,seq-04' holds", "frames (such as 'seq-01/")
+                    "60 of the 80 frames to add (such as 'seq-01/", "a map holds each frame once")
     assert not (tmp_path / "new").exists()
 
 

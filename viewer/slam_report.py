@@ -87,16 +87,23 @@ def _position(e: Json) -> np.ndarray | None:
             values = v.array((7 if n == 7 else 3,))
             if n == 7:  # tx ty tz qx qy qz qw: the quaternion by every pose reader's rule
                 unit_quaternion(values[3:], f"{v.source}: {v.where}")
-            if np.abs(values[:3]).max() > MAX_COORDINATE:
-                raise InputError(f"{v.source}: {v.where} lies beyond {MAX_COORDINATE:g} m")
-            return values[:3]
+            return _within_bound(v, values[:3])
     return None
+
+
+def _within_bound(field: Json, xyz: np.ndarray) -> np.ndarray:
+    """`xyz`, the position `field` gives, where it lies within MAX_COORDINATE metres (every
+    pose reader's bound): the one rule of every position a slam report holds (an event's,
+    a graph edge's ends)."""
+    if np.abs(xyz).max() > MAX_COORDINATE:
+        raise InputError(f"{field.source}: {field.where} lies beyond {MAX_COORDINATE:g} m")
+    return xyz
 
 
 def _end(e: Json, positions: tuple[str, ...], indices: tuple[str, ...], locate):
     field = _first(e, *positions)
     if field is not None:
-        return field.array((3,))
+        return _within_bound(field, field.array((3,)))
     return locate(_opt_index(_first(e, *indices)), None)
 
 

@@ -169,8 +169,9 @@ def localize(map_dir: Path, images: list[Path],
              intrinsics: Camera | tuple[float, float, float, float] | None = None,
              method: str = "regressor", guided: bool = True) -> Iterator[tuple[str, str]]:
     """`slamreloc localize`: yield (line, status) per image (or per frame of a ROS bag among
-    `images`): a TUM line plus inlier count ("ok"), `# name: not localized` ("failed"), or
-    `error: ...` for an image that cannot be read or is out of bounds ("error").
+    `images`, each named as `_query_images` says): a TUM line plus inlier count ("ok"),
+    `# name: not localized` ("failed"), or `error: ...` for an image that cannot be read or
+    is out of bounds ("error").
     `intrinsics`: a Camera (any lens model, scaled to each image), pinhole (fx, fy, cx, cy)
     in pixels, else the bag's camera or the map's, scaled to each image (`Camera.for_image`:
     an image of another aspect ratio than the camera is an "error" line, never stretched)."""
@@ -234,15 +235,24 @@ def line_name(name: str) -> str:
 
 def _query_images(paths: list[Path]):
     """(name, image file, its camera or None) of each image file, and of each frame of a ROS
-    bag among them (named by frame, with the bag's camera)."""
+    bag among them (named by frame, with the bag's camera). An image file is named by its
+    file name, unless another image file of the run has that file name and another path
+    (`a/q.png`, `b/q.png`): then by its path as given, so that no two images share a name (one
+    image given twice by one path is one image, and keeps its file name)."""
     from slamreloc.datasets.rosbag import is_rosbag, load_rosbag
 
-    for path in paths:
-        if is_rosbag(Path(path)):
+    bags = [is_rosbag(Path(path)) for path in paths]
+    paths_of: dict[str, set[Path]] = {}  # file name -> the image files' paths of that name
+    for path, bag in zip(paths, bags):
+        if not bag:
+            paths_of.setdefault(Path(path).name, set()).add(Path(path))
+    for path, bag in zip(paths, bags):
+        if bag:
             for frame in load_rosbag(Path(path)).frames("all"):
                 yield frame.name, frame.image_path, frame.camera
         else:
-            yield Path(path).name, path, None
+            name = Path(path).name
+            yield (name if len(paths_of[name]) == 1 else str(path)), path, None
 
 
 def slam(dataset: Path, map_dir: Path | None, report: Path, split: str = "test",

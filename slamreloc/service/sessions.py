@@ -11,9 +11,10 @@ A learning session (`SessionOpen.learn`, no map) runs what `slamreloc slam --out
 `LiveMap` without a prior, grown by the `live_mapping` plugin from every keyframe's depth and
 relocalized in by the relocalization plugin; its map is anchored at the first frame with depth.
 Every frame needs depth (its rows are lifted from it) and the first one a camera (later frames
-default to it). `save` writes the map as `slam --out` does at its end (a training round on the
-keyframes' current poses, waited for: `train_for_save`, then every row at those poses:
-`write`) without ending the session.
+default to it); every frame is of that one camera, the map's (`map.joining`). `save` writes
+the map as `slam --out` does at its end (a training round on the keyframes' current poses,
+waited for: `train_for_save`, then every row at those poses: `write`) without ending the
+session.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import uuid
 from slamreloc.errors import InputError
 from slamreloc.geometry import STAMP_TOLERANCE_S, check_stamp
 from slamreloc.io.images import depth_units_problem
+from slamreloc.map.joining import ONE_CAMERA, describe_camera, same_camera
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
     ServiceError,
@@ -123,6 +125,11 @@ class Session:
                                "first frame (there is no map camera; later frames default to it)")
         camera = camera_from_msg(msg.camera if msg.HasField("camera") else None, w, h,
                                  self.camera, "frame.camera")
+        if self.learning and self.camera is not None and not same_camera(self.camera, camera):
+            raise ServiceError(pb.BAD_CAMERA, f"frame.camera: {describe_camera(camera)} (this "
+                               f"frame's), while the session's map is of "
+                               f"{describe_camera(self.camera)} (its first frame's): "
+                               f"{ONE_CAMERA}; a learning session's frames are of one camera")
         depth = None
         if msg.HasField("depth"):
             if msg.depth.HasField("depth_camera"):

@@ -152,10 +152,12 @@ class LiveMap:
             model_config = prior.info.regressor.to_config()
             self.store = KeyframeStore.from_database(prior.database)
             self.camera: Camera | None = prior.camera
+            self._held = frozenset(prior.info.frame_names or ())  # a session adds none again
         else:
             model_config = RegressorConfig.preset(config.arch, self.extractor.dim)
             self.store = KeyframeStore()
             self.camera = None
+            self._held = frozenset()
         self.learner = BackgroundLearner(
             model_config, config.learner,
             # a copy: the caller's map (trained again later, say) is left as it was
@@ -189,8 +191,10 @@ class LiveMap:
 
     def add_keyframe(self, frame: FrameData, key: int) -> int:
         """The keyframe's rows (keypoints with valid depth, the strongest first); returns how
-        many. Frames without image or depth add none."""
-        if frame.image is None or frame.depth is None or self.full:
+        many. Frames without image or depth add none, and so do frames the prior map holds
+        already (by name: a map holds each frame once, `map.joining`)."""
+        if (frame.image is None or frame.depth is None or self.full
+                or frame.name in self._held):  # a map holds each frame once
             return 0
         t0 = time.perf_counter()
         self.camera = self.camera or frame.camera
@@ -412,17 +416,25 @@ class LiveMap:
 
     # ---- writing -------------------------------------------------------------------------
     def finish(self, final_round: bool = True, timeout_s: float | None = None) -> None:
-        """End of the session: the last round on the keyframes' final placement, waited for."""
-        if final_round:
+        """End of the session: the last round on the keyframes' final placement, waited for
+        (none where the session added nothing to its prior map: there is nothing to save)."""
+        if final_round and not self.adds_nothing:
             self.learner.wait(timeout_s)
             self.train(final=True)
         self.learner.wait(timeout_s)
 
+    @property
+    def adds_nothing(self) -> bool:
+        """A session extending a prior map that has added no keyframe to it yet."""
+        return self.prior is not None and self.store.n_session_keyframes == 0
+
     def save(self, out: str | Path, dataset: DatasetMeta | None = None) -> Path | None:
         """Write the map (atomically, `save_map`): the published regressor and every row placed
-        with the keyframes' current poses; None (nothing written) before the first round."""
+        with the keyframes' current poses; None (nothing written) before the first round, and
+        while a session extending a prior map has added no keyframe to it (what it would write
+        is the prior map retrained, recording the session's dataset as its own)."""
         model = self.learner.model
-        if model is None or self.camera is None:
+        if model is None or self.camera is None or self.adds_nothing:
             return None
         live = self.database()
         db = live.database

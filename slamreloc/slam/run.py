@@ -21,6 +21,7 @@ from slamreloc.datasets.poses import FrameKey
 from slamreloc.errors import InputError, Interrupted
 from slamreloc.geometry import Rigid3, align_poses
 from slamreloc.map.format import check_is_map
+from slamreloc.map.joining import check_joining, check_one_camera
 from slamreloc.runtime.progress import track
 from slamreloc.slam.backend import BackendConfig, SlamBackend
 from slamreloc.slam.events import load_plugin
@@ -109,49 +110,17 @@ def _live_plugins(dataset, map_dir: Path | None, out: Path, config: SlamRunConfi
     from slamreloc.map.scene_map import SceneMap
 
     prior = None if map_dir is None else SceneMap.load(map_dir)
+    frames = dataset.frames(config.split)
     if prior is not None:
-        _check_extension(prior, map_dir, dataset)
+        check_joining(prior, map_dir, dataset, frames)
+    else:
+        check_one_camera(dataset, frames)
     live = LiveMap(config.live, prior=prior)
     recorded = DatasetMeta(root=str(dataset.root.resolve()), kind=dataset.kind,
                            split=config.split, metric=True, poses="slam")
     return [load_plugin("live_mapping", live_map=live, out=out, dataset=recorded,
                         save_every_s=config.save_every_s),
             load_plugin("relocalization", localizer=live, **config.plugin_options)]
-
-
-def _check_extension(prior, map_dir: Path, dataset) -> None:
-    """InputError unless the map `map_dir` may be extended by a session of `dataset`. The
-    extended map records the session's dataset and, as its earlier sessions', those the map
-    records (`MapMeta.dataset_roots`), and every reader looks its frames up by name in them:
-    so each name the session's dataset shares with the map's frames must be one the map took
-    from that dataset. Refused: a session of none of the map's datasets (those still at hand)
-    that shares a name with its frames, and one of them when another of them holds a shared
-    name too (which picture is the map's frame cannot be told). Datasets no longer there
-    (moved) are not compared."""
-    own = set(prior.info.frame_names or ())
-    shared = [f.name for f in dataset.frames("all") if f.name in own]
-    if not shared:
-        return
-    session = dataset.root.resolve()
-    at_hand = [r for r in map(Path, prior.info.dataset_roots()) if r.exists()]
-    others = [r for r in at_hand if r.resolve() != session]
-    if at_hand and len(others) == len(at_hand):
-        raise InputError(f"{dataset.root}: holds frames named as the map {map_dir}'s own (such "
-                         f"as {shared[0][:80]!r}), which come from the map's "
-                         f"{'datasets' if len(at_hand) > 1 else 'dataset'} "
-                         f"({', '.join(map(str, at_hand))[:400]}); the extended map would take "
-                         "its frames for these: extend it with a session of one of those")
-    for root in others:
-        try:
-            names = {f.name for f in load_dataset(root).frames("all")}
-        except InputError:  # not readable now: no frame of it is looked up either
-            continue
-        clash = next((n for n in shared if n in names), None)
-        if clash is not None:
-            raise InputError(f"{dataset.root}: holds frames named as the map {map_dir}'s own "
-                             f"(such as {clash[:80]!r}), and so does {root}, another dataset "
-                             "of the map's: which one's picture is the map's frame cannot be "
-                             "told; extend it with a session whose frames are named apart")
 
 
 def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = SlamRunConfig(),
@@ -205,7 +174,13 @@ def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = Sl
             backend.finish()
             if mapper is not None:
                 mapper.live_map.finish()
-                if mapper.save() is None:
+                written = mapper.save()
+                if written is None and mapper.live_map.adds_nothing:
+                    raise InputError(
+                        f"{mapper.out}: no map written: the session added no keyframe to "
+                        f"{map_dir} (it never anchored in it, or saw nothing it lacks): "
+                        "track a split that overlaps the map's places and goes beyond them")
+                if written is None:
                     raise InputError(
                         f"{mapper.out}: no map written: the session labelled "
                         f"{mapper.live_map.store.n_rows} keypoints with depth in "
@@ -220,6 +195,8 @@ def run_slam(dataset_dir: Path, map_dir: Path | None, config: SlamRunConfig = Sl
             raise Interrupted(
                 f"{mapper.out}: the session was interrupted after {len(backend.frames)} frames; "
                 + ("the map as it stood is saved there" if written else
+                   f"no map was written (no keyframe was added to {map_dir})"
+                   if mapper.live_map.adds_nothing else
                    "no map was written (no training round had ended)")) from None
     prior = None  # a map a session learned is in that session's frame
     if mapper is not None:
