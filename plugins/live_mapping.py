@@ -60,10 +60,14 @@ class LiveMappingPlugin:
             self.live_map.add_keyframe(frame, event.info["key"])
 
     def save(self, at_once: bool = False) -> Path | None:
-        """Write the map (None before the first round has published a regressor): inside
-        `outputs_together` with the command's other outputs, unless `at_once` (a periodic
-        save, or what an interrupted session keeps: in place now)."""
+        """Write the map (None before the first round has published a regressor, and while a
+        session extending a prior map has added no keyframe to it: what it would write is the
+        prior map, recording the session's dataset as its own): inside `outputs_together`
+        with the command's other outputs, unless `at_once` (a periodic save, or what an
+        interrupted session keeps: in place now)."""
         self._last_save = time.monotonic()
+        if self.live_map.adds_nothing:
+            return None
         with outputs_now() if at_once else nullcontext():
             written = self.live_map.save(self.out, self.dataset)
         self.n_saves += written is not None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -62,6 +63,25 @@ class Camera:
         decimal (`slamreloc.io.numbers`: no digit separators, no other scripts' digits)."""
         model, width, height, params = lens.split_camera_string(text, source)
         return cls.from_colmap(model, width, height, params, source)
+
+    def same_as(self, other: Camera) -> bool:
+        """The same camera: lens model, width and height equal, every parameter (fx, fy, cx,
+        cy, distortion) within SAME_CAMERA_RTOL of the other's (absolutely 1e-9 near zero).
+        The one rule wherever two cameras must be one (a map's frames, a bag's CameraInfo)."""
+        if (self.model, self.width, self.height) != (other.model, other.width, other.height):
+            return False
+        a, b = [*self.params(), *self.distortion], [*other.params(), *other.distortion]
+        return len(a) == len(b) and all(math.isclose(x, y, rel_tol=SAME_CAMERA_RTOL,
+                                                     abs_tol=1e-9) for x, y in zip(a, b))
+
+    def describe(self) -> str:
+        """`PINHOLE 320x240 (fx 262.5, fy 262.5, cx 159.5, cy 119.5)`, distortion after: as
+        precise as `same_as` tells cameras apart (10 significant digits)."""
+        text = (f"{self.model} {self.width}x{self.height} (fx {self.fx:.10g}, fy "
+                f"{self.fy:.10g}, cx {self.cx:.10g}, cy {self.cy:.10g}")
+        if self.distortion:
+            text += ", distortion " + " ".join(f"{d:.10g}" for d in self.distortion)
+        return text + ")"
 
     def colmap_params(self) -> list[float]:
         """The parameters of `self.model` in COLMAP's convention (cameras.txt)."""
@@ -149,6 +169,7 @@ class Camera:
 
 
 ASPECT_TOL = 0.01  # relative difference of the two sides' scales
+SAME_CAMERA_RTOL = 1e-6  # `Camera.same_as`: what a camera written as text and read back keeps
 
 
 def aspect_problem(cam_width: int, cam_height: int, width: int, height: int) -> str | None:

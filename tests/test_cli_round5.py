@@ -317,7 +317,7 @@ def test_pseudo_labelling_the_maps_own_frames_is_refused(small_map, scene_dir, t
     out = tmp_path / "new"
     one_line_exit_2(["pseudo-label", str(small_map.root), str(scene_dir), "--out", str(out),
                      "--report", str(tmp_path / "r.json"), "--split", "train"],
-                    "every frame to add (such as 'seq-01/frame-000000') is named as one the map")
+                    "every frame to add (such as 'seq-01/frame-000000') is one the map")
     assert not out.exists() and not (tmp_path / "r.json").exists()
 
 

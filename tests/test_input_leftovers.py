@@ -559,17 +559,19 @@ def test_a_tum_list_stamp_given_twice(scene, tmp_path, same_file):
         load_dataset(root)
 
 
-@pytest.mark.parametrize("change", [False, True])
+@pytest.mark.parametrize("change", [0.0, 1e-12, 1e-3, 0.1])
 def test_a_camera_that_changes_mid_bag_is_refused(scene, tmp_path, change):
     """Every CameraInfo of the bag is read: the same camera repeated is the bag's camera; one
     message describing another camera is refused, naming it (it was ignored: only the first
-    message was read)."""
+    message was read). The same camera is `Camera.same_as`'s (round 36, U3: float noise of
+    1e-12 was refused, with both cameras printed alike)."""
     from tests.rosbag_support import INFO_TOPIC
 
     dataset, frames = scene
     msgs = Messages(2)
     cam = frames[0].camera
-    other = replace(cam, fx=cam.fx * 1.1) if change else cam
+    other = replace(cam, fx=cam.fx * (1 + change))
+    change = change > 1e-6
     infos = [msgs.camera_info(frame_stamp(f), cam if i < 2 else other)
              for i, f in enumerate(frames)]
     bag = write_bag(dataset, frames, tmp_path / "run", camera_info=False,
@@ -577,5 +579,8 @@ def test_a_camera_that_changes_mid_bag_is_refused(scene, tmp_path, change):
     if not change:
         assert load_rosbag(bag).frames("all")[0].camera == cam
         return
-    with pytest.raises(InputError, match="message 2 describes another camera than message 0"):
+    with pytest.raises(InputError, match="message 2 describes another camera than message 0") \
+            as err:
         load_rosbag(bag)
+    assert f"(PINHOLE {cam.width}x{cam.height} (fx {other.fx:.10g}," in str(err.value)
+    assert f"against PINHOLE {cam.width}x{cam.height} (fx {cam.fx:.10g}," in str(err.value)

@@ -1,4 +1,4 @@
-"""Attack round 35: what may join a map (`slamreloc/map/joining.py`), one rule for
+"""Attack rounds 35 and 36: what may join a map (`slamreloc/map/joining.py`), one rule for
 `slam --map OLD --out NEW`, `pseudo-label` and a learning session: frames of the map's one
 camera (T1-T3), each frame once (T4), no frame named as another dataset's map frame (T5); and
 a session that adds nothing to OLD writes no NEW (T6)."""
@@ -15,7 +15,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from slamreloc.map.joining import same_camera
 from slamreloc.synthetic import render_scene
 from slamreloc.types import Camera
 from tests.conftest import SMALL_SCENE
@@ -134,9 +133,9 @@ def test_frames_the_map_holds_are_not_added_again(small_map, scene_dir, tmp_path
                              "seq-02,seq-01", "--out", tmp_path / "n", "--report",
                              tmp_path / "r.json"])
     assert last == (f"error: {scene_dir}: 60 of the 80 frames to add (such as "
-                    f"'seq-01/frame-000000') are named as ones the map {small_map.root} "
-                    "holds: a map holds each frame once, and looks its frames up by name; add "
-                    "frames it lacks (another split or sequence)"), last
+                    f"'seq-01/frame-000000') are ones the map {small_map.root} holds (by name, "
+                    "or the same picture): a map holds each frame once; add frames it lacks "
+                    "(another split or sequence)"), last
     last = _one_line_exit_2(["slam", scene_dir, "--split", "seq-01", "--map", small_map.root,
                              "--out", tmp_path / "n", "--report", tmp_path / "r.json",
                              "--save-every", "0"])
@@ -187,14 +186,50 @@ _VALUE = st.floats(1.0, 1000.0)
 @settings(max_examples=60, deadline=None)
 @given(fx=_VALUE, cx=_VALUE, rel=st.sampled_from([0.0, 1e-8, 1e-7, 1e-5, 1e-3]),
        k1=st.sampled_from([0.0, 0.01]))
-def test_same_camera_is_every_parameter_within_its_tolerance(fx, cx, rel, k1):
+def test_same_as_is_every_parameter_within_its_tolerance(fx, cx, rel, k1):
     """Generated: a camera is the same as itself with a parameter moved by less than 1e-6
     of it, not by more; another size, model or distortion is another camera."""
     model = "OPENCV" if k1 else "PINHOLE"
     dist = (k1, 0.0, 0.0, 0.0) if k1 else ()
     a = Camera(640, 480, fx, fx, cx, 240.0, model, dist)
     b = Camera(640, 480, fx * (1 + rel), fx, cx, 240.0, model, dist)
-    assert same_camera(a, b) == (rel < 1e-6) and same_camera(a, a)
-    assert not same_camera(a, replace(a, width=641))
-    assert not same_camera(a, Camera(640, 480, fx, fx, cx, 240.0, "OPENCV",
+    assert a.same_as(b) == (rel < 1e-6) and a.same_as(a)
+    assert not a.same_as(replace(a, width=641))
+    assert not a.same_as(Camera(640, 480, fx, fx, cx, 240.0, "OPENCV",
                                      (k1 + 0.02, 0.0, 0.0, 0.0)))
+
+
+# ---- attack round 36 ---------------------------------------------------------------------------
+def test_a_map_is_not_built_from_frames_of_two_cameras(scene_dir, tmp_path):
+    """U1: `map` of a COLMAP project of two cameras recorded the first one only (`slam --out`
+    refused the same project): one rule, before any work."""
+    from slamreloc.datasets import load_dataset
+    from tests.colmap_project import write_colmap_project
+
+    frames = load_dataset(scene_dir).frames("seq-01")[:6]
+    other = replace(frames[0].camera, fx=300.0, fy=300.0)
+    project = write_colmap_project([replace(f, camera=other) if i % 2 else f
+                                    for i, f in enumerate(frames)], tmp_path / "col")
+    last = _one_line_exit_2(["map", project, "--out", tmp_path / "m", "--epochs", "1"])
+    assert last.startswith(f"error: {project}: frame 'seq-01/frame-000001.color.png' is of "
+                           "the camera PINHOLE 320x240 (fx 300, fy 300"), last
+    assert "a map holds one camera" in last and not (tmp_path / "m").exists()
+
+
+def test_the_maps_own_pictures_under_other_names_are_not_added_again(small_map, scene_dir,
+                                                                      tmp_path):
+    """U2: the map's own frames as a COLMAP project (named `seq-01/frame-000000.color.png`,
+    where the map holds `seq-01/frame-000000`) were pseudo-labelled against their own labels
+    and added a second time; a frame is held by its picture too (the image file's bytes)."""
+    from slamreloc.datasets import load_dataset
+    from tests.colmap_project import write_colmap_project
+
+    frames = load_dataset(scene_dir).frames("seq-01")[:4]
+    project = write_colmap_project(frames, tmp_path / "col")
+    last = _one_line_exit_2(["pseudo-label", small_map.root, project, "--out", tmp_path / "n",
+                             "--report", tmp_path / "r.json"])
+    assert last == (f"error: {project}: every frame to add (such as "
+                    f"'seq-01/frame-000000.color.png') is one the map {small_map.root} holds "
+                    "(by name, or the same picture): a map holds each frame once; add frames it "
+                    "lacks (another split or sequence)"), last
+    assert not (tmp_path / "n").exists()

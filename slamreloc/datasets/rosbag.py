@@ -623,10 +623,6 @@ def camera_from_info(msg: Any, size: tuple[int, int], source: str) -> Camera:
         raise InputError(f"{source}: {err}") from None
 
 
-def _intrinsics(camera: Camera) -> str:
-    return " ".join(f"{v:g}" for v in (camera.fx, camera.fy, camera.cx, camera.cy))
-
-
 GUESS = "guess"  # `camera_in_place_of_info`: a pinhole guess of the images' size
 STAND_IN_HELP = "`sfm` and `localize` take `--camera` in its place"
 _stand_in: Camera | str | None = None
@@ -682,11 +678,10 @@ def _camera(bag: _Bag, topic: str | None, image: str, size: tuple[int, int]) -> 
         this = camera_from_info(msg, size, f"{source}, message {i}" if i else source)
         if camera is None:
             camera = this
-        elif this != camera:
+        elif not this.same_as(camera):
             raise InputError(f"{source}: message {i} describes another camera than message 0 "
-                             f"(fx fy cx cy {_intrinsics(this)} against "
-                             f"{_intrinsics(camera)}, or its distortion): one camera per bag "
-                             "(split the bag where it changes)")
+                             f"({this.describe()} against {camera.describe()}): one camera "
+                             "per bag (split the bag where it changes)")
     if first_uncalibrated is None:
         raise InputError(f"{source} has no messages")
     if first_uncalibrated:

@@ -15,6 +15,7 @@ from slamreloc.features.extract import extract_frames
 from slamreloc.features import make_extractor
 from slamreloc.io.outputs import check_outputs
 from slamreloc.map.augment import AugmentConfig, augmented_rows
+from slamreloc.map.joining import check_one_camera
 from slamreloc.map.labels import LabelConfig, LabelSet, build_labels
 from slamreloc.map.format import SURFACE, is_map
 from slamreloc.map.lock import map_write_lock
@@ -106,6 +107,7 @@ def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progr
     frames = dataset.frames(split)
     if not frames:
         raise InputError(f"{dataset.root}: split '{split}' has no frames")
+    check_one_camera(dataset, frames)  # a map holds one camera
     unposed = [f.name for f in frames if f.world_from_cam is None]
     if unposed:
         raise InputError(f"{dataset.poses_origin}: frame {unposed[0]} has no pose; mapping "

@@ -3,56 +3,34 @@ that holds frames already (`slam --map OLD --out NEW`, `pseudo-label`).
 
 - **One camera.** A map's rows hold keypoints in the pixels of its one camera (`SceneMap.camera`,
   what export writes, what guided matching and pseudo-labelling project with), so every frame
-  that joins it is of that camera (`same_camera`): the same lens model, size and parameters.
+  that joins it is of that camera (`Camera.same_as`): the same lens model, size and parameters.
 - **Each frame once.** A map holds each frame once, and its readers look a frame up by name in
   the datasets it records (`MapMeta.dataset_roots`). A dataset holding a frame named as one of
   the map's is refused where the name could not be told apart: it is none of the map's
   datasets, or another of them holds that name too (`check_joining`). A frame the map holds
-  already is not added again: pseudo-labelling, whose work is adding frames, refuses it
-  (`refuse_held`); a SLAM session tracks it and relocalizes on it without making it a
-  keyframe of the map (`LiveMap.add_keyframe`).
+  already (by name, or by picture: the same image bytes) is not added again: pseudo-labelling,
+  whose work is adding frames, refuses it (`refuse_held`); a SLAM session tracks it and
+  relocalizes on it without making it a keyframe of the map (`LiveMap.add_keyframe`).
 """
 
 from __future__ import annotations
 
-import math
+import hashlib
 from pathlib import Path
 
 from slamreloc.datasets import load_dataset
 from slamreloc.errors import InputError
 from slamreloc.types import Camera
 
-PARAM_RTOL = 1e-6  # two cameras' parameters agree to this fraction (what a written camera keeps)
-
-
-def same_camera(a: Camera, b: Camera) -> bool:
-    """The same camera: lens model, width and height equal, every parameter (fx, fy, cx, cy,
-    distortion) within PARAM_RTOL of the other's (absolutely 1e-9 near zero)."""
-    if (a.model, a.width, a.height) != (b.model, b.width, b.height):
-        return False
-    pa, pb = [*a.params(), *a.distortion], [*b.params(), *b.distortion]
-    return len(pa) == len(pb) and all(math.isclose(x, y, rel_tol=PARAM_RTOL, abs_tol=1e-9)
-                                      for x, y in zip(pa, pb))
-
-
-def describe_camera(camera: Camera) -> str:
-    """`PINHOLE 320x240 (fx 262.5, fy 262.5, cx 159.5, cy 119.5)`, distortion after."""
-    text = (f"{camera.model} {camera.width}x{camera.height} (fx {camera.fx:.6g}, "
-            f"fy {camera.fy:.6g}, cx {camera.cx:.6g}, cy {camera.cy:.6g}")
-    if camera.distortion:
-        text += ", distortion " + " ".join(f"{d:.6g}" for d in camera.distortion)
-    return text + ")"
-
-
 ONE_CAMERA = "a map holds one camera (its rows' pixels are that camera's)"
 
 
 def _camera_problem(dataset, frame, camera: Camera, of_what: str, advice: str) -> None:
     """InputError unless `frame` is of `camera` (that of `of_what`, said in the message)."""
-    if not same_camera(camera, frame.camera):
+    if not camera.same_as(frame.camera):
         raise InputError(f"{dataset.root}: frame {frame.name[:80]!r} is of the camera "
-                         f"{describe_camera(frame.camera)}, {of_what} of the camera "
-                         f"{describe_camera(camera)}: {ONE_CAMERA}; {advice}")
+                         f"{frame.camera.describe()}, {of_what} of the camera "
+                         f"{camera.describe()}: {ONE_CAMERA}; {advice}")
 
 
 def check_joining(prior, map_dir: Path, dataset, frames: list) -> None:
@@ -68,20 +46,48 @@ def check_joining(prior, map_dir: Path, dataset, frames: list) -> None:
 
 def held_frames(prior, frames: list) -> list[str]:
     """The names of `frames` the map `prior` holds already (a map holds each frame once: a
-    SLAM session tracks such a frame without adding it again, pseudo-labelling refuses it)."""
+    SLAM session tracks such a frame without adding it again, pseudo-labelling refuses it):
+    by name, or by picture, an image file whose bytes are those of one of the map's frames
+    (its own frames reached through another name: a link, a copy, another layout's naming)."""
     own = set(prior.info.frame_names or ())
-    return [f.name for f in frames if f.name in own]
+    pictures = _map_pictures(prior, own)
+    return [f.name for f in frames
+            if f.name in own or (pictures and _picture(f.image_path) in pictures)]
+
+
+def _picture(path: Path) -> str | None:
+    """The SHA-256 of the image file `path` (None for what is not a readable regular file: a
+    bag's frame, a file gone)."""
+    try:
+        if not Path(path).is_file():
+            return None
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return None
+
+
+def _map_pictures(prior, own: set[str]) -> set[str]:
+    """The SHA-256 of each of the map's frames' image files, found in the datasets it records
+    that are still at hand and readable (`MapMeta.dataset_roots`)."""
+    pictures: set[str] = set()
+    for root in map(Path, prior.info.dataset_roots()):
+        try:
+            frames = load_dataset(root).frames("all") if root.exists() else []
+        except InputError:  # not readable now: its pictures cannot be compared
+            continue
+        pictures |= {_picture(f.image_path) for f in frames if f.name in own} - {None}
+    return pictures
 
 
 def refuse_held(prior, map_dir: Path, dataset, frames: list) -> None:
     """InputError, naming the dataset, where `frames` hold frames the map holds already."""
     held = held_frames(prior, frames)
     if held:
-        which = ("every frame to add (such as {}) is named as one" if len(held) == len(frames)
-                 else f"{len(held)} of the {len(frames)} frames to add (such as {{}}) are named "
-                 "as ones").format(repr(held[0][:80]))
-        raise InputError(f"{dataset.root}: {which} the map {map_dir} holds: a map holds each "
-                         "frame once, and looks its frames up by name; add frames it lacks "
+        which = ("every frame to add (such as {}) is one" if len(held) == len(frames)
+                 else f"{len(held)} of the {len(frames)} frames to add (such as {{}}) are "
+                 "ones").format(repr(held[0][:80]))
+        raise InputError(f"{dataset.root}: {which} the map {map_dir} holds (by name, or the "
+                         "same picture): a map holds each frame once; add frames it lacks "
                          "(another split or sequence)")
 
 

@@ -59,6 +59,9 @@ class Deployment:
 _current: Deployment | None = None
 
 
+PROXY_READY_CHECK_S = 20.0  # each of Serve's 3 readiness checks of a starting proxy
+
+
 def _port_free(port: int) -> bool:
     with socket.socket(socket.AF_INET6 if socket.has_ipv6 else socket.AF_INET) as s:
         try:
@@ -162,6 +165,10 @@ def deploy(maps: dict[str, Path], replicas: int = 1, host: str = "127.0.0.1",
         # environment): `max_request_bytes` holds, whatever the environment said
         os.environ["RAY_SERVE_GRPC_MAX_MESSAGE_SIZE"] = str(max_request_bytes)
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+        # Serve kills a proxy that is not ready after 3 checks of 5 s: 15 s, less than the
+        # start it waits for (60 s), and less than a proxy takes to import on a busy 2-core
+        # machine (it was killed so, and `serve.start` failed). 3 x 20 s: that whole minute
+        os.environ.setdefault("RAY_SERVE_PROXY_READY_CHECK_TIMEOUT_S", str(PROXY_READY_CHECK_S))
         if address is None:
             ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False,
                      object_store_memory=object_store_bytes, log_to_driver=log_to_driver,

@@ -28,7 +28,7 @@ import uuid
 from slamreloc.errors import InputError
 from slamreloc.geometry import STAMP_TOLERANCE_S, check_stamp
 from slamreloc.io.images import depth_units_problem
-from slamreloc.map.joining import ONE_CAMERA, describe_camera, same_camera
+from slamreloc.map.joining import ONE_CAMERA
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
     ServiceError,
@@ -125,10 +125,10 @@ class Session:
                                "first frame (there is no map camera; later frames default to it)")
         camera = camera_from_msg(msg.camera if msg.HasField("camera") else None, w, h,
                                  self.camera, "frame.camera")
-        if self.learning and self.camera is not None and not same_camera(self.camera, camera):
-            raise ServiceError(pb.BAD_CAMERA, f"frame.camera: {describe_camera(camera)} (this "
+        if self.learning and self.camera is not None and not self.camera.same_as(camera):
+            raise ServiceError(pb.BAD_CAMERA, f"frame.camera: {camera.describe()} (this "
                                f"frame's), while the session's map is of "
-                               f"{describe_camera(self.camera)} (its first frame's): "
+                               f"{self.camera.describe()} (its first frame's): "
                                f"{ONE_CAMERA}; a learning session's frames are of one camera")
         depth = None
         if msg.HasField("depth"):

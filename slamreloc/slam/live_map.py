@@ -139,9 +139,12 @@ def _not_localized(n: int, source: str = "") -> LiveLocalization:
 
 class LiveMap:
     """The map a session builds (see the module's docstring). `prior`: a map to extend
-    (multi-session): its rows become fixed frames and its regressor the learner's start."""
+    (multi-session): its rows become fixed frames and its regressor the learner's start;
+    `held`: names of the session's frames that are pictures the prior holds under other names
+    (`map.joining.held_frames`), which, as the prior's own names, never become keyframes."""
 
-    def __init__(self, config: LiveMapConfig = LiveMapConfig(), prior: SceneMap | None = None):
+    def __init__(self, config: LiveMapConfig = LiveMapConfig(), prior: SceneMap | None = None,
+                 held: tuple[str, ...] = ()):
         if prior is not None:
             config = replace(config, features=prior.info.feature_name,
                              feature_options=prior.info.feature_options,
@@ -152,7 +155,8 @@ class LiveMap:
             model_config = prior.info.regressor.to_config()
             self.store = KeyframeStore.from_database(prior.database)
             self.camera: Camera | None = prior.camera
-            self._held = frozenset(prior.info.frame_names or ())  # a session adds none again
+            # frames the prior holds (by name, and `held`: by picture) are never added again
+            self._held = frozenset(prior.info.frame_names or ()) | frozenset(held)
         else:
             model_config = RegressorConfig.preset(config.arch, self.extractor.dim)
             self.store = KeyframeStore()
@@ -430,11 +434,9 @@ class LiveMap:
 
     def save(self, out: str | Path, dataset: DatasetMeta | None = None) -> Path | None:
         """Write the map (atomically, `save_map`): the published regressor and every row placed
-        with the keyframes' current poses; None (nothing written) before the first round, and
-        while a session extending a prior map has added no keyframe to it (what it would write
-        is the prior map retrained, recording the session's dataset as its own)."""
+        with the keyframes' current poses; None (nothing written) before the first round."""
         model = self.learner.model
-        if model is None or self.camera is None or self.adds_nothing:
+        if model is None or self.camera is None:
             return None
         live = self.database()
         db = live.database

@@ -21,7 +21,7 @@ from slamreloc.datasets.poses import FrameKey
 from slamreloc.errors import InputError, Interrupted
 from slamreloc.geometry import Rigid3, align_poses
 from slamreloc.map.format import check_is_map
-from slamreloc.map.joining import check_joining, check_one_camera
+from slamreloc.map.joining import check_joining, check_one_camera, held_frames
 from slamreloc.runtime.progress import track
 from slamreloc.slam.backend import BackendConfig, SlamBackend
 from slamreloc.slam.events import load_plugin
@@ -115,7 +115,8 @@ def _live_plugins(dataset, map_dir: Path | None, out: Path, config: SlamRunConfi
         check_joining(prior, map_dir, dataset, frames)
     else:
         check_one_camera(dataset, frames)
-    live = LiveMap(config.live, prior=prior)
+    held = () if prior is None else tuple(held_frames(prior, frames))
+    live = LiveMap(config.live, prior=prior, held=held)
     recorded = DatasetMeta(root=str(dataset.root.resolve()), kind=dataset.kind,
                            split=config.split, metric=True, poses="slam")
     return [load_plugin("live_mapping", live_map=live, out=out, dataset=recorded,
