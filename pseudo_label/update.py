@@ -83,8 +83,8 @@ def pseudo_label(old: SceneMap, dataset: Dataset, split: str | None = None,
     if len(frames_in) < 2:
         raise InputError(f"{dataset.root}: split '{split}' has {len(frames_in)} frames; "
                          "pseudo-labelling needs a sequence")
-    check_joining(old, old.root, dataset, frames_in)  # one camera, names apart
-    refuse_held(old, old.root, dataset, frames_in)  # each frame once
+    held = check_joining(old, old.root, dataset, frames_in)  # one camera, names apart
+    refuse_held(old.root, dataset, frames_in, held)  # each frame once
     frames = _frames_for_registration(frames_in)
     truth_world_from_cam, reference = _truth_poses(dataset, frames_in, truth)
     timings = {}

@@ -33,26 +33,37 @@ def _camera_problem(dataset, frame, camera: Camera, of_what: str, advice: str) -
                          f"{camera.describe()}: {ONE_CAMERA}; {advice}")
 
 
-def check_joining(prior, map_dir: Path, dataset, frames: list) -> None:
+def check_joining(prior, map_dir: Path, dataset, frames: list) -> list[str]:
     """InputError, naming the dataset, unless `frames` of `dataset` may join the map `prior`
     (a `SceneMap`, read from `map_dir`): of its camera, and named apart from the frames of its
-    other datasets (see the module's docstring). Frames the map holds already are the
-    caller's to leave out (`held_frames`)."""
+    other datasets (see the module's docstring). Returns the names of `frames` the map holds
+    already, by name or by picture (an image file whose bytes are those of one of the map's
+    frames: its own frames reached through another name, a link, a copy, another layout's
+    naming), for the caller to leave out (a SLAM session) or refuse (`refuse_held`). The
+    map's datasets are read once for both."""
     for frame in frames:
         _camera_problem(dataset, frame, prior.camera, f"the map {map_dir}",
                         "extend it with frames of its camera")
-    _names_apart(prior, map_dir, dataset)
-
-
-def held_frames(prior, frames: list) -> list[str]:
-    """The names of `frames` the map `prior` holds already (a map holds each frame once: a
-    SLAM session tracks such a frame without adding it again, pseudo-labelling refuses it):
-    by name, or by picture, an image file whose bytes are those of one of the map's frames
-    (its own frames reached through another name: a link, a copy, another layout's naming)."""
     own = set(prior.info.frame_names or ())
-    pictures = _map_pictures(prior, own)
+    readable = _map_datasets(prior)
+    _names_apart(prior, map_dir, dataset, own, readable)
+    pictures = {_picture(f.image_path) for frames_of in readable.values()
+                for f in frames_of if f.name in own} - {None}
     return [f.name for f in frames
             if f.name in own or (pictures and _picture(f.image_path) in pictures)]
+
+
+def _map_datasets(prior) -> dict[Path, list]:
+    """The frames ("all") of each dataset the map records that is still at hand and readable
+    (`MapMeta.dataset_roots`), by root: one that is not cannot be compared."""
+    readable = {}
+    for root in map(Path, prior.info.dataset_roots()):
+        try:
+            if root.exists():
+                readable[root] = load_dataset(root).frames("all")
+        except InputError:
+            continue
+    return readable
 
 
 def _picture(path: Path) -> str | None:
@@ -66,22 +77,9 @@ def _picture(path: Path) -> str | None:
         return None
 
 
-def _map_pictures(prior, own: set[str]) -> set[str]:
-    """The SHA-256 of each of the map's frames' image files, found in the datasets it records
-    that are still at hand and readable (`MapMeta.dataset_roots`)."""
-    pictures: set[str] = set()
-    for root in map(Path, prior.info.dataset_roots()):
-        try:
-            frames = load_dataset(root).frames("all") if root.exists() else []
-        except InputError:  # not readable now: its pictures cannot be compared
-            continue
-        pictures |= {_picture(f.image_path) for f in frames if f.name in own} - {None}
-    return pictures
-
-
-def refuse_held(prior, map_dir: Path, dataset, frames: list) -> None:
-    """InputError, naming the dataset, where `frames` hold frames the map holds already."""
-    held = held_frames(prior, frames)
+def refuse_held(map_dir: Path, dataset, frames: list, held: list[str]) -> None:
+    """InputError, naming the dataset, where `frames` hold frames the map holds already
+    (`held`, from `check_joining`)."""
     if held:
         which = ("every frame to add (such as {}) is one" if len(held) == len(frames)
                  else f"{len(held)} of the {len(frames)} frames to add (such as {{}}) are "
@@ -99,13 +97,13 @@ def check_one_camera(dataset, frames: list) -> None:
                         "learn a map from the frames of one camera")
 
 
-def _names_apart(prior, map_dir: Path, dataset) -> None:
+def _names_apart(prior, map_dir: Path, dataset, own: set[str],
+                 readable: dict[Path, list]) -> None:
     """InputError where a reader of the extended map could not tell which picture one of its
-    frames is: `dataset` (which the map will record beside its own datasets) holds a frame
-    named as the map's, and is none of the map's datasets still at hand, or is one of them
-    while another of them holds that name too. Datasets no longer there (moved) are not
-    compared."""
-    own = set(prior.info.frame_names or ())
+    frames (names `own`) is: `dataset` (which the map will record beside its own datasets)
+    holds a frame named as the map's, and is none of the map's datasets still at hand, or is
+    one of them while another of them (`readable`: `_map_datasets`) holds that name too.
+    Datasets no longer there (moved) are not compared."""
     shared = [f.name for f in dataset.frames("all") if f.name in own]
     if not shared:
         return
@@ -120,10 +118,9 @@ def _names_apart(prior, map_dir: Path, dataset) -> None:
                          "its frames for these: extend it with frames of one of those, or "
                          "named apart")
     for root in others:
-        try:
-            names = {f.name for f in load_dataset(root).frames("all")}
-        except InputError:  # not readable now: no frame of it is looked up either
+        if root not in readable:  # not readable now: no frame of it is looked up either
             continue
+        names = {f.name for f in readable[root]}
         clash = next((n for n in shared if n in names), None)
         if clash is not None:
             raise InputError(f"{dataset.root}: holds frames named as the map {map_dir}'s own "

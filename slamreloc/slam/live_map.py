@@ -141,7 +141,7 @@ class LiveMap:
     """The map a session builds (see the module's docstring). `prior`: a map to extend
     (multi-session): its rows become fixed frames and its regressor the learner's start;
     `held`: names of the session's frames that are pictures the prior holds under other names
-    (`map.joining.held_frames`), which, as the prior's own names, never become keyframes."""
+    (`map.joining.check_joining`), which, as the prior's own names, never become keyframes."""
 
     def __init__(self, config: LiveMapConfig = LiveMapConfig(), prior: SceneMap | None = None,
                  held: tuple[str, ...] = ()):

@@ -21,7 +21,7 @@ from slamreloc.datasets.poses import FrameKey
 from slamreloc.errors import InputError, Interrupted
 from slamreloc.geometry import Rigid3, align_poses
 from slamreloc.map.format import check_is_map
-from slamreloc.map.joining import check_joining, check_one_camera, held_frames
+from slamreloc.map.joining import check_joining, check_one_camera
 from slamreloc.runtime.progress import track
 from slamreloc.slam.backend import BackendConfig, SlamBackend
 from slamreloc.slam.events import load_plugin
@@ -111,11 +111,11 @@ def _live_plugins(dataset, map_dir: Path | None, out: Path, config: SlamRunConfi
 
     prior = None if map_dir is None else SceneMap.load(map_dir)
     frames = dataset.frames(config.split)
+    held: tuple[str, ...] = ()
     if prior is not None:
-        check_joining(prior, map_dir, dataset, frames)
+        held = tuple(check_joining(prior, map_dir, dataset, frames))
     else:
         check_one_camera(dataset, frames)
-    held = () if prior is None else tuple(held_frames(prior, frames))
     live = LiveMap(config.live, prior=prior, held=held)
     recorded = DatasetMeta(root=str(dataset.root.resolve()), kind=dataset.kind,
                            split=config.split, metric=True, poses="slam")
