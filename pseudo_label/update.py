@@ -84,7 +84,8 @@ def pseudo_label(old: SceneMap, dataset: Dataset, split: str | None = None,
         raise InputError(f"{dataset.root}: split '{split}' has {len(frames_in)} frames; "
                          "pseudo-labelling needs a sequence")
     held = check_joining(old, old.root, dataset, frames_in)  # one camera, names apart
-    refuse_held(old.root, dataset, frames_in, held)  # each frame once
+    pictures = dict(zip((f.name for f in frames_in),  # each frame once (by name or picture)
+                        refuse_held(old.root, dataset, frames_in, held)))
     frames = _frames_for_registration(frames_in)
     truth_world_from_cam, reference = _truth_poses(dataset, frames_in, truth)
     timings = {}
@@ -126,7 +127,9 @@ def pseudo_label(old: SceneMap, dataset: Dataset, split: str | None = None,
         frame_names=[*base.frame_names, *[frames[i].name for i in reg]],
         world_from_cam=np.concatenate([base.world_from_cam.reshape(-1, 4, 4),
                                        np.stack([states[i].world_from_cam.matrix() for i in reg])
-                                       if reg else np.zeros((0, 4, 4))]))
+                                       if reg else np.zeros((0, 4, 4))]),
+        frame_pictures=[*(base.frame_pictures or [""] * n_old_frames),
+                        *[pictures[frames[i].name] for i in reg]])
     quality = 1.0 / (1.0 + (np.nan_to_num(new_err, nan=config.registration.label_max_error_px)
                             / config.error_scale_px) ** 2)
     weights = np.concatenate([base_quality, quality]).astype(np.float32)

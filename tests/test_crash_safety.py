@@ -274,8 +274,8 @@ def test_map_and_pseudo_label_take_the_write_lock_before_their_work(scene_dir, t
     def no_work(*args, **kwargs):
         raise AssertionError("work started while another process writes the map")
 
-    for module in (mapping, update):
-        monkeypatch.setattr(module, "extract_frames", no_work)
+    monkeypatch.setattr(mapping, "extract_with_pictures", no_work)
+    monkeypatch.setattr(update, "extract_frames", no_work)
     holder = _python(HOLD_LOCK, str(out), "120")
     try:
         assert holder.stdout.readline().strip() == "locked"

@@ -228,9 +228,14 @@ def test_concurrent_requests_on_two_replicas_all_succeed(service):
 
 def test_session_is_left_to_the_native_server(service):
     opened = iter([pb.SessionRequest(open=pb.SessionOpen(map="alpha"))])
-    code, details, _ = refusal(lambda: list(service.stub.Session(opened, timeout=30)))
-    assert code == grpc.StatusCode.UNIMPLEMENTED
-    assert "`engine` grpc" in details
+    updates = []
+    code, details, kind = refusal(lambda: updates.extend(service.stub.Session(opened,
+                                                                             timeout=30)))
+    assert (code, kind) == (grpc.StatusCode.FAILED_PRECONDITION, "FAILED_PRECONDITION")
+    assert "`slamreloc serve --engine grpc`" in details
+    # as the native server refuses a session it cannot open: the error, then the status
+    assert [u.WhichOneof("message") for u in updates] == ["error"]
+    assert (updates[0].error.kind, updates[0].error.message) == (pb.FAILED_PRECONDITION, details)
 
 
 # ---- without Ray running ---------------------------------------------------------------------
@@ -306,3 +311,34 @@ def test_serve_forever_says_where_blocks_and_shuts_down(monkeypatch, capsys, sma
     assert capsys.readouterr().out == "listening on 127.0.0.1:9321 (ray serve)\n"
     assert [c[0] for c in calls] == ["deploy", "waited", "shutdown"]
     assert calls[0][1] == ({"alpha": small_map.root}, 3, "127.0.0.1", 9321)
+
+
+def test_sigterm_stops_the_ray_engine_as_ctrl_c_does(small_map, tmp_path):
+    """Round 37, V7: `ray.init` put Ray's native SIGTERM handler in place of the program's, so
+    `kill` aborted `slamreloc serve --engine ray` with a stack dump (exit -6) and left Ray's
+    agents running; SIGTERM stops Serve and Ray as Ctrl-C does."""
+    import subprocess
+    import sys
+
+    log, token = tmp_path / "serve.log", tmp_path / "token"
+    token.write_text("a-token-for-this-test\n")
+    with open(log, "w") as out:
+        server = subprocess.Popen(
+            [sys.executable, "-m", "slamreloc.cli", "serve", str(small_map.root), "--engine",
+             "ray", "--port", "0", "--token-file", str(token)], stdout=out,
+            stderr=subprocess.STDOUT, text=True)
+        try:
+            deadline = time.monotonic() + 240
+            while "listening on" not in log.read_text() and time.monotonic() < deadline:
+                assert server.poll() is None, log.read_text()
+                time.sleep(1)
+            assert "listening on" in log.read_text(), log.read_text()
+            server.send_signal(signal.SIGTERM)
+            code = server.wait(180)
+        finally:
+            if server.poll() is None:
+                server.kill()
+    text = log.read_text()
+    assert code == 0, text
+    assert "slamreloc serve: stopping (ray serve)" in text
+    assert "SIGTERM received" not in text

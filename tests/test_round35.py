@@ -220,7 +220,7 @@ def test_the_maps_own_pictures_under_other_names_are_not_added_again(small_map, 
                                                                       tmp_path):
     """U2: the map's own frames as a COLMAP project (named `seq-01/frame-000000.color.png`,
     where the map holds `seq-01/frame-000000`) were pseudo-labelled against their own labels
-    and added a second time; a frame is held by its picture too (the image file's bytes)."""
+    and added a second time; a frame is held by its picture too (its decoded pixels)."""
     from slamreloc.datasets import load_dataset
     from tests.colmap_project import write_colmap_project
 

@@ -11,6 +11,7 @@ from slamreloc.io.fileio import open_regular
 from slamreloc.io.jsonio import Json
 from slamreloc.io.jsonio import read_json as read_json_file
 from slamreloc.io.values import check_values
+from slamreloc.map.meta import check_recorded_path
 from slamreloc.types import frame_name_problem
 from slamreloc.viewer.data import (EvalReport, FrameView, PseudoLabelReport, QueryView,
                                    Trajectory)
@@ -33,9 +34,14 @@ def read_json(path: str | Path) -> dict:
 
 
 def recorded_dataset(path: Path, data: dict) -> str | None:
-    """The dataset folder an evaluate report records (`dataset.root`), if any."""
+    """The dataset folder an evaluate report records (`dataset.root`), if any: an absolute
+    path, as `evaluate` writes it and as a map records one (`check_recorded_path`: a relative
+    one would name another dataset from each folder the viewer starts in)."""
     field = Json(data, path).get("dataset")
-    return None if field is None else field.opt("root", Json.str)
+    root = None if field is None else field.opt("root", Json.str)
+    if root is not None:
+        check_recorded_path(root, "dataset.root", path)
+    return root
 
 
 def read_evaluate(path: Path, data: dict, dataset, trajectories: list[Trajectory]) -> EvalReport:

@@ -43,7 +43,11 @@ class Extractor:
         self.config = replace(config, **overrides) if overrides else config
 
     def __call__(self, image: np.ndarray) -> Features:
-        """image: (H, W, 3) uint8 RGB or (H, W) uint8 grey. Returns at most max_keypoints."""
+        """image: (H, W, 3) uint8 RGB, (H, W, 4) RGBA or (H, W) grey. Returns at most
+        max_keypoints."""
+        problem = image_array_problem(image)
+        if problem:
+            raise InputError(f"image: {problem}")
         self.check_size(image.shape[1], image.shape[0], "image")
         try:
             if image.ndim == 3:
@@ -94,6 +98,20 @@ class Extractor:
 
     def config_dict(self) -> dict:
         return {f.name: getattr(self.config, f.name) for f in fields(self.config)}
+
+
+def image_array_problem(image) -> str | None:
+    """Why `image` is not an image array the extractors take (uint8 (H, W) grey, (H, W, 3)
+    RGB or (H, W, 4) RGBA, as the readers decode them), or None."""
+    if not isinstance(image, np.ndarray):
+        return f"must be a numpy array (uint8, H x W x 3 RGB or H x W grey), got " \
+               f"{type(image).__name__}"
+    if image.dtype != np.uint8:
+        return f"must be uint8 (0-255), got {image.dtype}: convert it (a float image in 0-1: " \
+               "times 255)"
+    if image.ndim not in (2, 3) or image.ndim == 3 and image.shape[2] not in (3, 4):
+        return f"must be H x W x 3 RGB, H x W x 4 RGBA or H x W grey, got shape {image.shape}"
+    return None
 
 
 def _to_grey(rgb: np.ndarray) -> np.ndarray:

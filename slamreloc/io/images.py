@@ -558,6 +558,19 @@ def decode_rgb(data: bytes, source,
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
+def picture_digest(image: np.ndarray) -> str:
+    """SHA-256 (hex) of an image's pixels as the readers decode them (`decode_rgb`'s RGB
+    uint8, with its shape): one picture, whatever file, format or bytes it came in, whether
+    read from a file or received over the wire. A lossless re-encoding, a file with trailing
+    bytes or other metadata gives the same digest; a lossy re-encoding does not."""
+    import hashlib
+
+    pixels = np.ascontiguousarray(image)
+    digest = hashlib.sha256(f"{pixels.dtype.str}{pixels.shape}".encode())
+    digest.update(memoryview(pixels).cast("B"))
+    return digest.hexdigest()
+
+
 def encode_image(pixels: np.ndarray, suffix: str, source, params: tuple[int, ...] = ()
                  ) -> bytes:
     """The file bytes of `pixels` (OpenCV's order: BGR, or one channel; uint8 or uint16) in

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
+from slamreloc.errors import InputError
 from slamreloc.features import make_extractor
 from slamreloc.features.matcher import LOCALIZER_DB_CHUNK, match_descriptors
 from slamreloc.localize.guided import GuidedConfig, GuidedMatcher
@@ -62,6 +63,9 @@ class Localizer:
     def localize(self, image: np.ndarray, camera: Camera) -> Localization:
         """image: RGB uint8 taken by `camera` (any lens model: keypoints are undistorted).
         Returns the pose estimate (failure included) and stage timings."""
+        if not isinstance(camera, Camera):
+            raise InputError(f"camera: must be a slamreloc Camera (the image's intrinsics), got "
+                             f"{type(camera).__name__}")
         t0 = time.perf_counter()
         feats = self.extractor.extract(image, camera)
         t1 = time.perf_counter()

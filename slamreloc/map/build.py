@@ -11,7 +11,7 @@ import numpy as np
 
 from slamreloc.datasets import Dataset
 from slamreloc.errors import InputError
-from slamreloc.features.extract import extract_frames
+from slamreloc.features.extract import extract_with_pictures
 from slamreloc.features import make_extractor
 from slamreloc.io.outputs import check_outputs
 from slamreloc.map.augment import AugmentConfig, augmented_rows
@@ -44,7 +44,10 @@ class MapConfig:
     augment: AugmentConfig = field(default_factory=AugmentConfig)  # simulated views (training)
 
 
-def labelled_database(frames: list[Frame], feats: list[Features], labels: LabelSet) -> MapDatabase:
+def labelled_database(frames: list[Frame], feats: list[Features], labels: LabelSet,
+                      pictures: list[str] | None = None) -> MapDatabase:
+    """The labelled rows of `frames` (their `pictures`, `io.images.picture_digest`, where
+    known)."""
     keep = [~np.isnan(p[:, 0]) for p in labels.points]
     return MapDatabase(
         descriptors=np.concatenate([f.descriptors[k] for f, k in zip(feats, keep)]),
@@ -52,7 +55,8 @@ def labelled_database(frames: list[Frame], feats: list[Features], labels: LabelS
         keypoints=np.concatenate([f.keypoints[k] for f, k in zip(feats, keep)]),
         frame_index=np.concatenate([np.full(k.sum(), i) for i, k in enumerate(keep)]),
         frame_names=[f.name for f in frames],
-        world_from_cam=np.stack([f.world_from_cam.matrix() for f in frames]))
+        world_from_cam=np.stack([f.world_from_cam.matrix() for f in frames]),
+        frame_pictures=list(pictures or ()))
 
 
 def _shaping(config: MapConfig) -> dict:
@@ -121,13 +125,13 @@ def _build_map(dataset: Dataset, out: Path, split: str, config: MapConfig, progr
     extractor = make_extractor(config.features, **config.feature_options)
     timings = {}
     t0 = time.perf_counter()
-    feats = extract_frames(frames, extractor, progress)
+    feats, pictures = extract_with_pictures(frames, extractor, progress)
     timings["features_s"] = time.perf_counter() - t0
     depths = registered_depths(dataset, frames) if depth_labels(dataset, config) else None
     t0 = time.perf_counter()
     labels = build_labels(frames, feats, depths, config.labels, progress)
     timings["labels_s"] = time.perf_counter() - t0
-    db = labelled_database(frames, feats, labels)
+    db = labelled_database(frames, feats, labels, pictures)
     if len(db.points) < 100:
         raise InputError(f"{dataset.root}: only {len(db.points)} keypoints could be labelled; "
                          "are the poses and intrinsics right?")

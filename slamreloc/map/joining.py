@@ -8,18 +8,23 @@ that holds frames already (`slam --map OLD --out NEW`, `pseudo-label`).
   the datasets it records (`MapMeta.dataset_roots`). A dataset holding a frame named as one of
   the map's is refused where the name could not be told apart: it is none of the map's
   datasets, or another of them holds that name too (`check_joining`). A frame the map holds
-  already (by name, or by picture: the same image bytes) is not added again: pseudo-labelling,
-  whose work is adding frames, refuses it (`refuse_held`); a SLAM session tracks it and
-  relocalizes on it without making it a keyframe of the map (`LiveMap.add_keyframe`).
+  already (by name, or by picture: the same pixels, `io.images.picture_digest`, whatever the
+  file's name, format or bytes) is not added again: pseudo-labelling, whose work is adding
+  frames, refuses it (`refuse_held`); a SLAM session tracks it and relocalizes on it without
+  making it a keyframe of the map (`LiveMap.add_keyframe`). A map records its frames'
+  pictures (`MapMeta.frame_pictures`), so they are known wherever its datasets are now; for a
+  map that did not record them, those of its datasets still at hand are read.
 """
 
 from __future__ import annotations
 
-import hashlib
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
-from slamreloc.datasets import load_dataset
+from slamreloc.datasets import load_dataset, read_frame_image
 from slamreloc.errors import InputError
+from slamreloc.io.images import picture_digest
 from slamreloc.types import Camera
 
 ONE_CAMERA = "a map holds one camera (its rows' pixels are that camera's)"
@@ -33,24 +38,35 @@ def _camera_problem(dataset, frame, camera: Camera, of_what: str, advice: str) -
                          f"{camera.describe()}: {ONE_CAMERA}; {advice}")
 
 
-def check_joining(prior, map_dir: Path, dataset, frames: list) -> list[str]:
+@dataclass(frozen=True)
+class Held:
+    """What a map holds of the frames that would join it (`check_joining`): `names`, those
+    of them named as one of its frames (in the dataset it took them from), and `pictures`,
+    its frames' pictures (`io.images.picture_digest`) for a frame of another name to be
+    compared with (`holds`)."""
+
+    names: frozenset[str] = frozenset()
+    pictures: frozenset[str] = frozenset()
+
+    def holds(self, name: str, picture: str | None) -> bool:
+        """Whether the frame `name` whose pixels have the digest `picture` is the map's."""
+        return name in self.names or (picture is not None and picture in self.pictures)
+
+
+def check_joining(prior, map_dir: Path, dataset, frames: list) -> Held:
     """InputError, naming the dataset, unless `frames` of `dataset` may join the map `prior`
     (a `SceneMap`, read from `map_dir`): of its camera, and named apart from the frames of its
-    other datasets (see the module's docstring). Returns the names of `frames` the map holds
-    already, by name or by picture (an image file whose bytes are those of one of the map's
-    frames: its own frames reached through another name, a link, a copy, another layout's
-    naming), for the caller to leave out (a SLAM session) or refuse (`refuse_held`). The
-    map's datasets are read once for both."""
+    other datasets (see the module's docstring). Returns what the map holds of them: the
+    names it holds, and its frames' pictures, for the caller to leave out (a SLAM session,
+    as it reads each frame) or refuse (`refuse_held`). The map's datasets are read once."""
     for frame in frames:
         _camera_problem(dataset, frame, prior.camera, f"the map {map_dir}",
                         "extend it with frames of its camera")
     own = set(prior.info.frame_names or ())
     readable = _map_datasets(prior)
     _names_apart(prior, map_dir, dataset, own, readable)
-    pictures = {_picture(f.image_path) for frames_of in readable.values()
-                for f in frames_of if f.name in own} - {None}
-    return [f.name for f in frames
-            if f.name in own or (pictures and _picture(f.image_path) in pictures)]
+    held = frozenset(f.name for f in frames if f.name in own)
+    return Held(held, _map_pictures(prior, readable, own))
 
 
 def _map_datasets(prior) -> dict[Path, list]:
@@ -66,27 +82,46 @@ def _map_datasets(prior) -> dict[Path, list]:
     return readable
 
 
-def _picture(path: Path) -> str | None:
-    """The SHA-256 of the image file `path` (None for what is not a readable regular file: a
-    bag's frame, a file gone)."""
-    try:
-        if not Path(path).is_file():
-            return None
-        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-    except OSError:
-        return None
+def _map_pictures(prior, readable: dict[Path, list], own: set[str]) -> frozenset[str]:
+    """The pictures of the map's frames: those it recorded, else (a map of an earlier version)
+    those of its frames in its datasets still at hand (`readable`) whose images read (a frame
+    whose file is gone or no longer an image is no picture to compare)."""
+    recorded = frozenset(p for p in prior.info.frame_pictures or () if p)
+    if prior.info.frame_pictures is not None:
+        return recorded
+    frames = [f for frames_of in readable.values() for f in frames_of if f.name in own]
+    return frozenset(filter(None, _pictures(frames, quiet=True)))
 
 
-def refuse_held(map_dir: Path, dataset, frames: list, held: list[str]) -> None:
-    """InputError, naming the dataset, where `frames` hold frames the map holds already
-    (`held`, from `check_joining`)."""
-    if held:
-        which = ("every frame to add (such as {}) is one" if len(held) == len(frames)
-                 else f"{len(held)} of the {len(frames)} frames to add (such as {{}}) are "
-                 "ones").format(repr(held[0][:80]))
+def _pictures(frames: list, quiet: bool = False) -> list[str | None]:
+    """Each frame's picture, its image read as every reader reads it (within the image bounds:
+    InputError naming the file; `quiet`: None for an image that does not read)."""
+    def one(frame) -> str | None:
+        try:
+            return picture_digest(read_frame_image(frame))
+        except InputError:
+            if quiet:
+                return None
+            raise
+
+    with ThreadPoolExecutor(2) as pool:
+        return list(pool.map(one, frames))
+
+
+def refuse_held(map_dir: Path, dataset, frames: list, held: Held) -> list[str]:
+    """InputError, naming the dataset, where `frames` hold frames the map holds already (by
+    name or by picture, `held` from `check_joining`); else each frame's picture, in order,
+    for the map they join to record."""
+    pictures = _pictures(frames)
+    taken = [f.name for f, p in zip(frames, pictures) if held.holds(f.name, p)]
+    if taken:
+        which = ("every frame to add (such as {}) is one" if len(taken) == len(frames)
+                 else f"{len(taken)} of the {len(frames)} frames to add (such as {{}}) are "
+                 "ones").format(repr(taken[0][:80]))
         raise InputError(f"{dataset.root}: {which} the map {map_dir} holds (by name, or the "
                          "same picture): a map holds each frame once; add frames it lacks "
                          "(another split or sequence)")
+    return pictures
 
 
 def check_one_camera(dataset, frames: list) -> None:

@@ -33,6 +33,7 @@ view, reads such a root as none; `surface.voxel_m` is recorded, never read.
 from __future__ import annotations
 
 import math
+import re
 from copy import deepcopy
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -58,9 +59,10 @@ MAX_META_BYTES = 64 << 20
 # a median label reprojection error beyond this many pixels describes no labels an image holds
 MAX_LABEL_ERROR_PX = 1e4
 _HEADER = ("format", "format_version", "slamreloc_version")
-_TRAILER = ("files", "frame_names")
+_TRAILER = ("files", "frame_names", "frame_pictures")
 _STAMPED = (*_HEADER, "version", *_TRAILER)  # what `stamped` sets (`version`: format 1's key)
 _NOT_JSON = ("extra", "order", "source")  # a record's fields that are no key of its JSON
+_PICTURE = re.compile(r"(?:[0-9a-f]{64})?")  # `frame_pictures`' digests, or "" (not known)
 
 
 def _is_int(v) -> bool:
@@ -302,6 +304,10 @@ class MapMeta(_Record):
     files: dict[str, str] | None = _key(_is_object)  # file name -> SHA-256 hex (format >= 2)
     # the database's training frames, in the order of its poses (None: not recorded)
     frame_names: tuple[str, ...] | None = _key(_is_strings, tuple)
+    # each frame's picture (`io.images.picture_digest` of its pixels, "" where not known), in
+    # the order of `frame_names`: a frame is held by its picture too, whatever it is named and
+    # wherever its dataset is now (`map.joining`); None: not recorded (maps of 0.1.0 and before)
+    frame_pictures: tuple[str, ...] | None = _key(_is_strings, tuple)
     # the file it was read from (`from_json`'s path), for messages; None: built in code
     source: Path | None = field(default=None, compare=False, repr=False)
 
@@ -347,14 +353,17 @@ class MapMeta(_Record):
 
     # -- writing ---------------------------------------------------------------------------
 
-    def stamped(self, files: dict[str, str], frame_names) -> MapMeta:
+    def stamped(self, files: dict[str, str], frame_names, frame_pictures=None) -> MapMeta:
         """This metadata as `save_map` writes it: today's format version, this slamreloc's
-        version, the map's `files` (name -> SHA-256) and the database's `frame_names`; the
-        format keys first, then the others in their order, `files` and `frame_names` last.
-        A format-1 map's `version` is dropped."""
+        version, the map's `files` (name -> SHA-256), the database's `frame_names` and their
+        `frame_pictures` (None: not known, not written); the format keys first, then the
+        others in their order, `files`, `frame_names` and `frame_pictures` last. A format-1
+        map's `version` is dropped."""
         body = [k for k in self.to_json() if k not in _STAMPED]
+        pictures = None if frame_pictures is None else tuple(frame_pictures)
         return replace(self, format_version=FORMAT_VERSION, slamreloc_version=__version__,
                        files=dict(files), frame_names=tuple(frame_names),
+                       frame_pictures=pictures,
                        extra={k: v for k, v in self.extra.items() if k not in _STAMPED},
                        order=(*_HEADER, *body, *_TRAILER))
 
@@ -710,6 +719,15 @@ def _check_schema(meta: dict, version: int, path) -> None:
         problem = frame_name_problem(name)
         if problem:
             raise InputError(f"{path}: 'frame_names'[{i}] {_short(name)} {problem}")
+    pictures = meta.get("frame_pictures")
+    if pictures is not None:
+        if not isinstance(pictures, list) or len(pictures) != len(names):
+            raise InputError(f"{path}: 'frame_pictures' must be a list of one picture digest "
+                             f"per frame of 'frame_names' ({len(names)})")
+        for i, digest in enumerate(pictures):
+            if not (isinstance(digest, str) and _PICTURE.fullmatch(digest)):
+                raise InputError(f"{path}: 'frame_pictures'[{i}] {_short(digest)} is not a "
+                                 "picture digest (64 hex digits, or empty)")
     if version >= 2:
         files = need(meta, "files", dict, "")
         for name in (WEIGHTS, DATABASE):

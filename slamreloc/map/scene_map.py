@@ -60,6 +60,9 @@ class MapDatabase:
     frame_index: np.ndarray  # (M,) int32 into frame_names
     frame_names: list[str] = field(default_factory=list)
     world_from_cam: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    # each frame's picture (`io.images.picture_digest`; "" where not known), in the order of
+    # `frame_names`; empty: none known (`MapMeta.frame_pictures`)
+    frame_pictures: list[str] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -172,7 +175,7 @@ class SceneMap:
         self.info.check_database_counts(len(arrays["points"]), len(arrays["world_from_cam"]),
                                         path)
         return MapDatabase(*(arrays[k] for k in DB_KEYS[:4]), names or [],
-                           arrays["world_from_cam"])
+                           arrays["world_from_cam"], list(self.info.frame_pictures or ()))
 
     def _read_npz(self, name: str, what: str, expected: str | None) -> dict[str, np.ndarray]:
         """`read_npz` of the map's file `name`; a checksum mismatch because the folder now

@@ -258,6 +258,16 @@ def refine_with_depth(surface: Surface, depth: np.ndarray, camera: Camera,
     fitted in its own camera's frame and the rig extrinsics (`Frame.rgb_from_depth`) do not
     enter. A depth map without a valid pixel gives a fit that is not accepted: `chosen()` is
     then the guess, as for any fit not accepted (`IcpConfig`)."""
+    for name, value, kind in (("camera", camera, Camera), ("world_from_cam", world_from_cam,
+                                                            Rigid3)):
+        if not isinstance(value, kind):
+            raise InputError(f"{name}: must be a {kind.__name__}, got {type(value).__name__}")
+    if depth_camera is not None and not isinstance(depth_camera, Camera):
+        raise InputError(f"depth_camera: must be a Camera or None, got "
+                         f"{type(depth_camera).__name__}")
+    if not isinstance(depth, np.ndarray) or depth.ndim != 2:
+        raise InputError("depth: must be a numpy array (H x W, metres), got "
+                         f"{type(depth).__name__}{getattr(depth, 'shape', '')}")
     points = depth_cloud(depth, camera, depth_camera)
     if len(points) == 0:
         return IcpFit(world_from_cam, 0.0, np.inf, False, world_from_cam)

@@ -193,8 +193,8 @@ def save_map(out: str | Path, meta: MapMeta, model: SceneCoordinateRegressor, db
     """Write a map atomically: into a temporary sibling folder, then swap it in for `out`
     (inside `outputs_together`, with the block's other outputs; the write lock is held until
     then). `meta` is written stamped (`MapMeta.stamped`) with today's format, this version,
-    the files' checksums and `db`'s frame names. `extra`: more array files (name -> arrays,
-    no pickle) written into the map with it.
+    the files' checksums and `db`'s frame names and pictures. `extra`: more array files
+    (name -> arrays, no pickle) written into the map with it.
 
     Refuses to replace an existing non-empty folder that is not a slamreloc map, and fails at
     once if another process is writing `out`."""
@@ -241,7 +241,8 @@ def _write_map_files(tmp: Path, out: Path, meta: MapMeta, model: SceneCoordinate
     for name, arrays in (extra or {}).items():
         files[name] = _write_npz(tmp / name, arrays)
     _crash_point("files-written")
-    doc = meta.stamped(files, db.frame_names).to_json()
+    known = len(db.frame_pictures) == len(db.frame_names) and any(db.frame_pictures)
+    doc = meta.stamped(files, db.frame_names, db.frame_pictures if known else None).to_json()
     # what readers will check, checked before the swap: a document they would refuse never
     # replaces a map that loads
     try:

@@ -27,7 +27,7 @@ run Ray on a trusted network only):
   * router -> proxy -> client: the response message, serialized by Serve to protobuf.
 Ray serializes these tuples and arguments with its own (pickle-based) serialization.
 
-Not on Ray: the `Session` stream (answered UNIMPLEMENTED). Serve 2.60's proxy does forward
+Not on Ray: the `Session` stream (refused FAILED_PRECONDITION). Serve 2.60's proxy does forward
 bidirectional streams (`gRPCInputStream`, beta), but a session is stateful (SLAM backend and
 pose graph) and all its frames must reach the one process that holds it; a DeploymentHandle
 cannot stream requests from the router to one map replica, so sessions stay with
@@ -48,7 +48,6 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import grpc
 from ray import serve
 from ray.serve.grpc_util import RayServegRPCContext
 
@@ -240,12 +239,19 @@ class Router:
         return await self._call(grpc_context, pb.ReloadMapResponse(), work)
 
     async def Session(self, request_stream, grpc_context: RayServegRPCContext):
-        """Not on Ray (see the module's docstring): UNIMPLEMENTED."""
-        grpc_context.set_code(grpc.StatusCode.UNIMPLEMENTED)
-        grpc_context.set_details("sessions are not served on Ray Serve; use the grpc engine "
-                                 "(`engine` grpc) for the Session stream")
-        raise NotImplementedError("Session on Ray Serve")
-        yield pb.SessionUpdate()  # pragma: no cover - makes this a generator, as Serve expects
+        """Not on Ray (see the module's docstring): refused as the native server refuses a
+        session it cannot open, one `SessionUpdate.error` then the status (here
+        FAILED_PRECONDITION: this server cannot hold a session), with nothing logged: a
+        refusal any client may ask for. (Serve applies a status set on the context only with
+        a message, and logs a traceback for one raised.)"""
+        try:
+            self._admit(grpc_context)  # the token first, as for every call
+            raise ServiceError(pb.FAILED_PRECONDITION, "sessions are not served on Ray Serve; "
+                               "serve the map with `slamreloc serve --engine grpc` for the "
+                               "Session stream")
+        except ServiceError as err:
+            _refuse(grpc_context, err)
+            yield pb.SessionUpdate(error=pb.SessionError(kind=err.kind, message=err.message))
 
 
 # ---- building and deploying ------------------------------------------------------------------

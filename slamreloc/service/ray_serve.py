@@ -10,6 +10,8 @@ import os
 import socket
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -169,12 +171,13 @@ def deploy(maps: dict[str, Path], replicas: int = 1, host: str = "127.0.0.1",
         # start it waits for (60 s), and less than a proxy takes to import on a busy 2-core
         # machine (it was killed so, and `serve.start` failed). 3 x 20 s: that whole minute
         os.environ.setdefault("RAY_SERVE_PROXY_READY_CHECK_TIMEOUT_S", str(PROXY_READY_CHECK_S))
-        if address is None:
-            ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False,
-                     object_store_memory=object_store_bytes, log_to_driver=log_to_driver,
-                     configure_logging=False)
-        else:
-            ray.init(address=address, log_to_driver=log_to_driver, configure_logging=False)
+        with _own_sigterm():
+            if address is None:
+                ray.init(num_cpus=num_cpus or os.cpu_count() or 1, include_dashboard=False,
+                         object_store_memory=object_store_bytes, log_to_driver=log_to_driver,
+                         configure_logging=False)
+            else:
+                ray.init(address=address, log_to_driver=log_to_driver, configure_logging=False)
         started_ray = True
     try:
         serve.start(http_options={"host": host, "port": http_port},
@@ -193,6 +196,23 @@ def deploy(maps: dict[str, Path], replicas: int = 1, host: str = "127.0.0.1",
     _current = Deployment(host, grpc_port, list(maps), replicas, APP_NAME, started_ray,
                           t1 - t0, time.perf_counter() - t1, handle)
     return _current
+
+
+@contextmanager
+def _own_sigterm() -> Iterator[None]:
+    """The process's SIGTERM handler as it was before the block: `ray.init` installs Ray's
+    native one, which aborts the process with a stack dump (exit -6, Ray's agents left
+    running), where `slamreloc serve` stops Serve and Ray as on Ctrl-C."""
+    import signal
+    import threading
+
+    main = threading.current_thread() is threading.main_thread()
+    handler = signal.getsignal(signal.SIGTERM) if main else None
+    try:
+        yield
+    finally:
+        if main and handler is not None:
+            signal.signal(signal.SIGTERM, handler)
 
 
 def _stop(stop_ray: bool) -> None:

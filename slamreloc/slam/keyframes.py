@@ -32,6 +32,7 @@ class KeyframeRows:
     descriptors: np.ndarray  # (N, D) float16, unit rows
     points_cam: np.ndarray  # (N, 3) float32 metres, the keyframe's camera frame
     world_from_cam: Rigid3 | None = None  # fixed pose of a prior map's frame
+    picture: str = ""  # its picture (`io.images.picture_digest`), "" where not known
 
 
 @dataclass
@@ -69,7 +70,7 @@ class KeyframeStore:
                 None, -1, db.frame_names[f] if f < len(db.frame_names) else f"frame{f}",
                 db.keypoints[rows].astype(np.float32), db.descriptors[rows].astype(np.float16),
                 pose.inverse().transform(db.points[rows].astype(np.float64)).astype(np.float32),
-                pose))
+                pose, db.frame_pictures[f] if f < len(db.frame_pictures) else ""))
             store.n_rows += len(rows)
         return store
 
@@ -121,5 +122,6 @@ class KeyframeStore:
             frame_index=np.concatenate([np.full(len(k.keypoints), i, np.int32)
                                         for i, k in enumerate(kept)]),
             frame_names=[k.name for k in kept],
-            world_from_cam=np.stack([w.matrix() for w in world]))
+            world_from_cam=np.stack([w.matrix() for w in world]),
+            frame_pictures=[k.picture for k in kept])
         return LiveDatabase(db, [k.key for k in kept], [k.frame for k in kept], version)

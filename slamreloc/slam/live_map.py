@@ -35,7 +35,9 @@ from slamreloc.geometry import Rigid3, project, reprojection_px
 from slamreloc.localize.guided import GuidedConfig, GuidedMatcher
 from slamreloc.localize.localizer import REGRESSOR_PNP, Localization
 from slamreloc.localize.pnp import PnPConfig, PoseEstimate, estimate_pose, refine_from
+from slamreloc.io.images import picture_digest
 from slamreloc.map.format import SURFACE
+from slamreloc.map.joining import Held
 from slamreloc.map.meta import (
     CameraMeta,
     DatasetMeta,
@@ -140,11 +142,11 @@ def _not_localized(n: int, source: str = "") -> LiveLocalization:
 class LiveMap:
     """The map a session builds (see the module's docstring). `prior`: a map to extend
     (multi-session): its rows become fixed frames and its regressor the learner's start;
-    `held`: names of the session's frames that are pictures the prior holds under other names
-    (`map.joining.check_joining`), which, as the prior's own names, never become keyframes."""
+    `held`: what the prior holds of the session's frames (`map.joining.check_joining`; by
+    default its frames' names and recorded pictures): such frames never become keyframes."""
 
     def __init__(self, config: LiveMapConfig = LiveMapConfig(), prior: SceneMap | None = None,
-                 held: tuple[str, ...] = ()):
+                 held: Held | None = None):
         if prior is not None:
             config = replace(config, features=prior.info.feature_name,
                              feature_options=prior.info.feature_options,
@@ -155,13 +157,14 @@ class LiveMap:
             model_config = prior.info.regressor.to_config()
             self.store = KeyframeStore.from_database(prior.database)
             self.camera: Camera | None = prior.camera
-            # frames the prior holds (by name, and `held`: by picture) are never added again
-            self._held = frozenset(prior.info.frame_names or ()) | frozenset(held)
+            # frames the prior holds (by name or by picture) are never added again
+            held = held or Held(pictures=frozenset(filter(None, prior.database.frame_pictures)))
+            self._held = Held(held.names | frozenset(prior.info.frame_names or ()), held.pictures)
         else:
             model_config = RegressorConfig.preset(config.arch, self.extractor.dim)
             self.store = KeyframeStore()
             self.camera = None
-            self._held = frozenset()
+            self._held = Held()
         self.learner = BackgroundLearner(
             model_config, config.learner,
             # a copy: the caller's map (trained again later, say) is left as it was
@@ -196,11 +199,13 @@ class LiveMap:
     def add_keyframe(self, frame: FrameData, key: int) -> int:
         """The keyframe's rows (keypoints with valid depth, the strongest first); returns how
         many. Frames without image or depth add none, and so do frames the prior map holds
-        already (by name: a map holds each frame once, `map.joining`)."""
-        if (frame.image is None or frame.depth is None or self.full
-                or frame.name in self._held):  # a map holds each frame once
+        already (by name or by picture: a map holds each frame once, `map.joining`)."""
+        if frame.image is None or frame.depth is None or self.full:
             return 0
         t0 = time.perf_counter()
+        picture = picture_digest(frame.image)
+        if self._held.holds(frame.name, picture):  # a map holds each frame once
+            return 0
         self.camera = self.camera or frame.camera
         feats = self.features(frame)
         points = keypoint_points_from(feats.keypoints, frame.depth, frame.camera,
@@ -211,7 +216,8 @@ class LiveMap:
         ok = np.sort(ok[:self.config.max_rows_per_keyframe])
         rows = KeyframeRows(key, frame.index, frame.name or f"frame{frame.index:06d}",
                             feats.keypoints[ok].astype(np.float32),
-                            feats.descriptors[ok].astype(np.float16), points[ok].astype(np.float32))
+                            feats.descriptors[ok].astype(np.float16), points[ok].astype(np.float32),
+                            picture=picture)
         self.store.add(rows)
         self.link(rows, frame.camera)
         self.t_keyframes_s += time.perf_counter() - t0

@@ -111,9 +111,9 @@ def _live_plugins(dataset, map_dir: Path | None, out: Path, config: SlamRunConfi
 
     prior = None if map_dir is None else SceneMap.load(map_dir)
     frames = dataset.frames(config.split)
-    held: tuple[str, ...] = ()
+    held = None
     if prior is not None:
-        held = tuple(check_joining(prior, map_dir, dataset, frames))
+        held = check_joining(prior, map_dir, dataset, frames)
     else:
         check_one_camera(dataset, frames)
     live = LiveMap(config.live, prior=prior, held=held)
