@@ -34,8 +34,10 @@ from slamreloc.io.pem import check_pem, read_pem, trusted_certificates_problem
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
     CLIENT_TIMEOUT_S,
+    CLOSE_WAIT_S,
     ERROR_METADATA_KEY,
     GRPC_CODES,
+    SAVE_WAIT_S,
     TOKEN_BLANKS,
     camera_msg,
     rigid_from_msg,
@@ -335,16 +337,21 @@ class ClientSession:
         except grpc.RpcError as err:
             self._answers.put(err)
 
-    def _next(self, bounded: bool = True) -> pb.SessionUpdate:
-        """The next answer; RemoteError where the stream failed, ended without one, or (where
-        `bounded`) none came within the client's `timeout_s` (the stream is then cancelled)."""
+    def _next(self, more_s: float = 0.0, what: str = "") -> pb.SessionUpdate:
+        """The next answer; RemoteError where the stream failed, ended without one, or none
+        came within the client's `timeout_s` and `more_s` seconds more (the server's own bound
+        on `what` it does first: a save's training rounds, a close's final optimisation); the
+        stream is then cancelled."""
+        wait_s = self._timeout_s + more_s
         try:
-            update = self._answers.get(timeout=self._timeout_s if bounded else None)
+            update = self._answers.get(timeout=wait_s)
         except queue.Empty:
             self._updates.cancel()
+            allowed = ("the client's timeout_s" if not more_s else
+                       f"the client's timeout_s {self._timeout_s:g} s and {more_s:g} s for "
+                       f"{what}")
             raise RemoteError(grpc.StatusCode.DEADLINE_EXCEEDED, "", f"no answer within "
-                              f"{self._timeout_s:g} s (the client's timeout_s); the session "
-                              "is cancelled") from None
+                              f"{wait_s:g} s ({allowed}); the session is cancelled") from None
         if update is None:
             self._answers.put(None)  # every later read ends the same way
             raise RemoteError(grpc.StatusCode.UNAVAILABLE, "", "the server ended the session "
@@ -401,15 +408,19 @@ class ClientSession:
             raise RemoteError(grpc.StatusCode.FAILED_PRECONDITION, "",
                               "the session is closed: open a new one")
         self._requests.put(request)
-        save = request.HasField("save")  # the server bounds a save's wait for its round
-        return _expected(self._next(bounded=not save), "saved" if save else "frame")
+        if request.HasField("save"):  # the server waits for up to two training rounds
+            return _expected(self._next(2 * SAVE_WAIT_S, "the save's training rounds"),
+                             "saved")
+        return _expected(self._next(), "frame")
 
     def close(self) -> pb.SessionClosed:
         """End the session: its final trajectory (`pb.SessionClosed`); RemoteError where the
-        server refuses or ends the stream without it."""
+        server refuses or ends the stream without it, or sends nothing within the client's
+        `timeout_s` and `CLOSE_WAIT_S` more for its final optimisation."""
         if self.closed is None:
             self._requests.put(self._END)
-            self.closed = _expected(self._next(bounded=False), "closed").closed
+            self.closed = _expected(self._next(CLOSE_WAIT_S, "the final optimisation"),
+                                    "closed").closed
         return self.closed
 
     def __enter__(self) -> ClientSession:

@@ -29,12 +29,14 @@ class Interrupted(SlamrelocError):
 
 def is_out_of_memory(err: BaseException) -> bool:
     """Whether `err` says an allocation failed (MemoryError, OpenCV's "Insufficient memory",
-    torch's OutOfMemoryError)."""
+    torch's OutOfMemoryError, oneDNN's failed kernel creation: "could not create a primitive",
+    its only report of a scratchpad it could not allocate, seen under an address-space cap)."""
     if isinstance(err, MemoryError) or type(err).__name__ == "OutOfMemoryError":
         return True
     text = str(err)
     return (type(err).__name__ == "error" and "Insufficient memory" in text
             or "can't allocate memory" in text
+            or isinstance(err, RuntimeError) and text.strip() == "could not create a primitive"
             or "out of memory" in text.lower() and "alloc" in text.lower())
 
 

@@ -324,6 +324,20 @@ def test_extractor_out_of_memory_is_an_input_error(monkeypatch):
         Sift()(np.zeros((48, 64), np.uint8))
 
 
+def test_what_counts_as_out_of_memory():
+    """Round 37: under a 3 GB address-space cap, pseudo-label once ended in a traceback of
+    oneDNN's "could not create a primitive" (a kernel whose scratchpad it could not allocate);
+    other runtime errors stay bugs (a traceback)."""
+    from slamreloc.errors import is_out_of_memory
+
+    assert is_out_of_memory(RuntimeError("could not create a primitive"))
+    assert is_out_of_memory(RuntimeError("[enforce fail at alloc_cpu.cpp:127] err == 0. "
+                                         "DefaultCPUAllocator: can't allocate memory"))
+    assert not is_out_of_memory(RuntimeError("could not create a primitive descriptor for "
+                                             "a reorder"))
+    assert not is_out_of_memory(ValueError("could not create a primitive"))
+
+
 def test_service_out_of_memory_is_a_typed_refusal(served, tmp_path, monkeypatch):
     running, _ = served
 

@@ -184,3 +184,72 @@ def test_the_python_api_names_a_wrong_argument(small_map, scene_dir):
     with pytest.raises(InputError, match="depth: must be a numpy array"):
         refine_with_depth(small_map.surface, depth.tolist(), frame.camera, None,
                           frame.world_from_cam)
+
+
+def test_an_older_maps_frames_stay_held_after_an_update(small_map, scene_dir, tmp_path):
+    """W1: a map that recorded no pictures (0.1.0 and before), once updated, recorded ""
+    for its old frames, and the updated map then took the old map's frames back in under
+    other names: a picture not recorded is read from the map's datasets still at hand."""
+    older = tmp_path / "older"
+    shutil.copytree(small_map.root, older)
+    meta_path = older / "slamreloc_map.json"
+    meta = json.loads(meta_path.read_text())
+    del meta["frame_pictures"]  # as the maps of 0.1.0 were written
+    meta_path.write_text(json.dumps(meta))
+    code, err = run_cli([str(a) for a in (
+        "pseudo-label", older, scene_dir, "--out", tmp_path / "updated",
+        "--report", tmp_path / "u.json", "--rounds", "1", "--epochs", "1")])
+    assert code == 0, err
+    updated = json.loads((tmp_path / "updated" / "slamreloc_map.json").read_text())
+    n_old = len(meta["frame_names"])
+    assert updated["frame_pictures"][:n_old] == [""] * n_old  # not known: not made up
+    assert all(updated["frame_pictures"][n_old:])
+    project, _ = _project(scene_dir, tmp_path / "col")
+    code, err = run_cli([str(a) for a in ("pseudo-label", tmp_path / "updated", project, "--out",
+                                          tmp_path / "new", "--report", tmp_path / "r.json")])
+    assert code == 2 and REFUSED in err.strip().splitlines()[-1], err
+
+
+@pytest.mark.parametrize("hang", ["save", "close"])
+def test_a_session_save_or_close_the_server_never_answers_ends(hang, monkeypatch):
+    """W2, W3: `ClientSession.save` and `close` waited without a bound; they wait the
+    client's timeout_s plus the server's own bound on that work (here made 0)."""
+    import threading
+    import time
+    from concurrent import futures
+
+    import grpc
+
+    from slamreloc import client as client_module
+    from slamreloc.client import Client, RemoteError
+    from slamreloc.proto import relocalizer_pb2 as pb
+    from slamreloc.proto import relocalizer_pb2_grpc as pb_grpc
+
+    release = threading.Event()
+
+    class Stuck(pb_grpc.RelocalizerServicer):
+        def Session(self, requests, context):
+            next(requests)
+            yield pb.SessionUpdate(opened=pb.SessionOpened())
+            for request in requests:
+                if request.HasField("save"):
+                    release.wait(60)
+            release.wait(60)  # the close
+
+    monkeypatch.setattr(client_module, "SAVE_WAIT_S", 0.0)
+    monkeypatch.setattr(client_module, "CLOSE_WAIT_S", 0.0)
+    server = grpc.server(futures.ThreadPoolExecutor(max_workers=2))
+    pb_grpc.add_RelocalizerServicer_to_server(Stuck(), server)
+    port = server.add_insecure_port("127.0.0.1:0")
+    server.start()
+    try:
+        with Client(f"127.0.0.1:{port}", timeout_s=1.0) as client:
+            session = client.session(learn=True)
+            t0 = time.monotonic()
+            with pytest.raises(RemoteError, match="no answer within 1 s") as err:
+                session.save("m") if hang == "save" else session.close()
+            assert time.monotonic() - t0 < 30
+            assert err.value.code == grpc.StatusCode.DEADLINE_EXCEEDED
+    finally:
+        release.set()
+        server.stop(None)

@@ -295,7 +295,14 @@ def test_typed_views_read_what_the_metadata_records(doc):
     (lambda d: {**d, "timings_s": "x"}, "'timings_s' must be an object of seconds"),
     (lambda d: {k: v for k, v in d.items() if k != "files"}, "missing key 'files'"),
     (lambda d: {**d, "files": {WEIGHTS: "00", DATABASE: SHA}},
-     f"'files.{WEIGHTS}' must be a SHA-256 hex digest"),
+     f"'files.{WEIGHTS}' '00' is not a SHA-256 digest (64 lower-case hex digits)"),
+    # round 38, W4: digits of the right count in the wrong case are said to be so
+    (lambda d: {**d, "files": {WEIGHTS: SHA.upper(), DATABASE: SHA}},
+     f"'files.{WEIGHTS}' {repr(SHA.upper())[:57]}... is a SHA-256 in upper-case hex digits; a "
+     "map records lower-case ones"),
+    (lambda d: {**d, "frame_pictures": [SHA.upper()] * len(d["frame_names"])},
+     f"'frame_pictures'[0] {repr(SHA.upper())[:57]}... is a SHA-256 in upper-case hex "
+     "digits; a map records lower-case ones (or \"\", not known)"),
 ])
 def test_from_json_refuses_a_bad_field_in_one_line_naming_the_file(change, message):
     with pytest.raises(InputError) as err:

@@ -232,7 +232,7 @@ def test_session_is_left_to_the_native_server(service):
     code, details, kind = refusal(lambda: updates.extend(service.stub.Session(opened,
                                                                              timeout=30)))
     assert (code, kind) == (grpc.StatusCode.FAILED_PRECONDITION, "FAILED_PRECONDITION")
-    assert "`slamreloc serve --engine grpc`" in details
+    assert "the grpc engine (`engine` grpc)" in details  # the setting, as library messages say
     # as the native server refuses a session it cannot open: the error, then the status
     assert [u.WhichOneof("message") for u in updates] == ["error"]
     assert (updates[0].error.kind, updates[0].error.message) == (pb.FAILED_PRECONDITION, details)

@@ -83,14 +83,16 @@ def _map_datasets(prior) -> dict[Path, list]:
 
 
 def _map_pictures(prior, readable: dict[Path, list], own: set[str]) -> frozenset[str]:
-    """The pictures of the map's frames: those it recorded, else (a map of an earlier version)
-    those of its frames in its datasets still at hand (`readable`) whose images read (a frame
-    whose file is gone or no longer an image is no picture to compare)."""
-    recorded = frozenset(p for p in prior.info.frame_pictures or () if p)
-    if prior.info.frame_pictures is not None:
-        return recorded
-    frames = [f for frames_of in readable.values() for f in frames_of if f.name in own]
-    return frozenset(filter(None, _pictures(frames, quiet=True)))
+    """The pictures of the map's frames: those it recorded, and for a frame whose picture it
+    did not record ("", or none recorded: maps of 0.1.0 and before, and the frames such a map
+    passed on to an update or extension) that of its frame in its datasets still at hand
+    (`readable`) where the image reads (a frame whose file is gone or no longer an image is
+    no picture to compare)."""
+    names = prior.info.frame_names or ()
+    recorded = prior.info.frame_pictures or ("",) * len(names)
+    unknown = {n for n, p in zip(names, recorded) if not p} & own
+    frames = [f for frames_of in readable.values() for f in frames_of if f.name in unknown]
+    return frozenset(filter(None, (*recorded, *_pictures(frames, quiet=True))))
 
 
 def _pictures(frames: list, quiet: bool = False) -> list[str | None]:

@@ -62,7 +62,7 @@ _HEADER = ("format", "format_version", "slamreloc_version")
 _TRAILER = ("files", "frame_names", "frame_pictures")
 _STAMPED = (*_HEADER, "version", *_TRAILER)  # what `stamped` sets (`version`: format 1's key)
 _NOT_JSON = ("extra", "order", "source")  # a record's fields that are no key of its JSON
-_PICTURE = re.compile(r"(?:[0-9a-f]{64})?")  # `frame_pictures`' digests, or "" (not known)
+_SHA256 = re.compile(r"[0-9a-f]{64}")  # a digest as the map writes it: lower-case hex
 
 
 def _is_int(v) -> bool:
@@ -563,6 +563,16 @@ def check_recorded_path(root: Json, key: str, path) -> None:
                          f"runs in), got {_short(root)}")
 
 
+def _digest_problem(digest: Json) -> str | None:
+    """Why `digest` is not a SHA-256 as a map records one (`files`, `frame_pictures`): 64
+    lower-case hex digits; None when it is."""
+    if isinstance(digest, str) and _SHA256.fullmatch(digest):
+        return None
+    if isinstance(digest, str) and _SHA256.fullmatch(digest.lower()):
+        return "is a SHA-256 in upper-case hex digits; a map records lower-case ones"
+    return "is not a SHA-256 digest (64 lower-case hex digits)"
+
+
 def _check_schema(meta: dict, version: int, path) -> None:
     def need(obj: dict, key: str, kind, where: str):
         if key not in obj:
@@ -725,9 +735,10 @@ def _check_schema(meta: dict, version: int, path) -> None:
             raise InputError(f"{path}: 'frame_pictures' must be a list of one picture digest "
                              f"per frame of 'frame_names' ({len(names)})")
         for i, digest in enumerate(pictures):
-            if not (isinstance(digest, str) and _PICTURE.fullmatch(digest)):
-                raise InputError(f"{path}: 'frame_pictures'[{i}] {_short(digest)} is not a "
-                                 "picture digest (64 hex digits, or empty)")
+            problem = digest != "" and _digest_problem(digest)  # "": not known
+            if problem:
+                raise InputError(f"{path}: 'frame_pictures'[{i}] {_short(digest)} {problem} "
+                                 "(or \"\", not known)")
     if version >= 2:
         files = need(meta, "files", dict, "")
         for name in (WEIGHTS, DATABASE):
@@ -736,9 +747,9 @@ def _check_schema(meta: dict, version: int, path) -> None:
             if name not in MAP_FILES or name in (META, LEGACY_WEIGHTS):
                 raise InputError(f"{path}: 'files' lists {_short(name)}, which is not a file "
                                  f"a map of format {version} holds")
-            if (not isinstance(digest, str) or len(digest) != 64
-                    or any(c not in "0123456789abcdef" for c in digest)):
-                raise InputError(f"{path}: 'files.{name}' must be a SHA-256 hex digest")
+            problem = _digest_problem(digest)
+            if problem:
+                raise InputError(f"{path}: 'files.{name}' {_short(digest)} {problem}")
 
 
 def _in(low: float, high: float, whole: bool = False) -> Callable[[Any], bool]:

@@ -117,6 +117,12 @@ MIN_TOKEN = 16  # characters of an access token
 # a client's wait for an answer, seconds (clients/cpp's --timeout too): gRPC's deadline
 # arithmetic overflows far beyond the top, and below the bottom every call fails at once
 CLIENT_TIMEOUT_S = (0.001, 1e6)
+# A learning session's save waits up to this for each of two training rounds (the running one
+# and a final one) before its map is written; clients wait that long more than their timeout.
+SAVE_WAIT_S = 300.0
+# What a client allows a session's close (its final graph optimisation, its trajectory) beyond
+# its timeout: a bound, so a server that never answers cannot hold the client forever.
+CLOSE_WAIT_S = 300.0
 
 
 # the blanks dropped around a token where it is read (a file, $SLAMRELOC_TOKEN, a client's

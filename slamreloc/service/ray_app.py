@@ -247,8 +247,8 @@ class Router:
         try:
             self._admit(grpc_context)  # the token first, as for every call
             raise ServiceError(pb.FAILED_PRECONDITION, "sessions are not served on Ray Serve; "
-                               "serve the map with `slamreloc serve --engine grpc` for the "
-                               "Session stream")
+                               "serve the map with the grpc engine (`engine` grpc) for "
+                               "the Session stream")
         except ServiceError as err:
             _refuse(grpc_context, err)
             yield pb.SessionUpdate(error=pb.SessionError(kind=err.kind, message=err.message))

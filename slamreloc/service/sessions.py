@@ -31,6 +31,7 @@ from slamreloc.io.images import depth_units_problem
 from slamreloc.map.joining import ONE_CAMERA
 from slamreloc.proto import relocalizer_pb2 as pb
 from slamreloc.proto.messages import (
+    SAVE_WAIT_S,
     ServiceError,
     camera_from_msg,
     check_depth_camera,
@@ -63,7 +64,7 @@ class Session:
     (`served` None) on the map it learns (`live`: its `LiveMapConfig`)."""
 
     # a save before the first training round has ended waits this long for it
-    SAVE_WAIT_S = 300.0
+    SAVE_WAIT_S = SAVE_WAIT_S  # each of the two rounds a save waits for (seconds)
 
     def __init__(self, served: ServedMap | None, request: pb.SessionOpen,
                  live: LiveMapConfig | None = None):
