@@ -135,19 +135,17 @@ def test_huge_intrinsics_are_shown_short(values, shown, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def lens_maps(scene_dir, tmp_path_factory, request):
+def lens_maps(scene_dir, small_map, tmp_path_factory):
     """The small scene rendered through each lens, and a map of each. The distorted maps train
     half the pinhole session map's epochs (to keep the suite short): the comparison
-    favours the pinhole scene. The session's pinhole map is asked for last: where another
-    worker is building it, these are built meanwhile instead of waiting on its lock."""
+    favours the pinhole scene."""
     root = tmp_path_factory.mktemp("lenses")
-    out = {}
+    out = {"pinhole": (scene_dir, small_map)}
     for name, config in LENS_SCENES.items():
         scene = render_scene(root / name, replace(config, n_kidnap=2, n_unlabelled=2))
         scene_map = build_map(load_dataset(scene), root / f"{name}_map", "train",
                               small_map_config(epochs=30), progress=False)
         out[name] = (scene, scene_map)
-    out["pinhole"] = (scene_dir, request.getfixturevalue("small_map"))
     return out
 
 
