@@ -40,9 +40,8 @@ def _camera_problem(dataset, frame, camera: Camera, of_what: str, advice: str) -
 
 @dataclass(frozen=True)
 class Held:
-    """What a map holds of the frames that would join it (`check_joining`): `names`, those
-    of them named as one of its frames (in the dataset it took them from), and `pictures`,
-    its frames' pictures (`io.images.picture_digest`) for a frame of another name to be
+    """What a map holds (`held_by`): its frames' `names` (in the datasets it took them from)
+    and `pictures` (`io.images.picture_digest`), for a frame that would join it to be
     compared with (`holds`)."""
 
     names: frozenset[str] = frozenset()
@@ -56,17 +55,23 @@ class Held:
 def check_joining(prior, map_dir: Path, dataset, frames: list) -> Held:
     """InputError, naming the dataset, unless `frames` of `dataset` may join the map `prior`
     (a `SceneMap`, read from `map_dir`): of its camera, and named apart from the frames of its
-    other datasets (see the module's docstring). Returns what the map holds of them: the
-    names it holds, and its frames' pictures, for the caller to leave out (a SLAM session,
-    as it reads each frame) or refuse (`refuse_held`). The map's datasets are read once."""
+    other datasets (see the module's docstring). Returns what the map holds (`held_by`), for
+    the caller to leave out (a SLAM session, as it reads each frame) or refuse
+    (`refuse_held`). The map's datasets are read once for both."""
     for frame in frames:
         _camera_problem(dataset, frame, prior.camera, f"the map {map_dir}",
                         "extend it with frames of its camera")
     own = set(prior.info.frame_names or ())
     readable = _map_datasets(prior)
     _names_apart(prior, map_dir, dataset, own, readable)
-    held = frozenset(f.name for f in frames if f.name in own)
-    return Held(held, _map_pictures(prior, readable, own))
+    return Held(frozenset(own), _map_pictures(prior, readable, own))
+
+
+def held_by(prior) -> Held:
+    """What the map `prior` holds (`Held`), as `check_joining` returns it: for a caller that
+    adds frames to it without that check (a `LiveMap` made in code)."""
+    own = set(prior.info.frame_names or ())
+    return Held(frozenset(own), _map_pictures(prior, _map_datasets(prior), own))
 
 
 def _map_datasets(prior) -> dict[Path, list]:

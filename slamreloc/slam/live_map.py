@@ -37,7 +37,7 @@ from slamreloc.localize.localizer import REGRESSOR_PNP, Localization
 from slamreloc.localize.pnp import PnPConfig, PoseEstimate, estimate_pose, refine_from
 from slamreloc.io.images import picture_digest
 from slamreloc.map.format import SURFACE
-from slamreloc.map.joining import Held
+from slamreloc.map.joining import Held, held_by
 from slamreloc.map.meta import (
     CameraMeta,
     DatasetMeta,
@@ -142,8 +142,8 @@ def _not_localized(n: int, source: str = "") -> LiveLocalization:
 class LiveMap:
     """The map a session builds (see the module's docstring). `prior`: a map to extend
     (multi-session): its rows become fixed frames and its regressor the learner's start;
-    `held`: what the prior holds of the session's frames (`map.joining.check_joining`; by
-    default its frames' names and recorded pictures): such frames never become keyframes."""
+    `held`: what the prior holds (`map.joining.check_joining`, or by default `held_by`): its
+    frames, by name or by picture, never become keyframes."""
 
     def __init__(self, config: LiveMapConfig = LiveMapConfig(), prior: SceneMap | None = None,
                  held: Held | None = None):
@@ -158,8 +158,7 @@ class LiveMap:
             self.store = KeyframeStore.from_database(prior.database)
             self.camera: Camera | None = prior.camera
             # frames the prior holds (by name or by picture) are never added again
-            held = held or Held(pictures=frozenset(filter(None, prior.database.frame_pictures)))
-            self._held = Held(held.names | frozenset(prior.info.frame_names or ()), held.pictures)
+            self._held = held or held_by(prior)
         else:
             model_config = RegressorConfig.preset(config.arch, self.extractor.dim)
             self.store = KeyframeStore()
